@@ -1,0 +1,23 @@
+# The two commands of the README. Each creates .venv and installs what it needs.
+#   make demo   the main job: end-to-end demo on the built-in objects
+#   make test   the test suite (what CI runs)
+PYTHON ?= python3
+VENV ?= .venv
+TORCH ?= torch==2.13.0
+BIN := $(VENV)/bin
+export PYOPENGL_PLATFORM ?= egl
+
+$(BIN)/.installed: pyproject.toml runtime/pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet "$(TORCH)"
+	$(BIN)/python -m pip install --quiet -e ./runtime -e ".[dev]"
+	touch $@
+
+.PHONY: install test lint
+install: $(BIN)/.installed
+
+test: $(BIN)/.installed
+	$(BIN)/python -m pytest
+
+lint: $(BIN)/.installed
+	$(BIN)/ruff check runtime trainer tests bench

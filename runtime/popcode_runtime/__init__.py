@@ -1,0 +1,36 @@
+"""popcode runtime: crop, infer and decode object rotations from a population-code ONNX model.
+
+Needs only numpy, onnxruntime and OpenCV. The trainer imports the code layout,
+rotation maths, crop and decoding from here, so there is one definition of each.
+"""
+
+__version__ = "0.1.0"
+
+from .code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
+from .crop import crop_batch, crop_square, read_image, to_grey
+from .errors import PopcodeError
+from .estimator import PoseEstimator, Prediction, parse_camera_matrix
+from .metadata import ModelMetadata, Representation, RotationFrame
+from .symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
+
+__all__ = [
+    "CodeLayout",
+    "DecodedRotations",
+    "ModelMetadata",
+    "PopcodeError",
+    "PopulationCode",
+    "PoseEstimator",
+    "Prediction",
+    "Representation",
+    "RotationFrame",
+    "SymmetryClass",
+    "crop_batch",
+    "crop_square",
+    "fibonacci_lattice",
+    "parse_camera_matrix",
+    "read_image",
+    "symmetry_class",
+    "symmetry_rotations",
+    "symmetry_transforms",
+    "to_grey",
+]

@@ -1,0 +1,119 @@
+"""Latency of a model on this device: warm-up, then percentiles of many timed calls.
+
+Used by ``popcode bench`` and by ``bench/latency``; numbers, never assertions.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from functools import partial
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import onnxruntime as ort
+
+from .estimator import PoseEstimator
+
+BENCH_IMAGE_SHAPE = (540, 720)  # T-LESS Primesense resolution, (H, W)
+
+
+@dataclass(frozen=True)
+class LatencyStats:
+    """Percentiles of per-call latency and the implied throughput."""
+
+    stage: str  # "end-to-end" (crop + inference + decode) or "inference"
+    batch: int
+    threads: int
+    median_ms: float
+    p90_ms: float
+    p99_ms: float
+    mean_ms: float
+    iterations: int
+    crops_per_s: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def time_calls(call: Callable[[], object], warmup: int, iterations: int) -> np.ndarray:
+    """Per-call wall times in milliseconds, after ``warmup`` untimed calls."""
+    for _ in range(warmup):
+        call()
+    times = np.empty(iterations)
+    for index in range(iterations):
+        started = time.perf_counter()
+        call()
+        times[index] = (time.perf_counter() - started) * 1e3
+    return times
+
+
+def summarize(times_ms: np.ndarray, stage: str, batch: int, threads: int) -> LatencyStats:
+    median = float(np.median(times_ms))
+    return LatencyStats(
+        stage=stage,
+        batch=batch,
+        threads=threads,
+        median_ms=median,
+        p90_ms=float(np.percentile(times_ms, 90)),
+        p99_ms=float(np.percentile(times_ms, 99)),
+        mean_ms=float(np.mean(times_ms)),
+        iterations=len(times_ms),
+        crops_per_s=batch * 1e3 / median,
+    )
+
+
+def synthetic_scene(batch: int, rng: np.random.Generator) -> tuple[np.ndarray, list[list[float]]]:
+    """A random grey uint8 image and ``batch`` object-sized boxes inside it."""
+    height, width = BENCH_IMAGE_SHAPE
+    image = rng.integers(0, 256, size=(height, width), dtype=np.uint8)
+    boxes = []
+    for _ in range(batch):
+        w, h = rng.uniform(60, 200, size=2)
+        boxes.append([float(rng.uniform(0, width - w)), float(rng.uniform(0, height - h)), float(w), float(h)])
+    return image, boxes
+
+
+def benchmark_estimator(
+    estimator: PoseEstimator,
+    batch_sizes: Sequence[int] = (1, 8, 32),
+    warmup: int = 10,
+    iterations: int = 100,
+    threads: int = 0,
+    seed: int = 0,
+) -> list[LatencyStats]:
+    """End-to-end and inference-only latency for each batch size."""
+    rng = np.random.default_rng(seed)
+    K = [1075.65, 1073.90, 360.0, 270.0]  # any valid camera; only allocentric models use it
+    results = []
+    for batch in batch_sizes:
+        image, boxes = synthetic_scene(batch, rng)
+        crops = estimator.crops(image, boxes)
+        results.append(summarize(
+            time_calls(partial(estimator.predict, image, boxes, K=K), warmup, iterations), "end-to-end", batch, threads))
+        results.append(summarize(
+            time_calls(partial(estimator.run, crops), warmup, iterations), "inference", batch, threads))
+    return results
+
+
+def machine_description() -> dict:
+    """What the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "system": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "onnxruntime": ort.__version__,
+    }

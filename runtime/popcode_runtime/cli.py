@@ -1,0 +1,162 @@
+"""The ``popcode`` command: predict, info and bench on an ONNX popcode model."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+
+from . import __version__
+from .benchmark import benchmark_estimator, machine_description
+from .crop import read_image
+from .errors import PopcodeError
+from .estimator import PoseEstimator, parse_camera_matrix
+from .symmetries import symmetry_class
+
+
+def _numbers(text: str, count: int | None, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",")]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{what} must be comma-separated numbers, got {text!r}") from error
+    if count is not None and len(values) != count:
+        raise argparse.ArgumentTypeError(f"{what} needs {count} numbers, got {len(values)} in {text!r}")
+    return values
+
+
+def _box(text: str) -> list[float]:
+    return _numbers(text, 4, "--box X,Y,W,H")
+
+
+def _camera(text: str) -> list[float]:
+    return _numbers(text, None, "--K fx,fy,cx,cy")
+
+
+def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--provider", action="append", metavar="NAME",
+                        help="execution provider: cpu (default), cuda, coreml, ...; repeat for a preference order")
+    parser.add_argument("--threads", type=int, default=0, help="intra-op threads (0: all cores, the default)")
+
+
+def _predict(args: argparse.Namespace) -> int:
+    estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads)
+    image = read_image(args.image)
+    K = parse_camera_matrix(args.K) if args.K else None
+    predictions = estimator.predict(image, args.box, K=K, return_code=args.code)
+    if args.json:
+        print(json.dumps({"model": str(args.model), "image": str(args.image),
+                          "predictions": [p.to_dict() for p in predictions]}, indent=2))
+        return 0
+    np.set_printoptions(precision=4, suppress=True)
+    for index, prediction in enumerate(predictions):
+        axis = ", ".join(f"{v:+.3f}" for v in prediction.axis)
+        print(f"box {index} {list(prediction.box)}: angle {np.degrees(prediction.angle_rad):.1f} deg "
+              f"about ({axis}), score {prediction.score:.3f}")
+        for row in prediction.R_m2c:
+            print("    " + "  ".join(f"{v:+.4f}" for v in row))
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    estimator = PoseEstimator(args.model)
+    meta = estimator.metadata
+    if args.json:
+        print(json.dumps({"model": str(args.model), "providers": estimator.providers,
+                          "output_dim": meta.output_dim, **{k: json.loads(v) for k, v in meta.to_props().items()}},
+                         indent=2))
+        return 0
+    code = meta.code
+    layout = (f"{code.n_axes} axes (axis-only, symmetry axis {list(code.symmetry_axis)})" if code.axis_only
+              else f"{code.n_axes} axes x {code.n_angles} angles")
+    print(f"model            {args.model}")
+    print(f"representation   {meta.representation} ({meta.output_dim} outputs per crop)")
+    print(f"code             {layout}, sigma {code.sigma_deg:g} deg, {code.lattice} lattice")
+    print(f"rotation frame   {meta.rotation_frame}")
+    print(f"input            {meta.input_size}x{meta.input_size} grey crop, padding {meta.crop_padding:g}")
+    for obj_id, info in sorted(meta.objects.items()):
+        diameter = info.get("diameter")
+        size = f", diameter {diameter:.1f} mm" if isinstance(diameter, (int, float)) else ""
+        print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}")
+    for key, value in sorted(meta.training.items()):
+        print(f"training.{key:<8} {value}")
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads)
+    stats = benchmark_estimator(estimator, args.batch, args.warmup, args.iterations, args.threads)
+    if args.json:
+        print(json.dumps({"model": str(args.model), "providers": estimator.providers,
+                          "machine": machine_description(), "results": [s.to_dict() for s in stats]}, indent=2))
+        return 0
+    machine = machine_description()
+    print(f"{args.model} on {machine['cpu']} ({machine['cores']} cores), {', '.join(estimator.providers)}, "
+          f"threads {args.threads or 'all'}")
+    print("| stage | batch | median ms | p90 ms | p99 ms | crops/s |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for s in stats:
+        print(f"| {s.stage} | {s.batch} | {s.median_ms:.2f} | {s.p90_ms:.2f} | {s.p99_ms:.2f} | {s.crops_per_s:.0f} |")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="popcode", description="Object rotation from a neural population code.")
+    parser.add_argument("--version", action="version", version=f"popcode-runtime {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    predict = commands.add_parser("predict", help="rotation of the object in each box of an image",
+                                  description="Crop each box, run the model once on the batch, decode rotations.")
+    predict.add_argument("model", help="popcode ONNX model")
+    predict.add_argument("image", help="image file (grey or colour, 8 or 16 bit)")
+    predict.add_argument("--box", type=_box, action="append", required=True, metavar="X,Y,W,H",
+                         help="object box in pixels (top-left corner, width, height); repeat for several objects")
+    predict.add_argument("--K", type=_camera, metavar="FX,FY,CX,CY",
+                         help="camera intrinsics (needed by allocentric models); fx,fy,cx,cy or 9 numbers row-major")
+    predict.add_argument("--json", action="store_true", help="print JSON instead of text")
+    predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
+    _add_runtime_options(predict)
+    predict.set_defaults(handler=_predict)
+
+    info = commands.add_parser("info", help="what a model's metadata says",
+                               description="Check a model and print its representation, code, objects and training.")
+    info.add_argument("model", help="popcode ONNX model")
+    info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    info.set_defaults(handler=_info)
+
+    bench = commands.add_parser("bench", help="latency and throughput on this device",
+                                description="Warm up, then time end-to-end (crop+inference+decode) and "
+                                            "inference-only calls at each batch size.")
+    bench.add_argument("model", help="popcode ONNX model")
+    bench.add_argument("--batch", type=int, action="append", metavar="N",
+                       help="batch size; repeat for several (default: 1, 8 and 32)")
+    bench.add_argument("--warmup", type=int, default=10, help="untimed calls first (default 10)")
+    bench.add_argument("--iterations", type=int, default=100, help="timed calls per row (default 100)")
+    bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    _add_runtime_options(bench)
+    bench.set_defaults(handler=_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; bad input ends with one line on stderr and exit code 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "batch", None) is None and args.command == "bench":
+        args.batch = [1, 8, 32]
+    if args.command == "bench" and (min(args.batch) < 1 or args.iterations < 1 or args.warmup < 0):
+        parser.error("batch sizes and iterations must be positive, warmup non-negative")
+    try:
+        return args.handler(args)
+    except PopcodeError as error:
+        print(f"popcode: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("popcode: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,134 @@
+"""Images in, network crops out (DESIGN.md section 3) -- used for training and inference alike.
+
+A box ``(x, y, w, h)`` in pixels becomes a square of side ``padding * max(w, h)``
+centred on the box centre; what falls outside the image is 0. The square is
+resized to ``size x size``, grey, float32 in [0, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import PopcodeError
+
+CROP_SIZE = 128
+CROP_PADDING = 1.1
+
+_GREY_WEIGHTS_RGB = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image file as grey float32 ``(H, W)`` in [0, 1] (8- or 16-bit, grey or colour)."""
+    path = Path(path)
+    if not path.is_file():
+        raise PopcodeError(f"image file not found: {path}")
+    image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if image is None:
+        raise PopcodeError(f"cannot read image {path}: not an image format OpenCV can decode")
+    if image.ndim == 3:
+        image = image[..., :3][..., ::-1]  # OpenCV reads BGR(A); popcode works in RGB
+    return to_grey(image)
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """Grey float32 ``(H, W)`` in [0, 1] from grey ``(H, W)``/``(H, W, 1)`` or RGB ``(H, W, 3)``.
+
+    uint8 is divided by 255, uint16 by 65535; float images must already lie in [0, 1].
+    """
+    if not isinstance(image, np.ndarray):
+        raise PopcodeError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise PopcodeError(f"image must have shape (H, W) or (H, W, 3), got {image.shape}")
+    if image.shape[0] < 1 or image.shape[1] < 1:
+        raise PopcodeError(f"image is empty: shape {image.shape}")
+    if image.dtype == np.uint8:
+        grey = image.astype(np.float32) / 255.0
+    elif image.dtype == np.uint16:
+        grey = image.astype(np.float32) / 65535.0
+    elif image.dtype in (np.float32, np.float64):
+        grey = image.astype(np.float32)
+        if not np.isfinite(grey).all():
+            raise PopcodeError("image contains NaN or inf pixels")
+        if grey.min() < 0.0 or grey.max() > 1.0:
+            raise PopcodeError(
+                f"float image values must lie in [0, 1], got [{grey.min():.3g}, {grey.max():.3g}]"
+            )
+    else:
+        raise PopcodeError(f"unsupported image dtype {image.dtype}; use uint8, uint16 or float32 in [0, 1]")
+    if grey.ndim == 3:
+        grey = grey @ _GREY_WEIGHTS_RGB
+    return np.ascontiguousarray(grey)
+
+
+def check_box(box: Sequence[float], image_shape: tuple[int, ...]) -> tuple[float, float, float, float]:
+    """Validate a box ``(x, y, w, h)`` against an image; returns it as floats.
+
+    A box partly outside the image is fine (zero fill); one wholly outside is not.
+    """
+    try:
+        x, y, w, h = (float(v) for v in box)
+    except (TypeError, ValueError) as error:
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {box!r}") from error
+    if not all(np.isfinite([x, y, w, h])):
+        raise PopcodeError(f"box {box!r} contains NaN or inf")
+    if w <= 0 or h <= 0:
+        raise PopcodeError(f"box {box!r} is empty: width and height must be positive")
+    height, width = image_shape[:2]
+    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
+        raise PopcodeError(f"box {box!r} lies wholly outside the {width}x{height} image")
+    return x, y, w, h
+
+
+def crop_square(
+    grey: np.ndarray,
+    box: Sequence[float],
+    size: int = CROP_SIZE,
+    padding: float = CROP_PADDING,
+    shift_px: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """One crop ``(size, size)`` float32 from a grey image ``(H, W)`` in [0, 1].
+
+    ``shift_px`` moves the square by whole source pixels (used by the
+    training augmentation); the padded side is rounded to whole pixels and
+    shrunk with area interpolation, so large boxes do not alias.
+    """
+    x, y, w, h = check_box(box, grey.shape)
+    side = max(1, int(round(padding * max(w, h))))
+    centre_x = x + w / 2.0 + shift_px[0]
+    centre_y = y + h / 2.0 + shift_px[1]
+    x0 = int(round(centre_x - side / 2.0))
+    y0 = int(round(centre_y - side / 2.0))
+    square = np.zeros((side, side), dtype=np.float32)
+    height, width = grey.shape
+    src_x0, src_y0 = max(x0, 0), max(y0, 0)
+    src_x1, src_y1 = min(x0 + side, width), min(y0 + side, height)
+    if src_x1 > src_x0 and src_y1 > src_y0:
+        square[src_y0 - y0 : src_y1 - y0, src_x0 - x0 : src_x1 - x0] = grey[src_y0:src_y1, src_x0:src_x1]
+    interpolation = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
+    return cv2.resize(square, (size, size), interpolation=interpolation)
+
+
+def crop_batch(
+    image: np.ndarray,
+    boxes: Sequence[Sequence[float]],
+    size: int = CROP_SIZE,
+    padding: float = CROP_PADDING,
+) -> np.ndarray:
+    """Crops of many boxes in one image as the network input ``(N, 1, size, size)`` float32."""
+    grey = to_grey(image)
+    if len(boxes) == 0:
+        raise PopcodeError("no boxes given")
+    crops = [crop_square(grey, box, size, padding) for box in boxes]
+    return np.stack(crops)[:, None]
+
+
+def box_centre(box: Sequence[float]) -> np.ndarray:
+    """Centre ``(2,)`` of a box ``(x, y, w, h)`` in pixels."""
+    x, y, w, h = (float(v) for v in box)
+    return np.array([x + w / 2.0, y + h / 2.0])

@@ -1,0 +1,201 @@
+"""``PoseEstimator``: an ONNX popcode model behind one call, image + boxes -> rotations."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from .crop import box_centre, crop_batch
+from .decoding import decode_output
+from .errors import PopcodeError
+from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata, RotationFrame
+from .rotations import allocentric_to_egocentric, matrix_to_axis_angle
+
+PROVIDER_NAMES = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "dml": "DmlExecutionProvider",
+}
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The rotation of one object instance (model-to-camera, OpenCV camera frame)."""
+
+    R_m2c: np.ndarray  # (3, 3)
+    axis: np.ndarray  # (3,) unit rotation axis of R_m2c
+    angle_rad: float  # rotation angle of R_m2c in [0, pi]
+    score: float  # peak activation (population code) or the representation's own score
+    box: tuple[float, float, float, float]
+    code: np.ndarray | None = None  # raw network output, when asked for
+
+    def to_dict(self) -> dict:
+        data = {
+            "box": list(self.box),
+            "R_m2c": self.R_m2c.tolist(),
+            "axis": self.axis.tolist(),
+            "angle_deg": float(np.degrees(self.angle_rad)),
+            "score": self.score,
+        }
+        if self.code is not None:
+            data["code"] = self.code.tolist()
+        return data
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Seconds spent per stage of the last call."""
+
+    crop_s: float
+    inference_s: float
+    decode_s: float
+
+
+def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    """A camera matrix from ``(fx, fy, cx, cy)``, 9 row-major numbers or a 3x3 array."""
+    K = np.asarray(values, dtype=np.float64)
+    if K.shape == (4,):
+        fx, fy, cx, cy = K
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    elif K.size == 9:
+        K = K.reshape(3, 3)
+    else:
+        raise PopcodeError(f"a camera matrix is fx,fy,cx,cy or 9 numbers; got {K.size} numbers")
+    if not np.isfinite(K).all():
+        raise PopcodeError("camera matrix contains NaN or inf")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(np.linalg.det(K)) < 1e-12:
+        raise PopcodeError(f"not a valid camera matrix (focal lengths must be positive, last row 0 0 1): {K.tolist()}")
+    return K
+
+
+def resolve_providers(providers: Sequence[str] | None) -> list[str]:
+    """Map short names (``cpu``, ``cuda``, ``coreml``...) to onnxruntime providers; CPU last.
+
+    Asking for one this onnxruntime build lacks is an error, not a silent fallback.
+    """
+    available = ort.get_available_providers()
+    resolved = []
+    for name in providers or ["cpu"]:
+        full = PROVIDER_NAMES.get(name.lower(), name)
+        if full not in available:
+            raise PopcodeError(
+                f"execution provider {name!r} is not available in this onnxruntime build; "
+                f"available: {', '.join(available)}"
+            )
+        resolved.append(full)
+    if "CPUExecutionProvider" not in resolved:
+        resolved.append("CPUExecutionProvider")
+    return resolved
+
+
+class PoseEstimator:
+    """Load a popcode ONNX model once; then ``predict(image, boxes)`` in one batched run.
+
+    ``threads`` sets onnxruntime's intra-op threads (0: its default, all cores).
+    """
+
+    def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
+        self.model_path = Path(model_path)
+        if not self.model_path.is_file():
+            raise PopcodeError(f"model file not found: {self.model_path}")
+        if threads < 0:
+            raise PopcodeError(f"threads must be >= 0, got {threads}")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(self.model_path), options, providers=resolve_providers(providers))
+        except PopcodeError:
+            raise
+        except Exception as error:  # onnxruntime raises its own exception types
+            first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise PopcodeError(f"cannot load {self.model_path} as an ONNX model: {first_line}") from error
+        self.metadata = ModelMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+        self._check_signature()
+        self.last_timings = Timings(0.0, 0.0, 0.0)
+
+    def _check_signature(self) -> None:
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        outputs = {o.name: o for o in self.session.get_outputs()}
+        if INPUT_NAME not in inputs or len(inputs) != 1:
+            raise PopcodeError(f"model must have exactly one input named '{INPUT_NAME}', it has {sorted(inputs)}")
+        if OUTPUT_NAME not in outputs:
+            raise PopcodeError(f"model has no output named '{OUTPUT_NAME}' (outputs: {sorted(outputs)})")
+        size = self.metadata.input_size
+        shape = inputs[INPUT_NAME].shape
+        if len(shape) != 4 or [d for d in shape[1:]] != [1, size, size]:
+            raise PopcodeError(f"input '{INPUT_NAME}' must be [N, 1, {size}, {size}], the model declares {shape}")
+        if inputs[INPUT_NAME].type != "tensor(float)":
+            raise PopcodeError(f"input '{INPUT_NAME}' must be float32, the model declares {inputs[INPUT_NAME].type}")
+        self.metadata.check_output(outputs[OUTPUT_NAME].shape)
+
+    @property
+    def providers(self) -> list[str]:
+        return self.session.get_providers()
+
+    def run(self, crops: np.ndarray) -> np.ndarray:
+        """Raw network output ``(N, D)`` for crops ``(N, 1, S, S)`` float32 in [0, 1]."""
+        size = self.metadata.input_size
+        if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or crops.dtype != np.float32:
+            raise PopcodeError(f"crops must be float32 [N, 1, {size}, {size}], got {crops.dtype} {crops.shape}")
+        output = self.session.run([OUTPUT_NAME], {INPUT_NAME: crops})[0]
+        expected = (len(crops), self.metadata.output_dim)
+        if output.shape != expected:
+            raise PopcodeError(f"model returned shape {output.shape}, metadata implies {expected}")
+        return output
+
+    def crops(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> np.ndarray:
+        """The network input ``(N, 1, S, S)`` for boxes in an image (the shared crop)."""
+        return crop_batch(image, boxes, self.metadata.input_size, self.metadata.crop_padding)
+
+    def predict(
+        self,
+        image: np.ndarray,
+        boxes: Sequence[Sequence[float]],
+        K: Sequence[float] | np.ndarray | None = None,
+        return_code: bool = False,
+    ) -> list[Prediction]:
+        """Rotations of the objects in ``boxes`` (``(x, y, w, h)`` pixels) of ``image``.
+
+        ``image`` is grey ``(H, W)`` or RGB ``(H, W, 3)``, uint8/uint16 or float
+        in [0, 1]. ``K`` (``fx, fy, cx, cy`` or 3x3) is required for models that
+        predict allocentric rotations, to turn them back into the camera frame.
+        """
+        meta = self.metadata
+        camera = None
+        if K is not None:
+            camera = parse_camera_matrix(K)
+        elif meta.rotation_frame == RotationFrame.ALLOCENTRIC:
+            raise PopcodeError("this model predicts allocentric rotations: pass the camera matrix K")
+        started = time.perf_counter()
+        crops = self.crops(image, boxes)
+        cropped = time.perf_counter()
+        output = self.run(crops)
+        inferred = time.perf_counter()
+        decoded = decode_output(output, meta)
+        R = decoded.R
+        if meta.rotation_frame == RotationFrame.ALLOCENTRIC:
+            centres = np.stack([box_centre(box) for box in boxes])
+            R = allocentric_to_egocentric(R, camera, centres)
+        finished = time.perf_counter()
+        self.last_timings = Timings(cropped - started, inferred - cropped, finished - inferred)
+        axes, angles = matrix_to_axis_angle(R)
+        return [
+            Prediction(
+                R_m2c=R[i],
+                axis=axes[i],
+                angle_rad=float(angles[i]),
+                score=float(decoded.activation[i]),
+                box=tuple(float(v) for v in boxes[i]),
+                code=output[i].copy() if return_code else None,
+            )
+            for i in range(len(boxes))
+        ]

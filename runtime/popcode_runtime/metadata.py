@@ -1,0 +1,163 @@
+"""What a popcode ONNX model says about itself (DESIGN.md section 3).
+
+Everything the runtime needs to decode travels inside the model as
+``metadata_props``: one key per field, each value JSON. The trainer writes it
+with :meth:`ModelMetadata.to_props`; the runtime reads and checks it with
+:meth:`ModelMetadata.from_props` and :meth:`ModelMetadata.check_output`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from .code import CodeLayout
+from .crop import CROP_PADDING, CROP_SIZE
+from .errors import PopcodeError
+from .symmetries import SymmetryClass, symmetry_class
+
+FORMAT_VERSION = 1
+INPUT_NAME = "image"
+OUTPUT_NAME = "code"
+
+
+class Representation:
+    """Names of the output representations; each decodes differently."""
+
+    POPULATION_CODE = "population_code"
+    ONE_HOT = "one_hot"
+    SINGLE_VARIABLE = "single_variable"
+    MULTI_HYPOTHESIS = "multi_hypothesis"
+    ALL = (POPULATION_CODE, ONE_HOT, SINGLE_VARIABLE, MULTI_HYPOTHESIS)
+
+
+class RotationFrame:
+    """Which rotation the network predicts: in the camera frame, or as seen along the ray."""
+
+    EGOCENTRIC = "egocentric"
+    ALLOCENTRIC = "allocentric"
+    ALL = (EGOCENTRIC, ALLOCENTRIC)
+
+
+@dataclass(frozen=True)
+class ModelMetadata:
+    """Decoded metadata of a popcode model.
+
+    ``objects`` maps BOP object ids to their ``models_info.json`` entries.
+    ``output_dim`` is the length of one output row; for the grid
+    representations it must equal ``code.size``. ``num_hypotheses`` is the M
+    of the multiple-hypotheses baseline.
+    """
+
+    representation: str
+    code: CodeLayout
+    objects: dict[int, dict[str, Any]]
+    rotation_frame: str = RotationFrame.EGOCENTRIC
+    input_size: int = CROP_SIZE
+    crop_padding: float = CROP_PADDING
+    num_hypotheses: int = 0
+    training: dict[str, Any] = field(default_factory=dict)
+    format_version: int = FORMAT_VERSION
+
+    def __post_init__(self) -> None:
+        if self.representation not in Representation.ALL:
+            raise PopcodeError(
+                f"unknown representation {self.representation!r}; expected one of {Representation.ALL}"
+            )
+        if self.rotation_frame not in RotationFrame.ALL:
+            raise PopcodeError(
+                f"unknown rotation_frame {self.rotation_frame!r}; expected one of {RotationFrame.ALL}"
+            )
+        if not self.objects:
+            raise PopcodeError("metadata lists no objects")
+        classes = {symmetry_class(info) for info in self.objects.values()}
+        continuous = SymmetryClass.CONTINUOUS in classes
+        if continuous and len(classes) > 1:
+            raise PopcodeError("objects with and without a continuous symmetry cannot share one model")
+        if continuous != self.code.axis_only:
+            raise PopcodeError(
+                "code.axis_only must be true exactly when the objects have a continuous symmetry"
+            )
+        if self.representation == Representation.MULTI_HYPOTHESIS and self.num_hypotheses < 1:
+            raise PopcodeError("a multi_hypothesis model needs num_hypotheses >= 1")
+        if self.input_size < 8:
+            raise PopcodeError(f"input_size {self.input_size} is too small")
+
+    @property
+    def output_dim(self) -> int:
+        """Length of one output row that this metadata implies."""
+        if self.representation in (Representation.POPULATION_CODE, Representation.ONE_HOT):
+            return self.code.size
+        if self.representation == Representation.SINGLE_VARIABLE:
+            return 3 if self.code.axis_only else 6
+        return 4 * self.num_hypotheses
+
+    def check_output(self, output_shape: list[Any]) -> None:
+        """Refuse a model whose declared output shape disagrees with the metadata."""
+        if len(output_shape) != 2:
+            raise PopcodeError(f"output '{OUTPUT_NAME}' must be 2-D [N, D], the model declares {output_shape}")
+        width = output_shape[1]
+        if isinstance(width, int) and width != self.output_dim:
+            raise PopcodeError(
+                f"output '{OUTPUT_NAME}' has {width} values per crop but the metadata "
+                f"({self.representation}, code size {self.code.size}) implies {self.output_dim}"
+            )
+
+    def to_props(self) -> dict[str, str]:
+        """``metadata_props`` entries: one key per field, JSON values."""
+        return {
+            "popcode.format_version": json.dumps(self.format_version),
+            "popcode.representation": json.dumps(self.representation),
+            "popcode.code": json.dumps(self.code.to_dict()),
+            "popcode.objects": json.dumps({str(k): v for k, v in self.objects.items()}),
+            "popcode.rotation_frame": json.dumps(self.rotation_frame),
+            "popcode.input": json.dumps({"size": self.input_size, "crop_padding": self.crop_padding}),
+            "popcode.num_hypotheses": json.dumps(self.num_hypotheses),
+            "popcode.training": json.dumps(self.training),
+        }
+
+    @classmethod
+    def from_props(cls, props: Mapping[str, str]) -> ModelMetadata:
+        """Parse ``metadata_props``; names the key that is missing or malformed."""
+        if "popcode.format_version" not in props:
+            raise PopcodeError("not a popcode model: its metadata has no 'popcode.format_version'")
+
+        def load(key: str, default: Any = None) -> Any:
+            if key not in props:
+                if default is not None:
+                    return default
+                raise PopcodeError(f"model metadata lacks '{key}'")
+            try:
+                return json.loads(props[key])
+            except json.JSONDecodeError as error:
+                raise PopcodeError(f"model metadata '{key}' is not valid JSON: {error}") from error
+
+        version = load("popcode.format_version")
+        if version != FORMAT_VERSION:
+            raise PopcodeError(
+                f"model format version {version} is not supported by this runtime (it reads {FORMAT_VERSION})"
+            )
+        code = load("popcode.code")
+        objects = load("popcode.objects")
+        input_info = load("popcode.input")
+        if not isinstance(code, dict) or not isinstance(objects, dict) or not isinstance(input_info, dict):
+            raise PopcodeError("model metadata 'popcode.code', 'popcode.objects' and 'popcode.input' must be objects")
+        try:
+            object_map = {int(k): dict(v) for k, v in objects.items()}
+            return cls(
+                representation=load("popcode.representation"),
+                code=CodeLayout.from_dict(code),
+                objects=object_map,
+                rotation_frame=load("popcode.rotation_frame"),
+                input_size=int(input_info.get("size", CROP_SIZE)),
+                crop_padding=float(input_info.get("crop_padding", CROP_PADDING)),
+                num_hypotheses=int(load("popcode.num_hypotheses", 0)),
+                training=load("popcode.training", {}),
+                format_version=version,
+            )
+        except (TypeError, ValueError) as error:
+            if isinstance(error, PopcodeError):
+                raise
+            raise PopcodeError(f"malformed popcode metadata: {error}") from error

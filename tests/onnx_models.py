@@ -1,0 +1,57 @@
+"""Small real ONNX models with popcode metadata, built with the onnx package for tests.
+
+The graph is average-pool -> flatten -> MatMul + bias, so its output is a known
+code (the bias) plus a small input-dependent part: enough to test cropping,
+batching, metadata checks and decoding through real onnxruntime inference.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+
+ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
+ONNX_OPSET = 17
+
+
+def linear_model(
+    bias: np.ndarray,
+    weight_scale: float = 0.0,
+    metadata: ModelMetadata | None = None,
+    output_dim: int | None = None,
+    input_size: int = 128,
+    seed: int = 0,
+) -> onnx.ModelProto:
+    """``code = flatten(avgpool32(image)) @ W + bias`` with W ~ weight_scale * N(0, 1)."""
+    dim = len(bias) if output_dim is None else output_dim
+    pooled = (input_size // 32) ** 2
+    weight = (np.random.default_rng(seed).normal(size=(pooled, dim)) * weight_scale).astype(np.float32)
+    nodes = [
+        helper.make_node("AveragePool", [INPUT_NAME], ["pooled"], kernel_shape=[32, 32], strides=[32, 32]),
+        helper.make_node("Flatten", ["pooled"], ["flat"], axis=1),
+        helper.make_node("MatMul", ["flat", "W"], ["mm"]),
+        helper.make_node("Add", ["mm", "B"], [OUTPUT_NAME]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "popcode_test",
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["N", 1, input_size, input_size])],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, ["N", dim])],
+        initializer=[numpy_helper.from_array(weight, "W"),
+                     numpy_helper.from_array(np.asarray(bias, np.float32)[:dim], "B")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
+    model.ir_version = ONNX_IR_VERSION
+    if metadata is not None:
+        helper.set_model_props(model, metadata.to_props())
+    onnx.checker.check_model(model)
+    return model
+
+
+def save(model: onnx.ModelProto, path: Path) -> Path:
+    onnx.save(model, str(path))
+    return path
