@@ -8,9 +8,9 @@ from __future__ import annotations
 import os
 import platform
 import time
-from functools import partial
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import numpy as np
 import onnxruntime as ort
@@ -91,10 +91,10 @@ def benchmark_estimator(
     for batch in batch_sizes:
         image, boxes = synthetic_scene(batch, rng)
         crops = estimator.crops(image, boxes)
-        results.append(summarize(
-            time_calls(partial(estimator.predict, image, boxes, K=K), warmup, iterations), "end-to-end", batch, threads))
-        results.append(summarize(
-            time_calls(partial(estimator.run, crops), warmup, iterations), "inference", batch, threads))
+        end_to_end = time_calls(partial(estimator.predict, image, boxes, K=K), warmup, iterations)
+        inference = time_calls(partial(estimator.run, crops), warmup, iterations)
+        results.append(summarize(end_to_end, "end-to-end", batch, threads))
+        results.append(summarize(inference, "inference", batch, threads))
     return results
 
 
