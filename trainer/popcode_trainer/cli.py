@@ -1,0 +1,44 @@
+"""The ``popcode-train`` command. Each subcommand lives in ``popcode_trainer.commands.<name>``
+and provides ``register(subparsers)``, which adds its parser and sets ``handler``."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from popcode_runtime import PopcodeError
+
+from . import __version__
+
+COMMAND_MODULES: tuple[str, ...] = (
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="popcode-train", description="Render data, train, evaluate and export population-code networks."
+    )
+    parser.add_argument("--version", action="version", version=f"popcode-trainer {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"popcode_trainer.commands.{name}").register(commands)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; bad input ends with one line on stderr and exit code 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except PopcodeError as error:
+        print(f"popcode-train: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("popcode-train: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

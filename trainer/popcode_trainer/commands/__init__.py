@@ -1,0 +1,1 @@
+"""Subcommands of ``popcode-train``, one module each."""
