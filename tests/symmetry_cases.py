@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from popcode_runtime.rotations import axis_angle_to_matrix
 
 

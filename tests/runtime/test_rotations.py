@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
-from popcode_runtime import rotations as rot
 from scipy.spatial.transform import Rotation
+
+from popcode_runtime import rotations as rot
 
 N = 500
 

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
+from symmetry_cases import CASES
+
 from popcode_runtime import PopcodeError, SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
 from popcode_runtime.symmetries import continuous_axis
-from symmetry_cases import CASES
 
 
 def test_classes():
