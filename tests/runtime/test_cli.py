@@ -1,0 +1,108 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+from onnx_models import linear_model, save
+from symmetry_cases import CASES
+
+from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
+from popcode_runtime.cli import main
+from popcode_runtime.rotations import random_rotations
+
+LAYOUT = CodeLayout(n_axes=162, n_angles=12)
+
+
+@pytest.fixture
+def model(tmp_path):
+    R = random_rotations(1, np.random.default_rng(3))[0]
+    bias = PopulationCode(LAYOUT).encode(R, symmetry_rotations(CASES["two_fold"]))
+    meta = ModelMetadata(representation=Representation.POPULATION_CODE, code=LAYOUT, objects={7: CASES["two_fold"]},
+                         training={"dataset": "cli-test", "epochs": 1})
+    return save(linear_model(bias, weight_scale=0.5, metadata=meta), tmp_path / "model.onnx")
+
+
+@pytest.fixture
+def image(tmp_path):
+    path = tmp_path / "scene.png"
+    cv2.imwrite(str(path), np.random.default_rng(0).integers(0, 256, size=(240, 320), dtype=np.uint8))
+    return path
+
+
+def test_predict_json(model, image, capsys):
+    assert main(["predict", str(model), str(image), "--box", "10,20,60,50", "--box", "150,100,80,90", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["predictions"]) == 2
+    R = np.array(out["predictions"][0]["R_m2c"])
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert out["predictions"][1]["box"] == [150.0, 100.0, 80.0, 90.0]
+
+
+def test_predict_text_and_code(model, image, capsys):
+    assert main(["predict", str(model), str(image), "--box", "10,20,60,50", "--threads", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "box 0" in text and "deg about" in text
+    assert main(["predict", str(model), str(image), "--box", "10,20,60,50", "--json", "--code"]) == 0
+    assert len(json.loads(capsys.readouterr().out)["predictions"][0]["code"]) == LAYOUT.size
+
+
+def test_info(model, capsys):
+    assert main(["info", str(model)]) == 0
+    text = capsys.readouterr().out
+    assert "population_code" in text and "162 axes x 12 angles" in text and "object 7" in text
+    assert "discrete" in text
+    assert main(["info", str(model), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["output_dim"] == LAYOUT.size and info["popcode.training"]["dataset"] == "cli-test"
+
+
+def test_bench_json(model, capsys):
+    assert main(["bench", str(model), "--batch", "1", "--batch", "4", "--iterations", "3", "--warmup", "1",
+                 "--threads", "1", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    rows = {(r["stage"], r["batch"]) for r in report["results"]}
+    assert rows == {("end-to-end", 1), ("inference", 1), ("end-to-end", 4), ("inference", 4)}
+    for row in report["results"]:
+        assert 0 < row["median_ms"] <= row["p90_ms"] <= row["p99_ms"]
+        assert row["iterations"] == 3
+    assert report["machine"]["cores"] >= 1
+
+
+@pytest.mark.parametrize(
+    "argv_tail,message",
+    [
+        (["--box", "1000,1000,10,10"], "wholly outside"),
+        (["--box", "10,10,0,10"], "empty"),
+        (["--box", "10,10,20,20", "--K", "1,2,3"], "camera matrix"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(model, image, capsys, argv_tail, message):
+    assert main(["predict", str(model), str(image), *argv_tail]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and err.startswith("popcode: error:")
+
+
+def test_bad_files_are_one_line(tmp_path, model, image, capsys):
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"\x00garbage")
+    assert main(["info", str(junk)]) == 2
+    assert "cannot load" in capsys.readouterr().err
+    text_file = tmp_path / "notes.png"
+    text_file.write_text("hello")
+    assert main(["predict", str(model), str(text_file), "--box", "1,1,5,5"]) == 2
+    assert "cannot read image" in capsys.readouterr().err
+
+
+def test_malformed_box_is_a_usage_error(model, image, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["predict", str(model), str(image), "--box", "1,2,3"])
+    assert exit_info.value.code == 2
+    assert "needs 4 numbers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["predict", "info", "bench"])
+def test_every_command_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    assert "usage: popcode " + command in capsys.readouterr().out

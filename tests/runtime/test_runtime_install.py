@@ -1,0 +1,57 @@
+"""The runtime installs alone: a fresh virtual environment, ``pip install ./runtime``, no torch."""
+
+import json
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from onnx_models import linear_model, save
+from symmetry_cases import CASES
+
+from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
+from popcode_runtime.rotations import geodesic_angle, random_rotations
+
+RUNTIME_DIR = Path(__file__).resolve().parents[2] / "runtime"
+TRAINER_ONLY = {"torch", "onnx", "trimesh", "pyrender", "matplotlib", "scipy", "popcode-trainer"}
+REQUIRES = (
+    "import importlib.metadata as m, re;"
+    "print('\\n'.join(re.split(r'[ ;<>=!~\\[]', r, maxsplit=1)[0] for r in m.requires('popcode-runtime')))"
+)
+
+
+@pytest.mark.slow
+def test_runtime_installs_and_predicts_without_torch(tmp_path):
+    env_dir = tmp_path / "env"
+    venv.create(env_dir, with_pip=True)
+    python = env_dir / "bin" / "python"
+    subprocess.run([str(python), "-m", "pip", "install", "--quiet", str(RUNTIME_DIR)], check=True)
+
+    listed = subprocess.run([str(python), "-m", "pip", "list", "--format=json"], check=True,
+                            capture_output=True, text=True).stdout
+    installed = {package["name"].lower() for package in json.loads(listed)}
+    assert not installed & TRAINER_ONLY, f"trainer-side packages installed: {installed & TRAINER_ONLY}"
+    requires = subprocess.run([str(python), "-c", REQUIRES], check=True, capture_output=True, text=True).stdout
+    assert set(requires.split()) == {"numpy", "onnxruntime", "opencv-python-headless"}
+
+    R = random_rotations(1, np.random.default_rng(9))[0]
+    layout = CodeLayout(n_axes=642, n_angles=36)
+    S = symmetry_rotations(CASES["two_fold"])
+    meta = ModelMetadata(representation=Representation.POPULATION_CODE, code=layout, objects={3: CASES["two_fold"]})
+    model = save(linear_model(PopulationCode(layout).encode(R, S), metadata=meta), tmp_path / "m.onnx")
+    image = tmp_path / "scene.png"
+    cv2.imwrite(str(image), np.zeros((100, 120), np.uint8))
+
+    popcode = env_dir / "bin" / "popcode"
+    result = subprocess.run([str(popcode), "predict", str(model), str(image), "--box", "20,20,50,40", "--json"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    R_pred = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
+    assert np.degrees(geodesic_angle(R_pred, R @ S).min()) < 12.0
+
+    failing = subprocess.run([str(popcode), "info", str(tmp_path / "missing.onnx")], capture_output=True, text=True)
+    assert failing.returncode == 2 and "not found" in failing.stderr and "Traceback" not in failing.stderr
+    assert sys.executable != str(python)
