@@ -24,8 +24,8 @@ from .visibility import depth_to_distance, visible_mask_est, visible_mask_gt
 RenderDepth = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """``render_depth(R_m2c, t_m2c_mm) -> depth (H, W) float [mm], 0 where empty``, without anti-aliasing."""
 
-# Vertex-pose pairs per chunk: bounds the (poses, symmetries, vertices, 3) temporaries to ~100 MB.
-_CHUNK_ELEMENTS = 4_000_000
+# Vertex x pose x symmetry triples per chunk: each (poses, symmetries, vertices, 3) temporary stays ~24 MB.
+_CHUNK_ELEMENTS = 1_000_000
 
 
 def _batch(R_est, t_est, R_gt, t_gt) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
