@@ -1,0 +1,38 @@
+"""The metric-sensitivity figure: curves behave as the metrics must, and a PNG is written."""
+
+from __future__ import annotations
+
+import numpy as np
+from box_render import box_depth_renderer
+from popcode_runtime.symmetries import symmetry_transforms
+from popcode_trainer.eval.figures import plot_sensitivity, sensitivity_curves
+from symmetry_cases import CASES
+
+K = np.array([[600.0, 0.0, 80.0], [0.0, 600.0, 60.0], [0.0, 0.0, 1.0]])
+HALF_MM = np.array([40.0, 25.0, 10.0])
+PTS_MM = HALF_MM * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+T_MM = np.array([0.0, 0.0, 800.0])
+DIAMETER_MM = 2 * float(np.linalg.norm(HALF_MM))
+
+
+def test_curves_start_at_zero_and_grow(tmp_path):
+    render = box_depth_renderer(HALF_MM, K, 160, 120)
+    angles = np.linspace(0.0, 180.0, 13)
+    curves = sensitivity_curves(PTS_MM, None, DIAMETER_MM, K, np.eye(3), T_MM, angles,
+                                np.random.default_rng(0), render_depth=render)
+    assert set(curves.errors) == {"MSSD", "MSPD", "ADD", "ADI", "VSD", "VSS"}
+    for name, values in curves.errors.items():
+        assert values.shape == angles.shape
+        assert values[0] == 0.0, name
+    assert curves.errors["MSSD"][6] > curves.errors["MSSD"][1] > 0.0
+    assert np.all(curves.errors["ADI"] <= curves.errors["ADD"] + 1e-9)
+    assert np.all(curves.errors["VSS"] <= curves.errors["VSD"])
+    path = plot_sensitivity(curves, tmp_path / "sensitivity.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_without_a_renderer_the_depth_metrics_are_left_out():
+    syms = symmetry_transforms(CASES["two_fold"])
+    curves = sensitivity_curves(PTS_MM, syms, DIAMETER_MM, K, np.eye(3), T_MM, np.array([0.0, 90.0]),
+                                np.random.default_rng(1))
+    assert set(curves.errors) == {"MSSD", "MSPD", "ADD", "ADI"}

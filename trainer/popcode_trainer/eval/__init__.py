@@ -1,0 +1,1 @@
+"""Evaluation: BOP pose errors, recall scores and tables, results files and figures."""

@@ -1,0 +1,240 @@
+"""Pose error functions with the BOP benchmark's definitions, vectorised over poses.
+
+Poses map model to camera (``x_c = R x_m + t``), rotations ``(..., 3, 3)``,
+translations ``(..., 3)`` in mm; estimate and ground truth broadcast against each
+other, and every vertex-based error returns an array of the broadcast batch shape
+(a 0-d array for a single pose). ``pts_mm`` are *all* vertices of the evaluation
+mesh ``(P, 3)`` [mm]: the toolkit uses every vertex, and subsampling changes MSSD.
+Symmetries are a :class:`popcode_runtime.symmetries.SymmetryTransforms` (identity
+first); symmetric errors are the minimum over them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.rotations import geodesic_angle
+from popcode_runtime.symmetries import SymmetryTransforms
+from scipy.spatial import cKDTree
+
+from .visibility import depth_to_distance, visible_mask_est, visible_mask_gt
+
+RenderDepth = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""``render_depth(R_m2c, t_m2c_mm) -> depth (H, W) float [mm], 0 where empty``, without anti-aliasing."""
+
+# Vertex x pose x symmetry triples per chunk: each (poses, symmetries, vertices, 3) temporary stays ~24 MB.
+_CHUNK_ELEMENTS = 1_000_000
+
+
+def _batch(R_est, t_est, R_gt, t_gt) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Broadcast the four pose arrays and flatten them to ``(N, 3, 3)`` / ``(N, 3)``."""
+    R_est, R_gt = np.asarray(R_est, np.float64), np.asarray(R_gt, np.float64)
+    t_est, t_gt = np.asarray(t_est, np.float64), np.asarray(t_gt, np.float64)
+    for name, R, t in (("estimate", R_est, t_est), ("ground truth", R_gt, t_gt)):
+        if R.shape[-2:] != (3, 3) or t.shape[-1:] != (3,):
+            raise PopcodeError(
+                f"{name}: rotations must be (..., 3, 3) and translations (..., 3); got {R.shape} and {t.shape}"
+            )
+    shape = np.broadcast_shapes(R_est.shape[:-2], t_est.shape[:-1], R_gt.shape[:-2], t_gt.shape[:-1])
+
+    def flat(a: np.ndarray, tail: tuple[int, ...]) -> np.ndarray:
+        return np.broadcast_to(a, shape + tail).reshape((-1,) + tail)
+    return shape, flat(R_est, (3, 3)), flat(t_est, (3,)), flat(R_gt, (3, 3)), flat(t_gt, (3,))
+
+
+def _points(pts_mm: np.ndarray) -> np.ndarray:
+    pts = np.asarray(pts_mm, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise PopcodeError(f"model points must be a non-empty (P, 3) array, got shape {pts.shape}")
+    return pts
+
+
+def _project(points_c: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``(..., 3)`` [mm] -> pixel coordinates ``(..., 2)`` [px]."""
+    uvw = points_c @ K.T
+    return uvw[..., :2] / uvw[..., 2:3]
+
+
+def _max_symmetric_distance(
+    R_est, t_est, R_gt, t_gt, pts_mm, syms: SymmetryTransforms | None, K: np.ndarray | None
+) -> np.ndarray:
+    """``min_k max_x |f(R_est x + t_est) - f(R_gt (S_k x + s_k) + t_gt)|`` over symmetries ``k``.
+
+    ``f`` is the identity (MSSD, [mm]) or the projection with ``K`` (MSPD, [px]).
+    Chunked over poses and symmetries so that memory stays bounded.
+    """
+    shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
+    pts = _points(pts_mm)
+    sym_R = np.eye(3)[None] if syms is None else np.asarray(syms.R, np.float64)
+    sym_t = np.zeros((1, 3)) if syms is None else np.asarray(syms.t_mm, np.float64)
+    sym_chunk = max(1, min(len(sym_R), _CHUNK_ELEMENTS // len(pts)))
+    pose_chunk = max(1, _CHUNK_ELEMENTS // (len(pts) * sym_chunk))
+    errors = np.empty(len(R_e))
+    for p0 in range(0, len(R_e), pose_chunk):
+        sl = slice(p0, p0 + pose_chunk)
+        pts_est = np.einsum("nij,pj->npi", R_e[sl], pts) + t_e[sl, None]  # (n, P, 3)
+        if K is not None:
+            pts_est = _project(pts_est, K)
+        best = np.full(len(pts_est), np.inf)
+        for k0 in range(0, len(sym_R), sym_chunk):
+            R_sym = np.einsum("nij,kjl->nkil", R_g[sl], sym_R[k0 : k0 + sym_chunk])
+            t_sym = np.einsum("nij,kj->nki", R_g[sl], sym_t[k0 : k0 + sym_chunk]) + t_g[sl, None]
+            pts_gt = np.einsum("nkij,pj->nkpi", R_sym, pts) + t_sym[:, :, None]  # (n, k, P, 3)
+            if K is not None:
+                pts_gt = _project(pts_gt, K)
+            dist = np.linalg.norm(pts_est[:, None] - pts_gt, axis=-1).max(axis=-1)
+            best = np.minimum(best, dist.min(axis=-1))
+        errors[sl] = best
+    return errors.reshape(shape)
+
+
+def mssd(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray, syms: SymmetryTransforms | None) -> np.ndarray:
+    """Maximum Symmetry-aware Surface Distance [mm] (BOP19).
+
+    Minimum over the symmetry transformations of the largest 3-D distance between a
+    vertex in the estimated pose and the same vertex in the symmetric ground truth.
+    ``syms=None`` means the object has no symmetry.
+    """
+    return _max_symmetric_distance(R_est, t_est, R_gt, t_gt, pts_mm, syms, None)
+
+
+def mspd(
+    R_est, t_est, R_gt, t_gt, K: np.ndarray, pts_mm: np.ndarray, syms: SymmetryTransforms | None
+) -> np.ndarray:
+    """Maximum Symmetry-aware Projection Distance [px] (BOP19).
+
+    As :func:`mssd` but with the vertices projected with the 3x3 intrinsics ``K``
+    (OpenCV convention). The BOP thresholds scale with the image width / 640.
+    """
+    return _max_symmetric_distance(R_est, t_est, R_gt, t_gt, pts_mm, syms, np.asarray(K, np.float64))
+
+
+def add(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
+    """Average Distance of model points, ADD [mm] (Hinterstoisser et al., ACCV 2012).
+
+    Mean over vertices of the distance between the vertex in the two poses;
+    blind to symmetry.
+    """
+    shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
+    pts = _points(pts_mm)
+    errors = np.empty(len(R_e))
+    chunk = max(1, _CHUNK_ELEMENTS // len(pts))
+    for n0 in range(0, len(R_e), chunk):
+        sl = slice(n0, n0 + chunk)
+        diff = np.einsum("nij,pj->npi", R_e[sl] - R_g[sl], pts) + (t_e[sl] - t_g[sl])[:, None]
+        errors[sl] = np.linalg.norm(diff, axis=-1).mean(axis=-1)
+    return errors.reshape(shape)
+
+
+def adi(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
+    """Average Distance for Indistinguishable views, ADI [mm] (Hinterstoisser et al., ACCV 2012).
+
+    Mean over the vertices in the ground-truth pose of the distance to the nearest
+    vertex in the estimated pose. Distances are invariant under a rigid motion, so
+    the ground-truth vertices are mapped into the estimate's model frame and one
+    k-d tree over the model serves every pose. Always ``adi <= add``.
+    """
+    shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
+    pts = _points(pts_mm)
+    tree = cKDTree(pts)
+    errors = np.empty(len(R_e))
+    chunk = max(1, _CHUNK_ELEMENTS // len(pts))
+    for n0 in range(0, len(R_e), chunk):
+        sl = slice(n0, n0 + chunk)
+        # R_e^T (R_g x + t_g - t_e): the ground-truth vertices in the estimate's model frame.
+        R_rel = np.einsum("nji,njk->nik", R_e[sl], R_g[sl])
+        t_rel = np.einsum("nji,nj->ni", R_e[sl], t_g[sl] - t_e[sl])
+        query = np.einsum("nij,pj->npi", R_rel, pts) + t_rel[:, None]
+        errors[sl] = tree.query(query.reshape(-1, 3), k=1)[0].reshape(len(query), -1).mean(axis=-1)
+    return errors.reshape(shape)
+
+
+def rotation_error_deg(R_est, R_gt) -> np.ndarray:
+    """Rotation error re [deg] (BOP): angle of ``R_est R_gt^T``, in [0, 180].
+
+    Computed with the chord formula, which equals the toolkit's ``acos`` of the
+    trace but stays accurate near 0.
+    """
+    return np.degrees(geodesic_angle(R_gt, R_est))
+
+
+def translation_error_mm(t_est, t_gt) -> np.ndarray:
+    """Translation error te [mm] (BOP): Euclidean distance between the translations ``(..., 3)``."""
+    return np.linalg.norm(np.asarray(t_est, np.float64) - np.asarray(t_gt, np.float64), axis=-1)
+
+
+def vsd_from_depths(
+    depth_est_mm: np.ndarray,
+    depth_gt_mm: np.ndarray,
+    depth_test_mm: np.ndarray,
+    K: np.ndarray,
+    delta_mm: float,
+    taus: Sequence[float] | np.ndarray,
+    diameter_mm: float | None = None,
+) -> np.ndarray:
+    """Visible Surface Discrepancy with the ``step`` cost (BOP18/19), one error per tau.
+
+    ``depth_est_mm`` / ``depth_gt_mm`` are the model rendered in the estimated and
+    ground-truth pose and ``depth_test_mm`` the scene, all ``(H, W)`` [mm] with 0 for
+    no depth; ``delta_mm`` is the visibility tolerance [mm] (15 for T-LESS). With
+    ``diameter_mm`` the misalignment tolerances ``taus`` are fractions of the
+    diameter (the BOP19 setting), otherwise they are in mm; ``inf`` gives VSS.
+    A pixel of the union of the visible surfaces costs 1 unless it is in both and
+    the distances differ by less than tau. Returns ``(len(taus),)`` errors in [0, 1];
+    1 when neither pose shows any visible surface.
+    """
+    dist_test = depth_to_distance(depth_test_mm, K)
+    dist_gt = depth_to_distance(depth_gt_mm, K)
+    dist_est = depth_to_distance(depth_est_mm, K)
+    visible_gt = visible_mask_gt(dist_test, dist_gt, delta_mm)
+    visible_est = visible_mask_est(dist_test, dist_est, visible_gt, delta_mm)
+    both = visible_gt & visible_est
+    union_count = int(np.count_nonzero(visible_gt | visible_est))
+    taus = np.asarray(taus, dtype=np.float64).reshape(-1)
+    if union_count == 0:
+        return np.ones(len(taus))
+    dists = np.abs(dist_gt[both] - dist_est[both])
+    if diameter_mm is not None:
+        dists = dists / diameter_mm
+    mismatched = union_count - len(dists)
+    costs = (dists[None, :] >= taus[:, None]).sum(axis=1)
+    return (costs + mismatched) / union_count
+
+
+def vsd(
+    R_est: np.ndarray,
+    t_est_mm: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt_mm: np.ndarray,
+    depth_test_mm: np.ndarray,
+    K: np.ndarray,
+    render_depth: RenderDepth,
+    delta_mm: float,
+    taus: Sequence[float] | np.ndarray,
+    diameter_mm: float | None = None,
+) -> np.ndarray:
+    """VSD of one estimate (see :func:`vsd_from_depths`), rendering both poses with ``render_depth``.
+
+    ``render_depth`` must render with the intrinsics of the test image and without
+    anti-aliasing (e.g. ``popcode_trainer.data.render.DepthRenderer(...).render``
+    with ``K`` bound); multisampling moves silhouette pixels.
+    """
+    depth_est = render_depth(np.asarray(R_est, np.float64), np.asarray(t_est_mm, np.float64))
+    depth_gt = render_depth(np.asarray(R_gt, np.float64), np.asarray(t_gt_mm, np.float64))
+    return vsd_from_depths(depth_est, depth_gt, depth_test_mm, K, delta_mm, taus, diameter_mm)
+
+
+def vss(
+    R_est: np.ndarray,
+    t_est_mm: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt_mm: np.ndarray,
+    depth_test_mm: np.ndarray,
+    K: np.ndarray,
+    render_depth: RenderDepth,
+    delta_mm: float,
+) -> float:
+    """Visible Surface Similarity error: VSD with tau = inf, i.e. the mismatch of the visible silhouettes, in [0, 1]."""
+    return float(vsd(R_est, t_est_mm, R_gt, t_gt_mm, depth_test_mm, K, render_depth, delta_mm, [np.inf])[0])

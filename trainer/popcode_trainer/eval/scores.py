@@ -1,0 +1,142 @@
+"""BOP19 recall scores from per-instance pose errors.
+
+A pose counts as correct only if its error is *strictly* below the threshold, as
+in the BOP toolkit. Errors are normalised before thresholding the way the
+toolkit does it: MSSD and ADI by the object diameter, MSPD by ``640 / image
+width``; VSD errors are already in [0, 1]. A metric's score is the recall averaged
+over its thresholds (and, for VSD, over the misalignment tolerances tau).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from popcode_runtime.errors import PopcodeError
+
+
+def _bop19_steps(first: float, last: float) -> tuple[float, ...]:
+    # np.arange as in the toolkit's eval_bop19_pose.py, so values such as
+    # 0.15000000000000002 are the same floats and ties at a threshold agree.
+    step = first
+    return tuple(np.arange(first, last + step / 5, step).tolist())
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Every threshold of the evaluation; the defaults are the BOP19 ones and the paper's.
+
+    ``mssd_fractions`` and ``adi_fraction`` are fractions of the object diameter;
+    ``mspd_px_at_640`` are pixels for a 640 px wide image (scaled with the width);
+    ``vsd_taus`` are fractions of the diameter, ``vsd_thetas`` thresholds on the
+    VSD error; ``vsd_delta_mm`` is the visibility tolerance (15 mm for T-LESS);
+    ``vsd_single_tau_mm`` / ``vsd_single_theta`` define e_VSD < 0.3 (tau = 20 mm).
+    VSS (tau = inf) is scored over ``vss_thetas``: the paper does not say which
+    thresholds it used, so the VSD thetas are the default.
+    """
+
+    mssd_fractions: tuple[float, ...] = field(default_factory=lambda: _bop19_steps(0.05, 0.5))
+    mspd_px_at_640: tuple[float, ...] = field(default_factory=lambda: _bop19_steps(5.0, 50.0))
+    vsd_taus: tuple[float, ...] = field(default_factory=lambda: _bop19_steps(0.05, 0.5))
+    vsd_thetas: tuple[float, ...] = field(default_factory=lambda: _bop19_steps(0.05, 0.5))
+    vsd_delta_mm: float = 15.0
+    vsd_single_tau_mm: float = 20.0
+    vsd_single_theta: float = 0.3
+    vss_thetas: tuple[float, ...] = field(default_factory=lambda: _bop19_steps(0.05, 0.5))
+    adi_fraction: float = 0.05
+
+
+METRICS = ("VSD", "MSSD", "MSPD", "e_VSD<0.3", "VSS", "ADI")
+"""Score names, in the column order of the paper's tables."""
+
+
+@dataclass(frozen=True)
+class InstanceErrors:
+    """Errors of one method for ``N`` ground-truth instances (one estimate each).
+
+    ``vsd`` holds one error per ``Thresholds.vsd_taus`` ``(N, T)``; ``vsd_single_tau``
+    the VSD error at ``vsd_single_tau_mm`` and ``vss`` the VSD error at tau = inf
+    ``(N,)``. The depth-based errors are ``None`` when the split has no depth.
+    """
+
+    obj_id: np.ndarray  # (N,) int
+    image_width_px: np.ndarray  # (N,)
+    mssd_mm: np.ndarray  # (N,)
+    mspd_px: np.ndarray  # (N,)
+    adi_mm: np.ndarray  # (N,)
+    vsd: np.ndarray | None = None  # (N, T)
+    vsd_single_tau: np.ndarray | None = None  # (N,)
+    vss: np.ndarray | None = None  # (N,)
+
+    def __post_init__(self) -> None:
+        count = len(self.obj_id)
+        for name in ("image_width_px", "mssd_mm", "mspd_px", "adi_mm", "vsd", "vsd_single_tau", "vss"):
+            value = getattr(self, name)
+            if value is not None and len(value) != count:
+                raise PopcodeError(f"{name} has {len(value)} entries but there are {count} instances")
+
+    def select(self, mask: np.ndarray) -> InstanceErrors:
+        """The instances where the boolean ``mask`` is true."""
+        return InstanceErrors(**{
+            name: None if value is None else np.asarray(value)[mask]
+            for name, value in self.__dict__.items()
+        })
+
+
+def recall(errors: np.ndarray, thresholds: np.ndarray | tuple[float, ...]) -> np.ndarray:
+    """Fraction of ``errors (N, ...)`` strictly below each threshold, ``(T, ...)``.
+
+    With no instances the recall is NaN (nothing to score, not zero).
+    """
+    errors = np.asarray(errors, dtype=np.float64)
+    thresholds = np.asarray(thresholds, dtype=np.float64)
+    if len(errors) == 0:
+        return np.full((len(thresholds),) + errors.shape[1:], np.nan)
+    below = errors[None] < thresholds.reshape((-1,) + (1,) * errors.ndim)
+    return below.mean(axis=1)
+
+
+def _diameters(obj_id: np.ndarray, diameters_mm: Mapping[int, float]) -> np.ndarray:
+    missing = sorted({int(i) for i in obj_id} - set(diameters_mm))
+    if missing:
+        raise PopcodeError(f"no diameter (models_info.json) for object ids {missing}")
+    return np.array([diameters_mm[int(i)] for i in obj_id], dtype=np.float64)
+
+
+def metric_scores(
+    errors: InstanceErrors, diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None
+) -> dict[str, float]:
+    """Every metric's score in [0, 1] over all the given instances, pooled as BOP does.
+
+    Depth-based metrics are absent from the result when their errors are ``None``.
+    """
+    th = thresholds or Thresholds()
+    diameter = _diameters(errors.obj_id, diameters_mm)
+    scores = {
+        "MSSD": float(recall(errors.mssd_mm / diameter, th.mssd_fractions).mean()),
+        "MSPD": float(recall(errors.mspd_px * (640.0 / errors.image_width_px), th.mspd_px_at_640).mean()),
+        "ADI": float(recall(errors.adi_mm / diameter, [th.adi_fraction])[0]),
+    }
+    if errors.vsd is not None:
+        if np.shape(errors.vsd)[1:] != (len(th.vsd_taus),):
+            raise PopcodeError(
+                f"VSD errors have shape {np.shape(errors.vsd)}; expected one per tau ({len(th.vsd_taus)})"
+            )
+        scores["VSD"] = float(recall(errors.vsd, th.vsd_thetas).mean())
+    if errors.vsd_single_tau is not None:
+        scores["e_VSD<0.3"] = float(recall(errors.vsd_single_tau, [th.vsd_single_theta])[0])
+    if errors.vss is not None:
+        scores["VSS"] = float(recall(errors.vss, th.vss_thetas).mean())
+    return {name: scores[name] for name in METRICS if name in scores}
+
+
+def scores_per_object(
+    errors: InstanceErrors, diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None
+) -> dict[int, dict[str, float]]:
+    """:func:`metric_scores` for each object id, in increasing id order."""
+    obj_ids = np.asarray(errors.obj_id)
+    return {
+        int(obj): metric_scores(errors.select(obj_ids == obj), diameters_mm, thresholds)
+        for obj in np.unique(obj_ids)
+    }
