@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 from box_render import box_depth_renderer
+from symmetry_cases import CASES
+
 from popcode_runtime.symmetries import symmetry_transforms
 from popcode_trainer.eval.figures import plot_sensitivity, sensitivity_curves
-from symmetry_cases import CASES
 
 K = np.array([[600.0, 0.0, 80.0], [0.0, 600.0, 60.0], [0.0, 0.0, 1.0]])
 HALF_MM = np.array([40.0, 25.0, 10.0])

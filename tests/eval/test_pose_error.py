@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from symmetry_cases import CASES
+
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_runtime.symmetries import symmetry_transforms
@@ -18,7 +20,6 @@ from popcode_trainer.eval.pose_error import (
     vsd,
     vsd_from_depths,
 )
-from symmetry_cases import CASES
 
 HALF_MM = 50.0
 CUBE_MM = HALF_MM * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import random_rotations
 from popcode_trainer.eval.results import HEADER, PoseEstimate, read_bop19_results, write_bop19_results

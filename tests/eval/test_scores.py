@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from symmetry_cases import CASES
+
 from popcode_runtime.errors import PopcodeError
 from popcode_trainer.eval.scores import InstanceErrors, Thresholds, metric_scores, recall, scores_per_object
 from popcode_trainer.eval.tables import (
@@ -18,7 +20,6 @@ from popcode_trainer.eval.tables import (
     per_object_markdown,
     to_json,
 )
-from symmetry_cases import CASES
 
 
 def test_default_thresholds_are_the_bop19_ones():

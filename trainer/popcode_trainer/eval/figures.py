@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 

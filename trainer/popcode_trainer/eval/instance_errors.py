@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
 

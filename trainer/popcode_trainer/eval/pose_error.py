@@ -14,10 +14,11 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
+
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import geodesic_angle
 from popcode_runtime.symmetries import SymmetryTransforms
-from scipy.spatial import cKDTree
 
 from .visibility import depth_to_distance, visible_mask_est, visible_mask_gt
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from popcode_runtime.errors import PopcodeError
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
+
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class
 

@@ -8,6 +8,7 @@ VSD compares distance images, never depth images.
 from __future__ import annotations
 
 import numpy as np
+
 from popcode_runtime.errors import PopcodeError
 
 
