@@ -12,8 +12,10 @@ import numpy as np
 from . import __version__
 from .benchmark import benchmark_estimator, machine_description
 from .crop import read_image
+from .decoding import DECODERS
 from .errors import PopcodeError
 from .estimator import PoseEstimator, parse_camera_matrix
+from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 
 
@@ -42,10 +44,11 @@ def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _predict(args: argparse.Namespace) -> int:
-    estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads)
+    estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
     image = read_image(args.image)
     K = parse_camera_matrix(args.K) if args.K else None
-    predictions = estimator.predict(image, args.box, K=K, return_code=args.code)
+    predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
+                                    top_k=args.top_k, translation=args.translation)
     if args.json:
         print(json.dumps({"model": str(args.model), "image": str(args.image),
                           "predictions": [p.to_dict() for p in predictions]}, indent=2))
@@ -57,6 +60,13 @@ def _predict(args: argparse.Namespace) -> int:
               f"about ({axis}), score {prediction.score:.3f}")
         for row in prediction.R_m2c:
             print("    " + "  ".join(f"{v:+.4f}" for v in row))
+        if prediction.t_m2c_mm is not None:
+            print("    t_m2c_mm " + "  ".join(f"{v:+.1f}" for v in prediction.t_m2c_mm))
+        for rank, hypothesis in enumerate(prediction.hypotheses or []):
+            axis, angle = matrix_to_axis_angle(hypothesis.R_m2c)
+            print(f"    hypothesis {rank}: score {hypothesis.score:.2f}, activation {hypothesis.activation:.3f}, "
+                  f"angle {np.degrees(angle):.1f} deg about ({', '.join(f'{v:+.3f}' for v in axis)}), "
+                  f"{len(hypothesis.equivalent)} equivalent peak(s)")
     return 0
 
 
@@ -115,6 +125,14 @@ def build_parser() -> argparse.ArgumentParser:
                          help="object box in pixels (top-left corner, width, height); repeat for several objects")
     predict.add_argument("--K", type=_camera, metavar="FX,FY,CX,CY",
                          help="camera intrinsics (needed by allocentric models); fx,fy,cx,cy or 9 numbers row-major")
+    predict.add_argument("--decoder", choices=DECODERS, default="argmax",
+                         help="argmax: the paper's winning neuron (default); refined: sub-neuron estimate")
+    predict.add_argument("--top-k", type=int, default=1, metavar="K",
+                         help="also list up to K distinct poses of the code (symmetric peaks merged)")
+    predict.add_argument("--translation", action="store_true",
+                         help="estimate the translation from the box too (needs --K)")
+    predict.add_argument("--obj-id", type=int, action="append", metavar="ID",
+                         help="object id of each box, in order (for models of several objects)")
     predict.add_argument("--json", action="store_true", help="print JSON instead of text")
     predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
     _add_runtime_options(predict)

@@ -13,6 +13,7 @@ import numpy as np
 from .code import DecodedRotations, PopulationCode, check_code
 from .errors import PopcodeError
 from .metadata import ModelMetadata, Representation
+from .refine import decode_refined
 from .rotations import matrix_to_axis_angle, quaternion_to_matrix, rotation_between, sixd_to_matrix
 
 MEAN_SHIFT_BANDWIDTH_RAD = np.deg2rad(20.0)
@@ -47,10 +48,22 @@ def quaternion_mean_shift(quaternions: np.ndarray, bandwidth_rad: float = MEAN_S
     return modes[best], float(support[best]) / len(q)
 
 
-def decode_output(output: np.ndarray, metadata: ModelMetadata) -> DecodedRotations:
-    """Rotations (in the model's rotation frame) from a batch of outputs ``(N, D)``."""
+DECODERS = ("argmax", "refined")
+
+
+def decode_output(output: np.ndarray, metadata: ModelMetadata, decoder: str = "argmax") -> DecodedRotations:
+    """Rotations (in the model's rotation frame) from a batch of outputs ``(N, D)``.
+
+    ``decoder`` is ``argmax`` (the paper's) or ``refined`` (sub-neuron, population codes only).
+    """
+    if decoder not in DECODERS:
+        raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
     output = check_code(output, metadata.output_dim)
     representation = metadata.representation
+    if decoder == "refined":
+        if representation != Representation.POPULATION_CODE:
+            raise PopcodeError(f"the refined decoder needs a population-code model, this one is {representation}")
+        return decode_refined(PopulationCode(metadata.code), output)
     if representation in (Representation.POPULATION_CODE, Representation.ONE_HOT):
         return PopulationCode(metadata.code).decode(output)
     if representation == Representation.SINGLE_VARIABLE:

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
+from .code import PopulationCode
 from .crop import box_centre, crop_batch
-from .decoding import decode_output
+from .decoding import DECODERS, decode_output
 from .errors import PopcodeError
-from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata, RotationFrame
+from .hypotheses import Hypothesis, find_hypotheses
+from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata, Representation, RotationFrame
 from .rotations import allocentric_to_egocentric, matrix_to_axis_angle
+from .symmetries import symmetry_rotations
+from .translation import object_points_mm, translation_from_box
 
 PROVIDER_NAMES = {
     "cpu": "CPUExecutionProvider",
@@ -35,16 +39,28 @@ class Prediction:
     angle_rad: float  # rotation angle of R_m2c in [0, pi]
     score: float  # peak activation (population code) or the representation's own score
     box: tuple[float, float, float, float]
+    obj_id: int | None  # None when a model of several objects was not told which
     code: np.ndarray | None = None  # raw network output, when asked for
+    t_m2c_mm: np.ndarray | None = None  # (3,) translation from the box, when asked for
+    hypotheses: list[Hypothesis] | None = None  # every distinct pose, strongest first, when top_k > 1
 
     def to_dict(self) -> dict:
         data = {
             "box": list(self.box),
+            "obj_id": self.obj_id,
             "R_m2c": self.R_m2c.tolist(),
             "axis": self.axis.tolist(),
             "angle_deg": float(np.degrees(self.angle_rad)),
             "score": self.score,
         }
+        if self.t_m2c_mm is not None:
+            data["t_m2c_mm"] = self.t_m2c_mm.tolist()
+        if self.hypotheses is not None:
+            data["hypotheses"] = [
+                {"R_m2c": h.R_m2c.tolist(), "activation": h.activation, "score": h.score,
+                 "equivalent": h.equivalent.tolist()}
+                for h in self.hypotheses
+            ]
         if self.code is not None:
             data["code"] = self.code.tolist()
         return data
@@ -99,10 +115,15 @@ def resolve_providers(providers: Sequence[str] | None) -> list[str]:
 class PoseEstimator:
     """Load a popcode ONNX model once; then ``predict(image, boxes)`` in one batched run.
 
-    ``threads`` sets onnxruntime's intra-op threads (0: its default, all cores).
+    ``threads`` sets onnxruntime's intra-op threads (0: its default, all cores);
+    ``decoder`` is ``argmax`` (the paper's) or ``refined`` (sub-neuron estimate).
     """
 
-    def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
+    def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0,
+                 decoder: str = "argmax") -> None:
+        if decoder not in DECODERS:
+            raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
+        self.decoder = decoder
         self.model_path = Path(model_path)
         if not self.model_path.is_file():
             raise PopcodeError(f"model file not found: {self.model_path}")
@@ -156,46 +177,83 @@ class PoseEstimator:
         """The network input ``(N, 1, S, S)`` for boxes in an image (the shared crop)."""
         return crop_batch(image, boxes, self.metadata.input_size, self.metadata.crop_padding)
 
+    def _object_ids(self, count: int, obj_ids: Sequence[int] | None) -> list[int | None]:
+        """The object of each box; unknown (None) for a model of several objects when not given."""
+        known = sorted(self.metadata.objects)
+        if obj_ids is None:
+            return [known[0] if len(known) == 1 else None] * count
+        if len(obj_ids) != count:
+            raise PopcodeError(f"got {len(obj_ids)} object ids for {count} boxes")
+        unknown = sorted({int(i) for i in obj_ids} - set(known))
+        if unknown:
+            raise PopcodeError(f"object ids {unknown} are not in this model (it knows {known})")
+        return [int(i) for i in obj_ids]
+
     def predict(
         self,
         image: np.ndarray,
         boxes: Sequence[Sequence[float]],
         K: Sequence[float] | np.ndarray | None = None,
         return_code: bool = False,
+        obj_ids: Sequence[int] | None = None,
+        top_k: int = 1,
+        translation: bool = False,
     ) -> list[Prediction]:
         """Rotations of the objects in ``boxes`` (``(x, y, w, h)`` pixels) of ``image``.
 
         ``image`` is grey ``(H, W)`` or RGB ``(H, W, 3)``, uint8/uint16 or float
         in [0, 1]. ``K`` (``fx, fy, cx, cy`` or 3x3) is required for models that
-        predict allocentric rotations, to turn them back into the camera frame.
+        predict allocentric rotations and for ``translation``. ``obj_ids`` names
+        the object in each box (needed for models of several objects when
+        ``translation`` or ``top_k`` uses the object's extents or symmetries).
+        ``top_k > 1`` lists every distinct pose of a population code.
         """
         meta = self.metadata
         camera = None
         if K is not None:
             camera = parse_camera_matrix(K)
-        elif meta.rotation_frame == RotationFrame.ALLOCENTRIC:
-            raise PopcodeError("this model predicts allocentric rotations: pass the camera matrix K")
+        elif meta.rotation_frame == RotationFrame.ALLOCENTRIC or translation:
+            needs = "translation from the box" if translation else "this model predicts allocentric rotations"
+            raise PopcodeError(f"{needs}: pass the camera matrix K")
+        if top_k < 1:
+            raise PopcodeError(f"top_k must be at least 1, got {top_k}")
+        if top_k > 1 and meta.representation != Representation.POPULATION_CODE:
+            raise PopcodeError(f"hypotheses (top_k > 1) need a population-code model, this one is "
+                               f"{meta.representation}")
+        if obj_ids is None and len(meta.objects) > 1 and (translation or top_k > 1):
+            raise PopcodeError(f"this model knows objects {sorted(meta.objects)}: pass the object id of each box")
+        ids = self._object_ids(len(boxes), obj_ids)
         started = time.perf_counter()
         crops = self.crops(image, boxes)
         cropped = time.perf_counter()
         output = self.run(crops)
         inferred = time.perf_counter()
-        decoded = decode_output(output, meta)
-        R = decoded.R
-        if meta.rotation_frame == RotationFrame.ALLOCENTRIC:
-            centres = np.stack([box_centre(box) for box in boxes])
-            R = allocentric_to_egocentric(R, camera, centres)
+        decoded = decode_output(output, meta, self.decoder)
+        to_camera = self._to_camera_frame(boxes, camera)
+        R = to_camera(decoded.R, slice(None))
+        axes, angles = matrix_to_axis_angle(R)
+        predictions = []
+        for i, box in enumerate(boxes):
+            info = meta.objects.get(ids[i], {})
+            hypotheses = None
+            if top_k > 1:
+                found = find_hypotheses(PopulationCode(meta.code), output[i], symmetry_rotations(info), top_k=top_k,
+                                        refine=self.decoder == "refined")
+                hypotheses = [replace(h, R_m2c=to_camera(h.R_m2c, i), equivalent=to_camera(h.equivalent, i))
+                              for h in found]
+            t = translation_from_box(R[i], box, camera, object_points_mm(info)) if translation else None
+            predictions.append(Prediction(
+                R_m2c=R[i], axis=axes[i], angle_rad=float(angles[i]), score=float(decoded.activation[i]),
+                box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if return_code else None,
+                t_m2c_mm=t, hypotheses=hypotheses,
+            ))
         finished = time.perf_counter()
         self.last_timings = Timings(cropped - started, inferred - cropped, finished - inferred)
-        axes, angles = matrix_to_axis_angle(R)
-        return [
-            Prediction(
-                R_m2c=R[i],
-                axis=axes[i],
-                angle_rad=float(angles[i]),
-                score=float(decoded.activation[i]),
-                box=tuple(float(v) for v in boxes[i]),
-                code=output[i].copy() if return_code else None,
-            )
-            for i in range(len(boxes))
-        ]
+        return predictions
+
+    def _to_camera_frame(self, boxes: Sequence[Sequence[float]], camera: np.ndarray | None):
+        """A function ``(R, which_boxes) -> R`` in the camera frame (identity for egocentric models)."""
+        if self.metadata.rotation_frame != RotationFrame.ALLOCENTRIC:
+            return lambda R, _which: R
+        centres = np.stack([box_centre(box) for box in boxes])
+        return lambda R, which: allocentric_to_egocentric(R, camera, centres[which])
