@@ -135,46 +135,59 @@ class PopulationCode:
         self._two_sigma_sq = 2.0 * layout.sigma_rad**2
 
     # -- encoding -------------------------------------------------------------
-    def _axis_tuning(self, directions: np.ndarray) -> np.ndarray:
-        """Gaussian of the angle between ``directions (..., 3)`` and every axis -> ``(..., n)``."""
-        cos = np.clip(directions @ self._axes.T, -1.0, 1.0)
+    def _axis_tuning(self, directions: np.ndarray, preferred: np.ndarray | None = None) -> np.ndarray:
+        """Gaussian of the angle between ``directions (..., 3)`` and each preferred axis -> ``(..., n)``."""
+        preferred = self._axes if preferred is None else preferred
+        cos = np.clip(directions @ preferred.T, -1.0, 1.0)
         return np.exp(-np.arccos(cos) ** 2 / self._two_sigma_sq)
 
-    def _angle_tuning(self, angles: np.ndarray) -> np.ndarray:
-        """Gaussian of the wrapped distance to every preferred angle -> ``(..., m)``."""
-        diff = _wrapped_angle_diff(angles[..., None], self._angles)
+    def _angle_tuning(self, angles: np.ndarray, preferred: np.ndarray | None = None) -> np.ndarray:
+        """Gaussian of the wrapped distance to each preferred angle -> ``(..., m)``."""
+        preferred = self._angles if preferred is None else preferred
+        diff = _wrapped_angle_diff(angles[..., None], preferred)
         return np.exp(-diff**2 / self._two_sigma_sq)
 
-    def encode(self, R_m2c: np.ndarray, symmetries: np.ndarray | None = None) -> np.ndarray:
+    def encode(self, R_m2c: np.ndarray, symmetries: np.ndarray | None = None,
+               neurons: np.ndarray | None = None) -> np.ndarray:
         """Target codes ``(N, size)`` float32 for rotations ``(N, 3, 3)`` (or one ``(3, 3)``).
 
         ``symmetries`` are the object's symmetry rotations ``(K, 3, 3)`` with the
         identity included (see :func:`symmetries.symmetry_rotations`); default:
         none. Each equivalent rotation ``R S_k`` contributes its peak and the
         peak of its axis/angle twin ``(-r, 2 pi - phi)``; for the axis-only code
-        each distinct direction ``R S_k a`` contributes one peak.
+        each distinct direction ``R S_k a`` contributes one peak. ``neurons``
+        (indices) restricts the output to those neurons, ``(N, len(neurons))``.
         """
         R = np.asarray(R_m2c, dtype=np.float64)
         single = R.ndim == 2
         R = R.reshape(-1, 3, 3)
         S = np.eye(3)[None] if symmetries is None else np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)
-        code = self._encode_axis_only(R, S) if self.layout.axis_only else self._encode_full(R, S)
+        selected = np.arange(self.layout.size) if neurons is None else np.asarray(neurons)
+        if self.layout.axis_only:
+            code = self._encode_axis_only(R, S, selected)
+        else:
+            code = self._encode_full(R, S, selected)
         code = code.astype(np.float32)
         return code[0] if single else code
 
-    def _encode_full(self, R: np.ndarray, S: np.ndarray) -> np.ndarray:
+    def _encode_full(self, R: np.ndarray, S: np.ndarray, neurons: np.ndarray) -> np.ndarray:
         equivalent = R[:, None] @ S[None]  # (N, K, 3, 3)
         axis, angle = matrix_to_axis_angle(equivalent)
         axes = np.concatenate([axis, -axis], axis=1)  # (N, 2K, 3): the twin peaks
         angles = np.concatenate([angle, 2.0 * np.pi - angle], axis=1)
-        code = np.einsum("bpn,bpm->bnm", self._axis_tuning(axes), self._angle_tuning(angles))
-        return code.reshape(len(R), -1)
+        if len(neurons) == self.layout.size:  # the whole code: an outer product per peak
+            code = np.einsum("bpn,bpm->bnm", self._axis_tuning(axes), self._angle_tuning(angles))
+            return code.reshape(len(R), -1)
+        axis_index, angle_index = np.divmod(neurons, self.layout.n_angles)
+        axis_part = self._axis_tuning(axes, self._axes[axis_index])
+        angle_part = self._angle_tuning(angles, self._angles[angle_index])
+        return np.sum(axis_part * angle_part, axis=1)
 
-    def _encode_axis_only(self, R: np.ndarray, S: np.ndarray) -> np.ndarray:
+    def _encode_axis_only(self, R: np.ndarray, S: np.ndarray, neurons: np.ndarray) -> np.ndarray:
         a = np.asarray(self.layout.symmetry_axis)
         directions = _distinct_directions(S @ a)  # model frame, (D, 3)
         camera_dirs = np.einsum("bij,dj->bdi", R, directions)
-        return self._axis_tuning(camera_dirs).sum(axis=1)
+        return self._axis_tuning(camera_dirs, self._axes[neurons]).sum(axis=1)
 
     # -- decoding -------------------------------------------------------------
     def decode(self, code: np.ndarray) -> DecodedRotations:

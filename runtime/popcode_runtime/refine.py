@@ -100,6 +100,17 @@ def refine_angle(layout: CodeLayout, peak_angle: int, activations: np.ndarray) -
     return float(layout.angles_rad[peak_angle] + offset * step)
 
 
+def fit_neurons(layout: CodeLayout, neuron: int) -> np.ndarray:
+    """The neurons whose activations :func:`refine_neuron` reads, the peak first."""
+    if layout.axis_only:
+        return np.concatenate([[neuron], lattice_neighbours(layout.n_axes)[neuron]])
+    m = layout.n_angles
+    axis_index, angle_index = divmod(int(neuron), m)
+    along_angle = axis_index * m + np.array([(angle_index - 1) % m, (angle_index + 1) % m])
+    along_axes = lattice_neighbours(layout.n_axes)[axis_index] * m + angle_index
+    return np.concatenate([[neuron], along_angle, along_axes])
+
+
 def refine_neuron(pc: PopulationCode, code: np.ndarray, neuron: int) -> np.ndarray:
     """Refined rotation ``(3, 3)`` for the peak at ``neuron`` of one code row."""
     layout = pc.layout
@@ -113,11 +124,38 @@ def refine_neuron(pc: PopulationCode, code: np.ndarray, neuron: int) -> np.ndarr
     return axis_angle_to_matrix(axis, angle)
 
 
-def decode_refined(pc: PopulationCode, code: np.ndarray) -> DecodedRotations:
-    """Like :meth:`PopulationCode.decode`, with each argmax refined between grid points."""
+def refine_with_symmetries(pc: PopulationCode, code: np.ndarray, neuron: int, symmetries: np.ndarray,
+                           passes: int = 2) -> np.ndarray:
+    """Refined rotation for the peak at ``neuron``, with the other symmetric peaks explained away.
+
+    The tails of an object's equivalent poses (90 deg apart for a 4-fold part)
+    tilt the log-activations around a peak and bias the local fit. Knowing the
+    symmetries, the code those other poses would produce is subtracted (scaled
+    to the peak's height) and the fit repeated.
+    """
+    R = refine_neuron(pc, code, neuron)
+    if len(symmetries) < 2:
+        return R
+    patch = fit_neurons(pc.layout, neuron)  # only these enter the fit: model the others there alone
+    cleaned = code.astype(np.float64)
+    for _ in range(passes):
+        own = pc.encode(R, neurons=patch)
+        others = pc.encode(R, symmetries, neurons=patch) - own
+        height = code[neuron] / max(float(own[0]), 1e-6)
+        cleaned[patch] = code[patch] - height * others
+        R = refine_neuron(pc, cleaned, neuron)
+    return R
+
+
+def decode_refined(pc: PopulationCode, code: np.ndarray, symmetries: np.ndarray | None = None) -> DecodedRotations:
+    """Like :meth:`PopulationCode.decode`, with each argmax refined between grid points.
+
+    ``symmetries`` ``(K, 3, 3)`` (identity first), when known, let the fit discount the other peaks.
+    """
     code = check_code(code, pc.layout.size)
     neuron = np.argmax(code, axis=1)
-    R = np.stack([refine_neuron(pc, row, k) for row, k in zip(code, neuron, strict=True)])
+    S = np.eye(3)[None] if symmetries is None else np.asarray(symmetries, dtype=np.float64)
+    R = np.stack([refine_with_symmetries(pc, row, k, S) for row, k in zip(code, neuron, strict=True)])
     axis, angle = matrix_to_axis_angle(R)
     activation = code[np.arange(len(code)), neuron]
     return DecodedRotations(R=R, axis=axis, angle_rad=angle, neuron=neuron, activation=activation)
