@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from popcode_runtime import PopcodeError, symmetry_transforms
 
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
@@ -146,7 +145,7 @@ def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visi
         K = _field(camera, "cam_K", camera_path, f"image {im_id}", size=9).reshape(3, 3)
         depth_scale = float(camera.get("depth_scale", 1.0))
         stem = f"{im_id:06d}"
-        for gt_index, (gt, info) in enumerate(zip(gts, infos)):
+        for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
             where = f"image {im_id}, object {gt_index}"
             obj_id = int(_field(gt, "obj_id", gt_path, where))
             if obj_id not in obj_ids:

@@ -14,22 +14,23 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
-
 from popcode_runtime import CodeLayout, PopcodeError, PopulationCode, read_image, symmetry_rotations
 from popcode_runtime.crop import CROP_PADDING, crop_square
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
+from torch.utils.data import Dataset
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds
 from .bop import Instance
+
+PAPER_AUGMENTATION = Augmentation()
 
 
 class CropDataset(Dataset):
     """Dicts ``image`` (1, S, S) in [0, 1], ``target``, ``R_m2c`` (3, 3), ``obj_id`` and ``index``."""
 
     def __init__(self, instances: Sequence[Instance], target_fn: Callable[[Instance], np.ndarray],
-                 augmentation: Augmentation | None = Augmentation(), backgrounds: Backgrounds | str | Path | None = None,
-                 crop_size: int = 128, seed: int = 0) -> None:
+                 augmentation: Augmentation | None = PAPER_AUGMENTATION,
+                 backgrounds: Backgrounds | str | Path | None = None, crop_size: int = 128, seed: int = 0) -> None:
         if len(instances) == 0:
             raise PopcodeError("no instances to make training samples from")
         self.instances = list(instances)
@@ -88,12 +89,13 @@ class CropDataset(Dataset):
 
 
 def population_code_target(models_info: Mapping[int, Mapping[str, Any]],
-                           layout: CodeLayout = CodeLayout()) -> Callable[[Instance], np.ndarray]:
+                           layout: CodeLayout | None = None) -> Callable[[Instance], np.ndarray]:
     """Target function of the population code (DESIGN.md section 2) for each object's symmetries.
 
     Objects with a continuous symmetry get the axis-only code about their axis; the others the
-    full code summed over their discrete symmetries.
+    full code summed over their discrete symmetries. Default layout: the paper's.
     """
+    layout = layout or CodeLayout()
     codes: dict[int, tuple[PopulationCode, np.ndarray]] = {}
 
     def target(instance: Instance) -> np.ndarray:
