@@ -1,0 +1,18 @@
+"""Shared rendered data for the data tests: tiny images, few of them, rendered once per session."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from popcode_trainer.data.render import render_builtin_split  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def builtin_split(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Every built-in part, 3 grey 128x128 images each, some off-centre."""
+    return render_builtin_split(tmp_path_factory.mktemp("builtin"), 3, random_position=True)

@@ -1,0 +1,122 @@
+"""Training samples: augmentation fires at its probabilities, crops are deterministic and worker-safe."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from popcode_runtime import CodeLayout, PopcodeError, read_image
+from popcode_runtime.crop import crop_square
+from popcode_trainer.cli import main
+from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture
+from popcode_trainer.data.bop import read_bop_split
+from popcode_trainer.data.samples import CropDataset, population_code_target
+from torch.utils.data import DataLoader
+
+DRAWS = 2000
+SMALL_CODE = CodeLayout(n_axes=162, n_angles=12)
+
+
+def _within_binomial(count: int, p: float, n: int = DRAWS) -> bool:
+    return abs(count - n * p) <= 4.0 * np.sqrt(n * p * (1.0 - p)) + 1e-9
+
+
+@pytest.mark.parametrize("rendered", [True, False])
+def test_each_augmentation_fires_at_its_probability(rendered: bool) -> None:
+    augmentation = Augmentation()
+    draws = [augmentation.draw(np.random.default_rng([5, index]), rendered) for index in range(DRAWS)]
+    brightness = np.array([draw.brightness for draw in draws])
+    shifts = np.array([draw.shift_crop_px for draw in draws])
+    fired = {
+        "brightness": (int((brightness != 0).sum()), 0.5 if rendered else 0.0),
+        "background": (sum(draw.background for draw in draws), 0.7 if rendered else 0.0),
+        "noise": (sum(draw.noise for draw in draws), 0.5),
+        "shift": (int(np.any(shifts != 0, axis=1).sum()), 0.9),
+    }
+    for name, (count, p) in fired.items():
+        assert _within_binomial(count, p), f"{name} fired {count} of {DRAWS} times, expected p={p}"
+    assert np.abs(brightness).max() <= 0.2 and np.abs(shifts).max() <= 5.0
+    if rendered:  # uniform +-0.2: mean near 0, spread near 0.2 / sqrt 3
+        assert abs(brightness[brightness != 0].mean()) < 0.02
+        assert brightness[brightness != 0].std() == pytest.approx(0.2 / np.sqrt(3), rel=0.1)
+
+
+@pytest.fixture(scope="module")
+def split(builtin_split: Path):
+    return read_bop_split(builtin_split, builtin_split / "models")
+
+
+def _dataset(split, **kwargs) -> CropDataset:
+    return CropDataset(split.instances, population_code_target(split.models_info, SMALL_CODE), **kwargs)
+
+
+def test_sample_contents_and_targets(split) -> None:
+    dataset = _dataset(split, augmentation=None)
+    for index in (0, len(dataset) - 1):
+        sample = dataset[index]
+        instance = split.instances[index]
+        assert sample["image"].shape == (1, 128, 128) and sample["image"].dtype == torch.float32
+        expected = crop_square(read_image(instance.image_path), instance.box)
+        np.testing.assert_array_equal(sample["image"][0].numpy(), expected)
+        np.testing.assert_array_equal(sample["R_m2c"].numpy(), instance.R_m2c.astype(np.float32))
+        assert sample["obj_id"] == instance.obj_id and sample["index"] == index
+    sizes = {instance.obj_id: dataset[index]["target"].numel() for index, instance in enumerate(split.instances)}
+    assert sizes[1] == sizes[2] == SMALL_CODE.n_axes  # continuous symmetry: axis-only code
+    assert sizes[3] == sizes[6] == SMALL_CODE.n_axes * SMALL_CODE.n_angles
+
+
+def test_augmented_samples_are_deterministic_per_seed_epoch_and_index(split) -> None:
+    dataset = _dataset(split)
+    first = [dataset[index]["image"] for index in range(6)]
+    again = _dataset(split)
+    assert all(torch.equal(a, again[index]["image"]) for index, a in enumerate(first))
+    assert all(float(image.min()) >= 0.0 and float(image.max()) <= 1.0 for image in first)
+    again.set_epoch(1)
+    assert not all(torch.equal(a, again[index]["image"]) for index, a in enumerate(first))
+    loader = DataLoader(dataset, batch_size=3, num_workers=2, shuffle=False)
+    batched = torch.cat([batch["image"] for _, batch in zip(range(2), loader, strict=False)])
+    assert torch.equal(batched, torch.stack(first))
+
+
+def test_background_replaces_only_pixels_off_the_object(split) -> None:
+    only_background = Augmentation(brightness_p=0.0, background_p=1.0, noise_p=0.0, shift_p=0.0)
+    plain, augmented = _dataset(split, augmentation=None), _dataset(split, augmentation=only_background)
+    for index in range(0, len(split.instances), 4):
+        instance = split.instances[index]
+        alpha = crop_square(read_image(instance.mask_visib_path), instance.box)
+        before, after = plain.crop(index), augmented.crop(index)
+        np.testing.assert_allclose(after[alpha == 1.0], before[alpha == 1.0], atol=1e-6)
+        assert np.abs(after[alpha == 0.0] - before[alpha == 0.0]).mean() > 0.05
+    real = [dataclasses.replace(instance, rendered=False) for instance in split.instances[:3]]
+    real_plain = CropDataset(real, lambda _: np.zeros(1), augmentation=None)
+    real_augmented = CropDataset(real, lambda _: np.zeros(1), augmentation=only_background)
+    for index in range(3):  # real images never get a background
+        np.testing.assert_array_equal(real_plain.crop(index), real_augmented.crop(index))
+
+
+def test_backgrounds_from_a_folder_and_procedural(tmp_path: Path) -> None:
+    cv2.imwrite(str(tmp_path / "wall.png"), np.random.default_rng(0).integers(0, 255, (90, 200), dtype=np.uint8))
+    patch = Backgrounds(tmp_path).sample(np.random.default_rng(1), 128)
+    assert patch.shape == (128, 128) and patch.min() >= 0.0 and patch.max() <= 1.0
+    textures = [procedural_texture(np.random.default_rng(seed), 64) for seed in range(5)]
+    assert all(texture.min() >= 0.0 and texture.max() <= 1.0 and texture.std() > 0.01 for texture in textures)
+    assert not np.allclose(textures[0], textures[1])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(PopcodeError, match="no images"):
+        Backgrounds(empty)
+
+
+def test_render_and_preview_commands(tmp_path: Path) -> None:
+    out = tmp_path / "split"
+    assert main(["render", "--objects", "builtin", "--out", str(out), "--images", "2", "--obj-ids", "2", "4",
+                 "--size", "96", "80", "--quiet"]) == 0
+    assert len(read_bop_split(out, out / "models").instances) == 4
+    assert main(["preview", "--split", str(out), "--out", str(tmp_path / "grid.png"), "--count", "4"]) == 0
+    assert cv2.imread(str(tmp_path / "grid.png")).shape[2] == 3
+    assert main(["render", "--objects", str(tmp_path / "nowhere"), "--out", str(out), "--images", "1"]) == 2
+    assert main(["render", "--objects", "builtin", "--out", str(out), "--images", "2", "--shard", "2/2"]) == 2

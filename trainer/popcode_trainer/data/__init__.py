@@ -1,0 +1,1 @@
+"""Data: BOP reader, renderer, built-in objects and the training-sample augmentation."""

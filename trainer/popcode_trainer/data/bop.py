@@ -1,0 +1,219 @@
+"""Reader for BOP-format splits: the one way data enters training (DESIGN.md section 4).
+
+Only the JSON files are read when a split is indexed; images are opened by whoever uses an
+:class:`Instance`. Works on T-LESS as published (``gray/`` or ``rgb/``, png/jpg/tif) and on what
+:mod:`popcode_trainer.data.render` writes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from popcode_runtime import PopcodeError, symmetry_transforms
+
+RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
+IMAGE_FOLDERS = ("rgb", "gray")
+_BOX_KINDS = ("bbox_obj", "bbox_visib")
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One annotated object in one image, in BOP conventions (object-to-camera, mm, OpenCV camera)."""
+
+    image_path: Path
+    obj_id: int
+    box: tuple[float, float, float, float]  # x, y, w, h px
+    K: np.ndarray  # (3, 3)
+    R_m2c: np.ndarray  # (3, 3)
+    t_m2c_mm: np.ndarray  # (3,)
+    scene_id: int
+    im_id: int
+    gt_index: int
+    visib_fract: float
+    rendered: bool  # synthetic image: gets the brightness and background augmentation
+    depth_path: Path | None
+    mask_visib_path: Path | None
+    depth_scale: float  # depth png value times this is mm
+
+
+@dataclass(frozen=True)
+class BopSplit:
+    """The selected instances of a split and the models they refer to."""
+
+    instances: list[Instance]
+    models_info: dict[int, dict[str, Any]]
+    split_dir: Path
+    models_dir: Path
+
+    def model_path(self, obj_id: int) -> Path:
+        """Path of the object's mesh (``obj_XXXXXX.ply``)."""
+        return model_path(self.models_dir, obj_id)
+
+
+def model_path(models_dir: str | Path, obj_id: int) -> Path:
+    path = Path(models_dir) / f"obj_{obj_id:06d}.ply"
+    if not path.is_file():
+        raise PopcodeError(f"model file not found: {path}")
+    return path
+
+
+def read_json(path: Path) -> Any:
+    """Parsed JSON, or a PopcodeError that names the file."""
+    if not path.is_file():
+        raise PopcodeError(f"missing file {path}")
+    try:
+        with path.open() as file:
+            return json.load(file)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise PopcodeError(f"{path} is not valid JSON: {error}") from error
+
+
+def _field(entry: Any, key: str, path: Path, where: str, size: int | None = None) -> Any:
+    """``entry[key]`` (as a float array of ``size`` numbers when size is given), else an error naming it."""
+    if not isinstance(entry, Mapping) or key not in entry:
+        raise PopcodeError(f"{path}: key '{key}' missing in {where}")
+    value = entry[key]
+    if size is None:
+        return value
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(size)
+    except (TypeError, ValueError) as error:
+        raise PopcodeError(f"{path}: key '{key}' in {where} must be {size} numbers, got {value!r}") from error
+    if not np.isfinite(array).all():
+        raise PopcodeError(f"{path}: key '{key}' in {where} contains NaN or inf")
+    return array
+
+
+def _int_keys(data: Any, path: Path) -> dict[int, Any]:
+    if not isinstance(data, Mapping):
+        raise PopcodeError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
+    try:
+        return {int(key): value for key, value in data.items()}
+    except ValueError as error:
+        raise PopcodeError(f"{path}: keys must be integer ids ({error})") from error
+
+
+def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
+    """``models_info.json`` keyed by object id, each entry checked (diameter, extents, symmetries)."""
+    path = Path(models_dir) / "models_info.json"
+    models_info = _int_keys(read_json(path), path)
+    for obj_id, info in models_info.items():
+        where = f"object {obj_id}"
+        diameter = float(_field(info, "diameter", path, where, size=1)[0])
+        if diameter <= 0:
+            raise PopcodeError(f"{path}: key 'diameter' of {where} must be positive, got {diameter}")
+        try:
+            symmetry_transforms(info)
+        except PopcodeError as error:
+            raise PopcodeError(f"{path}: {where}: {error}") from error
+    return models_info
+
+
+def _folder_index(folder: Path) -> dict[str, Path]:
+    """File stem -> path for every file in a folder (one listdir instead of a stat per image)."""
+    if not folder.is_dir():
+        return {}
+    return {name.rsplit(".", 1)[0]: folder / name for name in os.listdir(folder) if not name.startswith(".")}
+
+
+def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visib_fract: float, box: str,
+                     rendered: bool) -> Iterable[Instance]:
+    gt_path, info_path, camera_path = (scene_dir / f"scene_{name}.json" for name in ("gt", "gt_info", "camera"))
+    scene_gt = _int_keys(read_json(gt_path), gt_path)
+    scene_info = _int_keys(read_json(info_path), info_path)
+    scene_camera = _int_keys(read_json(camera_path), camera_path)
+    image_folder = next((scene_dir / name for name in IMAGE_FOLDERS if (scene_dir / name).is_dir()), None)
+    if image_folder is None:
+        raise PopcodeError(f"{scene_dir} has no image folder; expected one of {list(IMAGE_FOLDERS)}")
+    images, depths = _folder_index(image_folder), _folder_index(scene_dir / "depth")
+    masks = _folder_index(scene_dir / "mask_visib")
+    for im_id, gts in sorted(scene_gt.items()):
+        if im_id not in scene_info:
+            raise PopcodeError(f"{info_path}: key '{im_id}' missing (it is in {gt_path.name})")
+        if im_id not in scene_camera:
+            raise PopcodeError(f"{camera_path}: key '{im_id}' missing (it is in {gt_path.name})")
+        infos = scene_info[im_id]
+        if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
+            raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of objects")
+        camera = scene_camera[im_id]
+        K = _field(camera, "cam_K", camera_path, f"image {im_id}", size=9).reshape(3, 3)
+        depth_scale = float(camera.get("depth_scale", 1.0))
+        stem = f"{im_id:06d}"
+        for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
+            where = f"image {im_id}, object {gt_index}"
+            obj_id = int(_field(gt, "obj_id", gt_path, where))
+            if obj_id not in obj_ids:
+                continue
+            visib_fract = float(_field(info, "visib_fract", info_path, where, size=1)[0])
+            x, y, w, h = _field(info, box, info_path, where, size=4)
+            if visib_fract < min_visib_fract or w <= 0 or h <= 0:
+                continue
+            if stem not in images:
+                raise PopcodeError(f"image {stem} listed in {gt_path} is missing from {image_folder}")
+            yield Instance(
+                image_path=images[stem],
+                obj_id=obj_id,
+                box=(float(x), float(y), float(w), float(h)),
+                K=K,
+                R_m2c=_field(gt, "cam_R_m2c", gt_path, where, size=9).reshape(3, 3),
+                t_m2c_mm=_field(gt, "cam_t_m2c", gt_path, where, size=3),
+                scene_id=scene_id,
+                im_id=im_id,
+                gt_index=gt_index,
+                visib_fract=visib_fract,
+                rendered=rendered,
+                depth_path=depths.get(stem),
+                mask_visib_path=masks.get(f"{stem}_{gt_index:06d}"),
+                depth_scale=depth_scale,
+            )
+
+
+def is_rendered_split(split_dir: Path) -> bool:
+    """Synthetic split: made by our renderer, or a BOP physically-based one (``train_pbr``)."""
+    return (split_dir / RENDER_MARKER).is_file() or "pbr" in split_dir.name
+
+
+def read_bop_split(
+    split_dir: str | Path,
+    models_dir: str | Path,
+    obj_ids: Iterable[int] | None = None,
+    min_visib_fract: float = 0.6,
+    box: str = "bbox_obj",
+    rendered: bool | None = None,
+) -> BopSplit:
+    """Index the instances of ``obj_ids`` (default: all in ``models_info.json``) with enough of them visible.
+
+    ``box`` picks the BOP box (``bbox_obj`` or ``bbox_visib``); ``rendered`` overrides the guess
+    from the split (see :func:`is_rendered_split`).
+    """
+    split_dir, models_dir = Path(split_dir), Path(models_dir)
+    if box not in _BOX_KINDS:
+        raise PopcodeError(f"box must be one of {list(_BOX_KINDS)}, got {box!r}")
+    if not split_dir.is_dir():
+        raise PopcodeError(f"split folder not found: {split_dir}")
+    models_info = load_models_info(models_dir)
+    wanted = set(models_info) if obj_ids is None else {int(obj_id) for obj_id in obj_ids}
+    unknown = sorted(wanted - set(models_info))
+    if unknown:
+        raise PopcodeError(f"object ids {unknown} are not in {models_dir / 'models_info.json'} "
+                           f"(it lists {sorted(models_info)})")
+    if rendered is None:
+        rendered = is_rendered_split(split_dir)
+    scene_dirs = sorted(path for path in split_dir.iterdir() if path.is_dir() and path.name.isdigit())
+    if not scene_dirs:
+        raise PopcodeError(f"{split_dir} has no scene folders (000000, 000001, ...); is it a BOP split?")
+    instances = [
+        instance
+        for scene_dir in scene_dirs
+        for instance in _scene_instances(scene_dir, int(scene_dir.name), wanted, min_visib_fract, box, rendered)
+    ]
+    if not instances:
+        raise PopcodeError(f"no instances of objects {sorted(wanted)} with visib_fract >= {min_visib_fract} "
+                           f"in {split_dir}")
+    return BopSplit(instances=instances, models_info=models_info, split_dir=split_dir, models_dir=models_dir)

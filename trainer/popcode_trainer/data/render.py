@@ -1,0 +1,365 @@
+"""Headless pyrender renderer that writes BOP-format splits (DESIGN.md section 4).
+
+Each object gets one scene folder (``scene_id = obj_id``, as T-LESS ``train_primesense``); image
+``im_id`` of object ``obj_ids[o]`` has global index ``k = o * images_per_object + im_id`` and belongs
+to shard ``k % n``. Its pose, lights and shade come from a generator seeded by ``(seed, obj_id,
+im_id)``, so any shard split renders the same images and shard outputs merge into one split.
+
+Every file is written under a temporary name and renamed; an image counts as done once its
+record (``<scene>/.popcode_records/<im_id>.json``) exists, and the scene JSON files are rebuilt
+from the records at the end of every run. An interrupted run, rerun with the same arguments,
+renders only what is missing; shard folders copied together and rerun become one split.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import contextlib  # noqa: E402
+from collections.abc import Iterator, Sequence  # noqa: E402
+from dataclasses import asdict, dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+from popcode_runtime import PopcodeError  # noqa: E402
+from popcode_runtime.rotations import random_rotations, rotation_between  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from .bop import RENDER_MARKER, load_models_info, model_path, read_json  # noqa: E402
+from .files import write_json_atomic, write_png_atomic  # noqa: E402
+from .objects import write_builtin_models  # noqa: E402
+
+RECORDS_FOLDER = ".popcode_records"
+BUILTIN_MODELS_FOLDER = "models"
+DEPTH_SCALE_MM = 0.1  # depth png value * 0.1 = mm: 0.1 mm steps up to 6.5 m
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward) -> OpenGL (y up, z back)
+
+
+def _import_pyrender() -> Any:
+    try:
+        import pyrender
+    except Exception as error:  # PyOpenGL raises assorted errors when no EGL library is present
+        raise PopcodeError(_egl_help(error)) from error
+    return pyrender
+
+
+def _egl_help(error: BaseException) -> str:
+    return (f"cannot start the offscreen OpenGL renderer ({type(error).__name__}: {error}). Install EGL and Mesa "
+            "(e.g. apt-get install libegl1 libgl1-mesa-dri) and set PYOPENGL_PLATFORM=egl "
+            f"(now {os.environ.get('PYOPENGL_PLATFORM')!r})")
+
+
+def _offscreen(width: int, height: int) -> Any:
+    pyrender = _import_pyrender()
+    try:
+        return pyrender.OffscreenRenderer(width, height)
+    except Exception as error:
+        raise PopcodeError(_egl_help(error)) from error
+
+
+def load_mesh(path: str | Path) -> trimesh.Trimesh:
+    """A PLY/OBJ model (mm) as one triangle mesh; a clear error if it does not load."""
+    path = Path(path)
+    if not path.is_file():
+        raise PopcodeError(f"model file not found: {path}")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many types for broken files
+        raise PopcodeError(f"cannot load model {path}: {error}") from error
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise PopcodeError(f"model {path} has no triangles")
+    return loaded
+
+
+def camera_matrix(width: int, height: int) -> np.ndarray:
+    """The renderer's pinhole camera: focal length 1.2 x width (about 45 degrees across), centred."""
+    focal_px = 1.2 * width
+    return np.array([[focal_px, 0.0, (width - 1) / 2.0], [0.0, focal_px, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _pyrender_camera(pyrender: Any, K: np.ndarray, radius_mm: float, distance_mm: float) -> Any:
+    # OpenGL samples pixel i at i + 0.5, OpenCV puts its centre at i: shift the principal point.
+    return pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
+                                     znear=max(distance_mm - radius_mm - 1.0, 1.0),
+                                     zfar=distance_mm + radius_mm + 1.0)
+
+
+def _gl_pose(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R_m2c, t_m2c_mm
+    return _GL_FROM_CV @ pose
+
+
+@contextlib.contextmanager
+def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
+    """pyrender always renders into 4x multisampled buffers; make them single-sampled while a
+    :class:`DepthRenderer` sets up its framebuffer, so depth is sampled at pixel centres as the
+    BOP toolkit's renderer does."""
+    module = pyrender.renderer
+    original = module.glRenderbufferStorageMultisample
+    module.glRenderbufferStorageMultisample = lambda target, _samples, fmt, w, h: original(target, 0, fmt, w, h)
+    try:
+        yield
+    finally:
+        module.glRenderbufferStorageMultisample = original
+
+
+class DepthRenderer:
+    """Depth images of one mesh without anti-aliasing, for metrics such as VSD."""
+
+    def __init__(self, mesh_vertices_mm: np.ndarray, faces: np.ndarray, width: int, height: int) -> None:
+        self._pyrender = _import_pyrender()
+        vertices = np.asarray(mesh_vertices_mm, dtype=np.float64)
+        self._radius_mm = float(np.linalg.norm(vertices, axis=1).max())
+        self._renderer = _offscreen(width, height)
+        self._scene = self._pyrender.Scene()
+        mesh = self._pyrender.Mesh.from_trimesh(trimesh.Trimesh(vertices, faces, process=False), smooth=False)
+        self._node = self._scene.add(mesh)
+        self._camera_node = None
+        self._framebuffer_ready = False
+
+    def render(self, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+        """Depth ``(H, W)`` float32 in mm along the camera z-axis, 0 where the object is absent."""
+        t = np.asarray(t_m2c_mm, dtype=np.float64).reshape(3)
+        if self._camera_node is not None:
+            self._scene.remove_node(self._camera_node)
+        camera = _pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]))
+        self._camera_node = self._scene.add(camera, pose=np.eye(4))
+        self._scene.set_pose(self._node, _gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
+        flags = self._pyrender.RenderFlags.DEPTH_ONLY
+        if self._framebuffer_ready:
+            return self._renderer.render(self._scene, flags=flags).astype(np.float32)
+        with _single_sample_framebuffers(self._pyrender):
+            depth = self._renderer.render(self._scene, flags=flags)
+        self._framebuffer_ready = True
+        return depth.astype(np.float32)
+
+    def close(self) -> None:
+        self._renderer.delete()
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What a split is rendered with; stored in the split so a rerun cannot mix settings."""
+
+    images_per_object: int
+    width: int = 128
+    height: int = 128
+    seed: int = 0
+    gray: bool = True
+    random_position: bool = False
+    random_distance: bool = True
+    fill_range: tuple[float, float] = (0.45, 0.75)  # object diameter / min(width, height)
+
+    def __post_init__(self) -> None:
+        if self.images_per_object < 1 or self.width < 8 or self.height < 8:
+            raise PopcodeError(f"need at least 1 image per object and 8x8 pixels, got {self}")
+        low, high = self.fill_range
+        if not 0.05 <= low <= high <= 0.9:
+            raise PopcodeError(f"fill_range must satisfy 0.05 <= low <= high <= 0.9, got {self.fill_range}")
+
+
+def sample_pose(rng: np.random.Generator, vertices_mm: np.ndarray, diameter_mm: float, K: np.ndarray,
+                settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform rotation and a translation that keeps the whole object inside the image."""
+    R_m2c = random_rotations(1, rng)[0]
+    low, high = settings.fill_range
+    fill = rng.uniform(low, high) if settings.random_distance else (low + high) / 2.0
+    distance_mm = K[0, 0] * diameter_mm / (fill * min(settings.width, settings.height))
+    centres_px = list(rng.uniform([0.0, 0.0], [settings.width - 1.0, settings.height - 1.0], size=(20, 2))
+                      if settings.random_position else [])
+    for centre_px in [*centres_px, K[:2, 2]]:  # random positions first, the image centre as the last resort
+        t_m2c_mm = distance_mm * np.linalg.solve(K, np.append(centre_px, 1.0))
+        projected = project(vertices_mm, K, R_m2c, t_m2c_mm)
+        if projected.min() >= 0 and (projected < [settings.width - 1, settings.height - 1]).all():
+            return R_m2c, t_m2c_mm
+    raise PopcodeError(f"the object does not fit into {settings.width}x{settings.height} pixels "
+                       f"at fill {fill:.2f}; lower fill_range")
+
+
+def project(points_mm: np.ndarray, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+    """Pixel coordinates ``(N, 2)`` of model points ``(N, 3)`` (OpenCV convention)."""
+    camera = points_mm @ R_m2c.T + t_m2c_mm
+    image = camera @ K.T
+    return image[:, :2] / image[:, 2:3]
+
+
+def _mask_box(mask: np.ndarray) -> list[int]:
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+
+
+class _SceneRenderer:
+    """One pyrender scene reused for every image: the object, a camera and random lights."""
+
+    def __init__(self, width: int, height: int) -> None:
+        self._pyrender = _import_pyrender()
+        self._renderer = _offscreen(width, height)
+        self._scene = self._pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0])
+        self._material = self._pyrender.MetallicRoughnessMaterial()
+        self._meshes: dict[int, Any] = {}
+        self._transient: list[Any] = []
+
+    def add_object(self, obj_id: int, mesh: trimesh.Trimesh) -> None:
+        self._meshes[obj_id] = self._pyrender.Mesh.from_trimesh(mesh, material=self._material, smooth=False)
+
+    def render(self, obj_id: int, rng: np.random.Generator, K: np.ndarray, R_m2c: np.ndarray,
+               t_m2c_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Colour ``(H, W, 3)`` uint8 and depth ``(H, W)`` float mm of one view with random light and shade."""
+        pyrender = self._pyrender
+        for node in self._transient:
+            self._scene.remove_node(node)
+        shade = rng.uniform(0.35, 0.9)
+        self._material.baseColorFactor = np.array([shade, shade, shade, 1.0])
+        self._material.metallicFactor = rng.uniform(0.0, 0.4)
+        self._material.roughnessFactor = rng.uniform(0.35, 0.9)
+        self._scene.ambient_light = np.full(3, rng.uniform(0.05, 0.3))
+        camera = _pyrender_camera(pyrender, K, radius_mm, float(t_m2c_mm[2]))
+        self._transient = [
+            self._scene.add(self._meshes[obj_id], pose=_gl_pose(R_m2c, t_m2c_mm)),
+            self._scene.add(camera, pose=np.eye(4)),
+        ]
+        for _ in range(rng.integers(1, 4)):
+            # Light travels along -z of its node: point it into the scene from the camera's side.
+            direction = rng.normal(size=3)
+            direction[2] = -abs(direction[2]) - 0.5
+            pose = np.eye(4)
+            pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
+            light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(1.0, 4.0))
+            self._transient.append(self._scene.add(light, pose=pose))
+        color, depth = self._renderer.render(self._scene)
+        return color, depth
+
+    def close(self) -> None:
+        self._renderer.delete()
+
+
+def _scene_dir(out_dir: Path, obj_id: int) -> Path:
+    return out_dir / f"{obj_id:06d}"
+
+
+def _render_one(renderer: _SceneRenderer, scene_dir: Path, obj_id: int, im_id: int, vertices_mm: np.ndarray,
+                diameter_mm: float, settings: RenderSettings) -> None:
+    rng = np.random.default_rng([settings.seed, obj_id, im_id])
+    K = camera_matrix(settings.width, settings.height)
+    R_m2c, t_m2c_mm = sample_pose(rng, vertices_mm, diameter_mm, K, settings)
+    radius_mm = float(np.linalg.norm(vertices_mm, axis=1).max())
+    color, depth_mm = renderer.render(obj_id, rng, K, R_m2c, t_m2c_mm, radius_mm)
+    mask = depth_mm > 0
+    stem = f"{im_id:06d}"
+    if settings.gray:
+        write_png_atomic(scene_dir / "gray" / f"{stem}.png", cv2.cvtColor(color, cv2.COLOR_RGB2GRAY))
+    else:
+        write_png_atomic(scene_dir / "rgb" / f"{stem}.png", color)
+    write_png_atomic(scene_dir / "depth" / f"{stem}.png",
+                     np.clip(np.round(depth_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16))
+    write_png_atomic(scene_dir / "mask_visib" / f"{stem}_000000.png", mask.astype(np.uint8) * 255)
+    pixels = int(mask.sum())
+    box = _mask_box(mask)  # the whole object is in view, so the visible and full boxes agree
+    record = {
+        "scene_gt": [{"cam_R_m2c": R_m2c.ravel().tolist(), "cam_t_m2c": t_m2c_mm.tolist(), "obj_id": obj_id}],
+        "scene_gt_info": [{"bbox_obj": box, "bbox_visib": box, "px_count_all": pixels, "px_count_valid": pixels,
+                           "px_count_visib": pixels, "visib_fract": 1.0 if pixels else 0.0}],
+        "scene_camera": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE_MM},
+    }
+    write_json_atomic(scene_dir / RECORDS_FOLDER / f"{stem}.json", record)  # last: marks the image done
+
+
+def _finalize_scene(scene_dir: Path) -> None:
+    """Rebuild the scene's BOP JSON files from every image record present."""
+    tables: dict[str, dict[str, Any]] = {"scene_gt": {}, "scene_gt_info": {}, "scene_camera": {}}
+    for record_path in sorted((scene_dir / RECORDS_FOLDER).glob("*.json")):
+        record = read_json(record_path)
+        for name, table in tables.items():
+            table[str(int(record_path.stem))] = record[name]
+    for name, table in tables.items():
+        write_json_atomic(scene_dir / f"{name}.json", table)
+
+
+def _check_settings(out_dir: Path, settings: dict[str, Any]) -> None:
+    marker = out_dir / RENDER_MARKER
+    if marker.is_file():
+        previous = read_json(marker)
+        if previous != settings:
+            raise PopcodeError(f"{out_dir} was rendered with other settings ({previous}); "
+                               f"use the same settings to complete it, or another folder")
+    else:
+        write_json_atomic(marker, settings)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"i/n"`` -> ``(i, n)`` with ``0 <= i < n``."""
+    try:
+        index, count = (int(part) for part in text.split("/"))
+    except ValueError as error:
+        raise PopcodeError(f"shard must look like i/n (e.g. 0/4), got {text!r}") from error
+    if not 0 <= index < count:
+        raise PopcodeError(f"shard {text!r}: need 0 <= i < n")
+    return index, count
+
+
+def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSettings,
+                 obj_ids: Sequence[int] | None = None, shard: tuple[int, int] = (0, 1),
+                 progress: bool = True) -> Path:
+    """Render this shard's images of ``obj_ids`` (default: every model) into a BOP split; returns it."""
+    models_dir, out_dir = Path(models_dir), Path(out_dir)
+    models_info = load_models_info(models_dir)
+    obj_ids = sorted(models_info) if obj_ids is None else [int(obj_id) for obj_id in obj_ids]
+    unknown = [obj_id for obj_id in obj_ids if obj_id not in models_info]
+    if unknown or not obj_ids:
+        raise PopcodeError(f"object ids {unknown or '[]'} are not in {models_dir / 'models_info.json'} "
+                           f"(it lists {sorted(models_info)})")
+    shard_index, shard_count = shard
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _check_settings(out_dir, {**asdict(settings), "fill_range": list(settings.fill_range),
+                              "obj_ids": obj_ids})
+    todo = []
+    for obj_index, obj_id in enumerate(obj_ids):
+        records = _scene_dir(out_dir, obj_id) / RECORDS_FOLDER
+        for im_id in range(settings.images_per_object):
+            k = obj_index * settings.images_per_object + im_id
+            if k % shard_count == shard_index and not (records / f"{im_id:06d}.json").is_file():
+                todo.append((obj_id, im_id))
+    if todo:
+        _render_todo(models_dir, out_dir, models_info, todo, settings, progress)
+    for obj_id in obj_ids:
+        if (_scene_dir(out_dir, obj_id) / RECORDS_FOLDER).is_dir():
+            _finalize_scene(_scene_dir(out_dir, obj_id))
+    return out_dir
+
+
+def _render_todo(models_dir: Path, out_dir: Path, models_info: dict[int, dict[str, Any]],
+                 todo: list[tuple[int, int]], settings: RenderSettings, progress: bool) -> None:
+    renderer = _SceneRenderer(settings.width, settings.height)
+    vertices: dict[int, np.ndarray] = {}
+    for obj_id in dict.fromkeys(obj_id for obj_id, _ in todo):
+        mesh = load_mesh(model_path(models_dir, obj_id))
+        renderer.add_object(obj_id, mesh)
+        vertices[obj_id] = np.asarray(mesh.vertices, dtype=np.float64)
+        scene_dir = _scene_dir(out_dir, obj_id)
+        for folder in ("gray" if settings.gray else "rgb", "depth", "mask_visib", RECORDS_FOLDER):
+            (scene_dir / folder).mkdir(parents=True, exist_ok=True)
+    try:
+        for obj_id, im_id in tqdm(todo, desc="render", unit="img", disable=not progress):
+            _render_one(renderer, _scene_dir(out_dir, obj_id), obj_id, im_id, vertices[obj_id],
+                        float(models_info[obj_id]["diameter"]), settings)
+    finally:
+        renderer.close()
+
+
+def render_builtin_split(out_dir: str | Path, images_per_object: int, size: tuple[int, int] = (128, 128),
+                         seed: int = 0, shard: tuple[int, int] = (0, 1), obj_ids: Sequence[int] | None = None,
+                         progress: bool = False, **settings: Any) -> Path:
+    """Render the built-in parts into the split ``out_dir`` (models in ``out_dir/models``); returns ``out_dir``."""
+    out_dir = Path(out_dir)
+    models_dir = write_builtin_models(out_dir / BUILTIN_MODELS_FOLDER)
+    render_settings = RenderSettings(images_per_object, width=size[0], height=size[1], seed=seed, **settings)
+    return render_split(models_dir, out_dir, render_settings, obj_ids=obj_ids, shard=shard, progress=progress)
+
