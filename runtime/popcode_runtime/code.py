@@ -163,11 +163,8 @@ class PopulationCode:
         R = R.reshape(-1, 3, 3)
         S = np.eye(3)[None] if symmetries is None else np.asarray(symmetries, dtype=np.float64).reshape(-1, 3, 3)
         selected = np.arange(self.layout.size) if neurons is None else np.asarray(neurons)
-        if self.layout.axis_only:
-            code = self._encode_axis_only(R, S, selected)
-        else:
-            code = self._encode_full(R, S, selected)
-        code = code.astype(np.float32)
+        encode = self._encode_axis_only if self.layout.axis_only else self._encode_full
+        code = encode(R, S, selected).astype(np.float32)
         return code[0] if single else code
 
     def _encode_full(self, R: np.ndarray, S: np.ndarray, neurons: np.ndarray) -> np.ndarray:

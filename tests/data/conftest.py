@@ -9,6 +9,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+
 from popcode_trainer.data.render import render_builtin_split  # noqa: E402
 
 

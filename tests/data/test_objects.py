@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+
 from popcode_runtime import symmetry_rotations, symmetry_transforms
 from popcode_runtime.rotations import axis_angle_to_matrix, geodesic_angle
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class

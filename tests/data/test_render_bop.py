@@ -8,8 +8,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import popcode_trainer.data.render as render_module
 import pytest
+
+import popcode_trainer.data.render as render_module
 from popcode_runtime import PopcodeError
 from popcode_trainer.data.bop import load_models_info, read_bop_split
 from popcode_trainer.data.objects import BUILTIN_PARTS, write_builtin_models

@@ -9,13 +9,14 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from torch.utils.data import DataLoader
+
 from popcode_runtime import CodeLayout, PopcodeError, read_image
 from popcode_runtime.crop import crop_square
 from popcode_trainer.cli import main
 from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.samples import CropDataset, population_code_target
-from torch.utils.data import DataLoader
 
 DRAWS = 2000
 SMALL_CODE = CodeLayout(n_axes=162, n_angles=12)

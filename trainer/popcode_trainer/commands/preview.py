@@ -15,6 +15,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
 from popcode_runtime import CodeLayout, symmetry_class  # noqa: E402
 from popcode_runtime.code import fibonacci_lattice  # noqa: E402
 

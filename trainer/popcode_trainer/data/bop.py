@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from popcode_runtime import PopcodeError, symmetry_transforms
 
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made

@@ -9,6 +9,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from popcode_runtime import PopcodeError
 
 

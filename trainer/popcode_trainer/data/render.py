@@ -26,9 +26,10 @@ from typing import Any  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
 from popcode_runtime import PopcodeError  # noqa: E402
 from popcode_runtime.rotations import random_rotations, rotation_between  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from .bop import RENDER_MARKER, load_models_info, model_path, read_json  # noqa: E402
 from .files import write_json_atomic, write_png_atomic  # noqa: E402

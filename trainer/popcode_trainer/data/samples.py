@@ -14,10 +14,11 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.utils.data import Dataset
+
 from popcode_runtime import CodeLayout, PopcodeError, PopulationCode, read_image, symmetry_rotations
 from popcode_runtime.crop import CROP_PADDING, crop_square
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
-from torch.utils.data import Dataset
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds
 from .bop import Instance
