@@ -9,7 +9,7 @@ so resume and export see exactly the configuration that trained the model.
 from __future__ import annotations
 
 import dataclasses
-import tomllib
+import sys
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -23,6 +23,11 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 
 from .network import NetworkConfig
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # the same parser, from PyPI, before Python 3.11
+    import tomli as tomllib
 
 BOX_KINDS = ("bbox_obj", "bbox_visib")
 DEVICES = ("auto", "cpu", "cuda")
