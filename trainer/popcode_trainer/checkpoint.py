@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import random
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -73,3 +74,16 @@ def config_differences(saved: dict[str, Any], current: dict[str, Any]) -> list[s
             if (section, key) not in RESUMABLE_CHANGES and old.get(key) != new.get(key):
                 differences.append(f"{section}.{key}: {old.get(key)!r} -> {new.get(key)!r}")
     return differences
+
+
+def git_revision() -> str:
+    """The trainer's git commit (``+dirty`` with local changes), or ``unknown`` outside a checkout."""
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
+                              check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}+dirty" if dirty else head

@@ -60,29 +60,34 @@ def contrast_normalise(image: torch.Tensor) -> torch.Tensor:
 
 
 class OutputLayer(nn.Module):
-    """``x @ W + b`` with ``W`` ``(in, out)``; exports as MatMul + Add.
-
-    ``column_blocks`` > 0 computes the product in column blocks of at most
-    that many outputs, concatenated, so each exported weight stays below the
-    16384 limit of onnxruntime's CoreML provider. It changes the graph only,
-    never the weights or the result.
-    """
+    """``x @ W + b`` with ``W`` ``(in, out)``; exports as MatMul + Add."""
 
     def __init__(self, in_features: int, out_features: int) -> None:
         super().__init__()
         self.weight = nn.Parameter(torch.empty(in_features, out_features))
         self.bias = nn.Parameter(torch.empty(out_features))
-        self.column_blocks = 0
         bound = 1.0 / math.sqrt(in_features)  # nn.Linear's default initialisation
         nn.init.uniform_(self.weight, -bound, bound)
         nn.init.uniform_(self.bias, -bound, bound)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.column_blocks <= 0 or self.column_blocks >= self.bias.numel():
-            return x @ self.weight + self.bias
-        weights = self.weight.split(self.column_blocks, dim=1)
-        biases = self.bias.split(self.column_blocks)
-        return torch.cat([x @ w + b for w, b in zip(weights, biases, strict=True)], dim=1)
+        return x @ self.weight + self.bias
+
+
+class ColumnBlockOutputLayer(nn.Module):
+    """An :class:`OutputLayer` cut into column blocks of at most ``block`` outputs, concatenated.
+
+    Same result; each block is its own weight in the exported graph, so no
+    tensor exceeds the 16384 limit of onnxruntime's CoreML provider.
+    """
+
+    def __init__(self, layer: OutputLayer, block: int) -> None:
+        super().__init__()
+        self.weights = nn.ParameterList([nn.Parameter(w.detach().clone()) for w in layer.weight.split(block, 1)])
+        self.biases = nn.ParameterList([nn.Parameter(b.detach().clone()) for b in layer.bias.split(block)])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x @ w + b for w, b in zip(self.weights, self.biases, strict=True)], dim=1)
 
 
 def _mlp(widths: list[int], activation: type[nn.Module] | nn.Module) -> nn.Sequential:

@@ -199,6 +199,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     if context.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
     tensorboard = _TensorBoard(out_dir) if context.is_main else None
+    revision = checkpoint.git_revision() if context.is_main else ""
     history = []
     for epoch in range(start_epoch, cfg.epochs):
         if hasattr(train_set, "set_epoch"):
@@ -253,6 +254,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                 "scaler": scaler.state_dict(),
                 "rng": checkpoint.rng_state(),
                 "best_val_error_deg": best_error,
+                "git_revision": revision,
             }
             _append_metrics(out_dir / METRICS_FILE, row)  # before the checkpoint: resume truncates extra rows
             checkpoint.save_atomic(state, out_dir / checkpoint.LAST)
