@@ -13,6 +13,8 @@ from popcode_runtime import PopcodeError
 from . import __version__
 
 COMMAND_MODULES: tuple[str, ...] = (
+    "train",
+    "export",
 )
 
 

@@ -13,7 +13,6 @@ import dataclasses
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import onnx
@@ -165,8 +164,3 @@ def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: 
         path = quantise(float_path, kind, metadata)
         results.append(compare(path, run_onnx(path, crops), reference))
     return results
-
-
-def summary(results: list[Comparison]) -> list[dict[str, Any]]:
-    return [{"model": str(r.path), "max_abs_diff": r.max_abs_diff, "argmax_agreement": r.argmax_agreement}
-            for r in results]

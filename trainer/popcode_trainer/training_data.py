@@ -71,3 +71,13 @@ def build_training_data(config: Config) -> TrainingData:
         val_set=CropDataset(val, representation.target, augmentation=None, crop_size=size, seed=cfg.seed),
         val_instances=val,
     )
+
+
+def validation_crops(config: Config, count: int = 64) -> np.ndarray:
+    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)``: the export's parity check input."""
+    instances, _ = read_instances(config)
+    _, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
+    chosen = (val or instances)[:count]
+    crops = CropDataset(chosen, lambda _: np.zeros(1, np.float32), augmentation=None,
+                        crop_size=config.data.crop_size, seed=config.train.seed)
+    return np.stack([crops[i]["image"].numpy() for i in range(len(crops))])

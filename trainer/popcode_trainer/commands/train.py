@@ -23,9 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..training_data import build_training_data  # imports the data side only when training
-
     config = load_config(args.config, args.overrides)
+    from ..training_data import build_training_data  # the data side, imported once the config is valid
+
     data = build_training_data(config)
     train(config, data.representation, data.train_set, data.val_set, resume=args.resume,
           val_instances=data.val_instances)
