@@ -63,3 +63,8 @@ def test_export_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert "argmax agreement" in capsys.readouterr().out
     assert main(["export", str(tmp_path / "missing.pt"), "--out", str(out), "--crops",
                  str(tmp_path / "crops.npy")]) == 2
+
+
+def test_shipped_config_parses() -> None:
+    config = load_config(Path(__file__).parents[2] / "trainer" / "configs" / "paper.toml")
+    assert config.data.obj_ids == (5, 6) and config == Config.from_dict(config.to_dict())
