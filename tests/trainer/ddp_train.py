@@ -1,4 +1,7 @@
-"""Entry point for the torchrun test: the tiny run, on the synthetic data, in every rank."""
+"""Entry point for the subprocess tests (torchrun, kill-and-resume): the tiny run on synthetic data.
+
+    python ddp_train.py OUT_DIR EPOCHS [--resume]
+"""
 
 from __future__ import annotations
 
@@ -9,6 +12,6 @@ from popcode_trainer.train import train
 from tiny import tiny_config, tiny_data, tiny_representation
 
 if __name__ == "__main__":
-    config = tiny_config(Path(sys.argv[1]), epochs=2)
+    config = tiny_config(Path(sys.argv[1]), epochs=int(sys.argv[2]))
     representation = tiny_representation(config)
-    train(config, representation, *tiny_data(representation))
+    train(config, representation, *tiny_data(representation), resume="--resume" in sys.argv[3:])
