@@ -15,6 +15,8 @@ from . import __version__
 COMMAND_MODULES: tuple[str, ...] = (
     "render",
     "preview",
+    "train",
+    "export",
 )
 
 

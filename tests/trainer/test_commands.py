@@ -1,0 +1,71 @@
+"""The command line: named errors for bad configs, and export from a checkpoint."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_export import trained_checkpoint
+
+from popcode_runtime.errors import PopcodeError
+from popcode_trainer.cli import main
+from popcode_trainer.config import Config, load_config
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "config.toml"
+    path.write_text(text)
+    return path
+
+
+def test_defaults_are_the_papers() -> None:
+    config = load_config()
+    assert (config.train.lr, config.train.batch_size, config.train.epochs) == (2e-4, 64, 80)
+    assert (config.code.n_axes, config.code.n_angles, config.code.sigma_deg) == (2562, 36, 20.0)
+    assert Config.from_dict(config.to_dict()) == config
+
+
+def test_overrides_are_typed(tmp_path: Path) -> None:
+    path = write(tmp_path, '[train]\nlr = 1e-3\n[data]\nobj_ids = [5, 6]\nsplits = ["a", "b"]\n')
+    config = load_config(path, ["train.epochs=3", "train.out_dir=runs/x", "network.hidden=[64, 32, 16]"])
+    assert config.train.epochs == 3 and config.train.out_dir == "runs/x" and config.train.lr == 1e-3
+    assert config.data.obj_ids == (5, 6) and config.network.hidden == (64, 32, 16)
+
+
+@pytest.mark.parametrize(("text", "overrides", "message"), [
+    ("[train]\nlearning_rate = 1e-3\n", [], r"train.learning_rate.*valid keys in \[train\].*'lr'"),
+    ("[trian]\n", [], r"\['trian'\].*valid sections"),
+    ('[train]\nrepresentation = "quaternion"\n', [], r"'quaternion'.*'population_code'"),
+    ("", ["train.rotation_frame=world"], r"'world'.*'egocentric', 'allocentric'"),
+    ("", ["train.epochs=many"], r"train.epochs must be int"),
+    ("", ["network.output_dim=10"], r"network.output_dim"),
+    ("", ["trainlr=1"], r"section.key=value"),
+])
+def test_bad_settings_are_named(tmp_path: Path, text: str, overrides: list[str], message: str) -> None:
+    with pytest.raises(PopcodeError, match=message):
+        load_config(write(tmp_path, text), overrides)
+
+
+def test_cli_reports_bad_config_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = write(tmp_path, "[train]\nlearning_rate = 1e-3\n")
+    assert main(["train", "--config", str(path)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("popcode-train: error: unknown config key") and "\n" not in error
+
+
+def test_export_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt, crops = trained_checkpoint(tmp_path)
+    np.save(tmp_path / "crops.npy", crops)
+    out = tmp_path / "model.onnx"
+    assert main(["export", str(ckpt), "--out", str(out), "--crops", str(tmp_path / "crops.npy"),
+                 "--quantize", "int8", "--split-output", "256"]) == 0
+    assert out.is_file() and (tmp_path / "model.int8.onnx").is_file()
+    assert "argmax agreement" in capsys.readouterr().out
+    assert main(["export", str(tmp_path / "missing.pt"), "--out", str(out), "--crops",
+                 str(tmp_path / "crops.npy")]) == 2
+
+
+def test_shipped_config_parses() -> None:
+    config = load_config(Path(__file__).parents[2] / "trainer" / "configs" / "paper.toml")
+    assert config.data.obj_ids == (5, 6) and config == Config.from_dict(config.to_dict())

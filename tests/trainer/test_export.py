@@ -1,0 +1,83 @@
+"""Export: the ONNX model meets the contract, matches torch, and the runtime decodes it like torch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from synthetic import K, draw
+from tiny import tiny_config, tiny_data, tiny_representation
+
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_trainer import checkpoint
+from popcode_trainer.export import export_checkpoint, load_checkpoint_model
+from popcode_trainer.train import train
+
+
+def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarray]:
+    config = tiny_config(tmp_path / "run", epochs=1, **train_settings)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    train(config, rep, train_set, val_set, val_instances=val_set.instances)
+    crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
+    return tmp_path / "run" / checkpoint.LAST, crops
+
+
+@pytest.mark.parametrize("name", Representation.ALL)
+def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
+    ckpt, _ = trained_checkpoint(tmp_path, representation=name, rotation_frame=RotationFrame.ALLOCENTRIC)
+    # Full frames: the drawn object pasted at several places, so the allocentric conversion matters.
+    frame = np.zeros((480, 640), np.float32)
+    boxes = []
+    for i, (x, y) in enumerate([(20, 30), (300, 200), (500, 340)]):
+        R = np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0]
+        R *= np.linalg.det(R)
+        frame[y : y + 128, x : x + 128] = draw(R)
+        boxes.append((x + 5.8, y + 5.8, 116.4, 116.4))  # padding 1.1 -> a 128 px square: crops are exact
+    onnx_path = tmp_path / "model.onnx"
+    export_checkpoint(ckpt, onnx_path, np.stack([draw(np.eye(3))[None]]))
+
+    estimator = PoseEstimator(onnx_path)
+    predictions = estimator.predict(frame, boxes, K=K)
+
+    model, metadata = load_checkpoint_model(ckpt)
+    rep = tiny_representation(tiny_config(tmp_path, representation=name,
+                                          rotation_frame=RotationFrame.ALLOCENTRIC))
+    with torch.no_grad():
+        output = model(torch.from_numpy(estimator.crops(frame, boxes))).numpy()
+    R_frame = rep.decode(output).R
+    for prediction, R, box in zip(predictions, R_frame, boxes, strict=True):
+        centre = (box[0] + box[2] / 2, box[1] + box[3] / 2)
+        expected = rep.frame_rotation(np.eye(3), K, box).T @ R  # R_ray R_allo
+        assert np.allclose(prediction.R_m2c, expected, atol=1e-4), centre
+    assert metadata.training["epochs"] == 1
+
+
+def test_export_meets_the_contract_and_quantises(tmp_path: Path) -> None:
+    ckpt, crops = trained_checkpoint(tmp_path)
+    onnx_path = tmp_path / "out" / "model.onnx"
+    results = export_checkpoint(ckpt, onnx_path, crops, quantisations=("int8", "nbits4", "nbits8"),
+                                split_output=100)
+    parity, *quantised = results
+    assert parity.max_abs_diff < 1e-4 and parity.argmax_agreement == 1.0
+    assert [r.path.name for r in quantised] == ["model.int8.onnx", "model.nbits4.onnx", "model.nbits8.onnx"]
+    assert all(0.0 <= r.argmax_agreement <= 1.0 for r in quantised)
+
+    model = onnx.load(str(onnx_path))
+    ops = {node.op_type for node in model.graph.node}
+    assert "MatMul" in ops and "Concat" in ops
+    assert [i.name for i in model.graph.input] == ["image"] and [o.name for o in model.graph.output] == ["code"]
+    batch_dim = model.graph.input[0].type.tensor_type.shape.dim[0]
+    assert batch_dim.dim_param and not batch_dim.dim_value
+    for r in quantised:
+        quantised_model = onnx.load(str(r.path))
+        assert {p.key: p.value for p in quantised_model.metadata_props} == \
+            {p.key: p.value for p in model.metadata_props}
+    assert "MatMulNBits" in {n.op_type for n in onnx.load(str(quantised[1].path)).graph.node}
+    head = [init for init in model.graph.initializer if init.name.startswith("head.")]
+    assert len(head) == 12 and max(max(init.dims) for init in head) <= 100  # 504 outputs in blocks of 100
+    PoseEstimator(quantised[1].path)  # the runtime accepts a quantised model

@@ -1,0 +1,120 @@
+"""Each representation: a perfect output has (near) zero loss and decodes to the ground truth up to symmetry."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from symmetry_cases import CASES
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
+from popcode_trainer.representations import (
+    MultiHypothesisRepresentation,
+    build_representation,
+    code_layout,
+)
+
+SMALL = dict(n_axes=42, n_angles=12, sigma_deg=30.0)
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def instances(R: np.ndarray, obj_id: int = 1) -> list[SimpleNamespace]:
+    boxes = [(40.0 + 30 * i, 300.0 - 20 * i, 80.0, 60.0) for i in range(len(R))]
+    return [SimpleNamespace(obj_id=obj_id, R_m2c=r, K=K, box=b) for r, b in zip(R, boxes, strict=True)]
+
+
+def perfect_output(rep, targets: np.ndarray) -> np.ndarray:
+    """What a perfect network would output for these targets."""
+    if rep.name == Representation.ONE_HOT:
+        logits = np.zeros((len(targets), rep.output_dim), np.float32)
+        logits[np.arange(len(targets)), targets[:, 0].astype(int)] = 20.0
+        return logits
+    if rep.name == Representation.SINGLE_VARIABLE:
+        return targets[:, : rep.output_dim]
+    if rep.name == Representation.MULTI_HYPOTHESIS:
+        return np.tile(targets, (1, rep.metadata.num_hypotheses))
+    return targets
+
+
+@pytest.mark.parametrize("case", ["none", "two_fold", "four_fold", "continuous", "continuous_flip"])
+@pytest.mark.parametrize("name", Representation.ALL)
+@pytest.mark.parametrize("frame", RotationFrame.ALL)
+def test_perfect_output_decodes_to_ground_truth(name: str, case: str, frame: str) -> None:
+    grid = dict(n_axes=162, n_angles=24, sigma_deg=20.0)
+    rep = build_representation(name, {1: CASES[case]}, rotation_frame=frame, num_hypotheses=4, **grid)
+    rng = np.random.default_rng(0)
+    R_true = random_rotations(16, rng)
+    batch = instances(R_true)
+    targets = np.stack([rep.target(inst) for inst in batch])
+    assert targets.dtype == np.float32
+    output = perfect_output(rep, targets)
+
+    loss = rep.loss(torch.from_numpy(output), torch.from_numpy(targets), progress=0.5)
+    assert float(loss) < 1e-5
+
+    R_frame = rep.decode(output).R
+    if frame == RotationFrame.ALLOCENTRIC:
+        centres = np.array([[b.box[0] + b.box[2] / 2, b.box[1] + b.box[3] / 2] for b in batch])
+        R_pred = allocentric_to_egocentric(R_frame, K, centres)
+    else:
+        R_pred = R_frame
+    errors_deg = np.degrees(rep.errors_rad(R_pred, R_true, np.ones(16, int)))
+    # The grid representations decode to a nearby grid rotation (axes ~16 deg, angles 15 deg apart).
+    tolerance = 25.0 if name in (Representation.POPULATION_CODE, Representation.ONE_HOT) else 1e-3
+    assert errors_deg.max() < tolerance
+
+
+@pytest.mark.parametrize("name", [Representation.POPULATION_CODE, Representation.ONE_HOT])
+def test_grid_rotation_decodes_exactly(name: str) -> None:
+    rep = build_representation(name, {1: CASES["two_fold"]}, **SMALL)
+    R_true = rep.code.preferred_rotations(np.array([5, 77, 130, 400]))
+    targets = np.stack([rep.target_from_rotation(R, 1) for R in R_true]).astype(np.float32)
+    R_pred = rep.decode(perfect_output(rep, targets)).R
+    assert np.degrees(rep.errors_rad(R_pred, R_true, np.ones(4, int))).max() < 1e-4
+
+
+def test_single_variable_loss_takes_the_nearest_symmetric_pose() -> None:
+    rep = build_representation(Representation.SINGLE_VARIABLE, {1: CASES["two_fold"]}, **SMALL)
+    R = random_rotations(1, np.random.default_rng(1))[0]
+    target = rep.target_from_rotation(R, 1).astype(np.float32)
+    flipped = target[6:12]  # the symmetric pose R S_1
+    loss = rep.loss(torch.from_numpy(flipped[None]), torch.from_numpy(target[None]), 0.0)
+    assert float(loss) < 1e-6
+    assert np.allclose(sixd_to_matrix(flipped), R @ rep.symmetries(1)[1], atol=1e-5)
+
+
+def test_multi_hypothesis_epsilon_anneals() -> None:
+    assert MultiHypothesisRepresentation.epsilon(0.0) == pytest.approx(0.05)
+    assert MultiHypothesisRepresentation.epsilon(1.0) == pytest.approx(0.01)
+
+
+def test_population_code_target_has_a_peak_per_symmetric_pose() -> None:
+    rep = build_representation(Representation.POPULATION_CODE, {1: CASES["four_fold"]}, **SMALL)
+    target = rep.target_from_rotation(rep.code.preferred_rotations(np.array(100)), 1)
+    assert target.shape == (42 * 12,)
+    assert target.max() >= 1.0
+
+
+def test_unknown_representation_names_the_choices() -> None:
+    with pytest.raises(PopcodeError, match="population_code"):
+        build_representation("popcode", {1: CASES["none"]}, **SMALL)
+
+
+def test_mixing_continuous_and_discrete_objects_is_refused() -> None:
+    with pytest.raises(PopcodeError, match="continuous symmetry.*cannot share"):
+        code_layout({1: CASES["continuous"], 2: CASES["two_fold"]}, **SMALL)
+
+
+def test_pooled_continuous_objects_must_share_the_axis() -> None:
+    tilted = {**CASES["continuous"], "symmetries_continuous": [{"axis": [1, 0, 0], "offset": [0, 0, 0]}]}
+    with pytest.raises(PopcodeError, match="different model axes"):
+        code_layout({1: CASES["continuous"], 2: tilted}, **SMALL)
+
+
+def test_discrete_and_asymmetric_objects_share_the_full_code() -> None:
+    layout = code_layout({5: CASES["two_fold"], 6: CASES["none"]}, **SMALL)
+    assert not layout.axis_only

@@ -1,0 +1,82 @@
+"""The training loop: it learns, it resumes exactly, it refuses to resume another config."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+from tiny import tiny_config, tiny_data, tiny_representation
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_trainer import checkpoint
+from popcode_trainer.train import METRICS_FILE, train
+
+
+@pytest.mark.parametrize("name", Representation.ALL)
+def test_a_few_epochs_reduce_the_loss(tmp_path: Path, name: str) -> None:
+    config = tiny_config(tmp_path, epochs=4, representation=name)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    history = train(config, rep, train_set, val_set)
+    assert [row.epoch for row in history] == [1, 2, 3, 4]
+    assert history[-1].train_loss < history[0].train_loss
+    assert all(0.0 <= row.val_error_mean_deg <= 180.0 for row in history)
+    with (tmp_path / METRICS_FILE).open() as handle:
+        assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1, 2, 3, 4]
+
+
+def test_resume_continues_exactly(tmp_path: Path) -> None:
+    straight = tiny_config(tmp_path / "straight", epochs=2)
+    rep = tiny_representation(straight)
+    train_set, val_set = tiny_data(rep)
+    train(straight, rep, train_set, val_set)
+
+    interrupted = tiny_config(tmp_path / "interrupted", epochs=1)
+    train(interrupted, rep, train_set, val_set)
+    resumed = train(tiny_config(tmp_path / "interrupted", epochs=2), rep, train_set, val_set, resume=True)
+    assert [row.epoch for row in resumed] == [2]
+
+    a = checkpoint.load(tmp_path / "straight" / checkpoint.LAST)
+    b = checkpoint.load(tmp_path / "interrupted" / checkpoint.LAST)
+    assert a["epoch"] == b["epoch"] == 2
+    for key, tensor in a["model"].items():
+        assert torch.equal(tensor, b["model"][key]), key
+    for index, state in a["optimizer"]["state"].items():
+        assert torch.equal(state["exp_avg"], b["optimizer"]["state"][index]["exp_avg"])
+    with (tmp_path / "interrupted" / METRICS_FILE).open() as handle:
+        assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1, 2]
+
+
+def test_resume_with_another_config_is_refused(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=1)
+    rep = tiny_representation(config)
+    train_set, _ = tiny_data(rep, val_count=0)
+    train(config, rep, train_set)
+    with pytest.raises(PopcodeError, match=r"config differs \(train.lr: 0.001 -> 0.01\)"):
+        train(tiny_config(tmp_path, epochs=2, lr=1e-2), rep, train_set, resume=True)
+    with pytest.raises(PopcodeError, match="--resume"):
+        train(config, rep, train_set)
+
+
+def test_allocentric_validation_uses_the_instances(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=1, rotation_frame=RotationFrame.ALLOCENTRIC)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    with pytest.raises(PopcodeError, match="allocentric"):
+        train(config, rep, train_set, val_set)
+    history = train(tiny_config(tmp_path / "b", epochs=1, rotation_frame=RotationFrame.ALLOCENTRIC), rep,
+                    train_set, val_set, val_instances=val_set.instances)
+    assert 0.0 <= history[0].val_error_mean_deg <= 180.0
+
+
+def test_checkpoints_load_with_weights_only(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=1)
+    rep = tiny_representation(config)
+    train(config, rep, *tiny_data(rep))
+    state = torch.load(tmp_path / checkpoint.LAST, weights_only=True)
+    assert state["config"] == config.to_dict()
+    assert (tmp_path / checkpoint.BEST).is_file()
+    assert not list(tmp_path.glob(".*.tmp"))

@@ -1,0 +1,205 @@
+"""Training configuration: typed dataclasses read from TOML, with ``section.key=value`` overrides.
+
+Defaults are the paper's (section IV-D): Adam, lr 2e-4, batch 64, 80 epochs,
+code 2562 x 36 with sigma 20 deg. Every unknown section, key or choice is an
+error that names the valid ones; a checkpoint stores :meth:`Config.to_dict`,
+so resume and export see exactly the configuration that trained the model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from popcode_runtime.code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
+from popcode_runtime.crop import CROP_SIZE
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import Representation, RotationFrame
+
+from .network import NetworkConfig
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # the same parser, from PyPI, before Python 3.11
+    import tomli as tomllib
+
+BOX_KINDS = ("bbox_obj", "bbox_visib")
+DEVICES = ("auto", "cpu", "cuda")
+# Network fields that follow from the representation and the crop, not from the user.
+DERIVED_NETWORK_FIELDS = ("output_dim", "input_size")
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Where the crops come from. ``obj_ids`` empty: every object in the splits, pooled."""
+
+    splits: tuple[str, ...] = ()
+    models_dir: str = ""
+    obj_ids: tuple[int, ...] = ()
+    min_visib_fract: float = 0.6
+    box: str = "bbox_obj"
+    val_fraction: float = 0.1
+    augment: bool = True
+    crop_size: int = CROP_SIZE
+    num_workers: int = 2
+
+
+@dataclass(frozen=True)
+class CodeConfig:
+    """The population-code grid (also the one-hot baseline's classes)."""
+
+    n_axes: int = PAPER_N_AXES
+    n_angles: int = PAPER_N_ANGLES
+    sigma_deg: float = PAPER_SIGMA_DEG
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and the output representation."""
+
+    representation: str = Representation.POPULATION_CODE
+    rotation_frame: str = RotationFrame.EGOCENTRIC
+    num_hypotheses: int = 20  # M of the multi_hypothesis baseline
+    epochs: int = 80
+    batch_size: int = 64  # global: split evenly over torchrun ranks
+    lr: float = 2e-4
+    seed: int = 0
+    out_dir: str = "runs/popcode"
+    device: str = "auto"
+    amp: bool = True  # mixed precision; used on CUDA only
+
+
+@dataclass(frozen=True)
+class Config:
+    data: DataConfig = field(default_factory=DataConfig)
+    code: CodeConfig = field(default_factory=CodeConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain dict (lists, no tuples) with derived network fields left out; TOML/JSON friendly."""
+        data = {name: _plain(dataclasses.asdict(getattr(self, name))) for name in SECTIONS}
+        for key in DERIVED_NETWORK_FIELDS:
+            data["network"].pop(key)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Config:
+        unknown = sorted(set(data) - set(SECTIONS))
+        if unknown:
+            raise PopcodeError(f"unknown config section(s) {unknown}; valid sections: {list(SECTIONS)}")
+        sections = {name: _build_section(name, data.get(name, {})) for name in SECTIONS}
+        config = cls(**sections)
+        _check_choices(config)
+        return config
+
+
+SECTIONS: dict[str, type] = {"data": DataConfig, "code": CodeConfig, "network": NetworkConfig, "train": TrainConfig}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _settable_fields(section: str) -> list[str]:
+    names = [f.name for f in dataclasses.fields(SECTIONS[section])]
+    return [n for n in names if not (section == "network" and n in DERIVED_NETWORK_FIELDS)]
+
+
+def _build_section(section: str, table: Any) -> Any:
+    if not isinstance(table, Mapping):
+        raise PopcodeError(f"config section [{section}] must be a table, got {table!r}")
+    valid = _settable_fields(section)
+    unknown = sorted(set(table) - set(valid))
+    if unknown:
+        raise PopcodeError(f"unknown config key(s) {[f'{section}.{k}' for k in unknown]}; "
+                           f"valid keys in [{section}]: {valid}")
+    hints = typing.get_type_hints(SECTIONS[section])
+    values = {key: _coerce(value, hints[key], f"{section}.{key}") for key, value in table.items()}
+    return SECTIONS[section](**values)
+
+
+def _coerce(value: Any, hint: Any, name: str) -> Any:
+    """Check ``value`` against a field's type hint; TOML arrays become tuples, ints may be floats."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise PopcodeError(f"{name} must be a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], name) for v in value)
+        if len(value) != len(args):
+            raise PopcodeError(f"{name} must have {len(args)} entries, got {len(value)}")
+        return tuple(_coerce(v, a, name) for v, a in zip(value, args, strict=True))
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _coerce(value, next(a for a in args if a is not type(None)), name)
+    if hint is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if hint is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if hint in (bool, str) and isinstance(value, hint):
+        return value
+    raise PopcodeError(f"{name} must be {getattr(hint, '__name__', hint)}, got {value!r}")
+
+
+def _choice(name: str, value: str, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise PopcodeError(f"{name} = {value!r} is not valid; choose one of {list(choices)}")
+
+
+def _check_choices(config: Config) -> None:
+    _choice("train.representation", config.train.representation, Representation.ALL)
+    _choice("train.rotation_frame", config.train.rotation_frame, RotationFrame.ALL)
+    _choice("train.device", config.train.device, DEVICES)
+    _choice("data.box", config.data.box, BOX_KINDS)
+    if not 0.0 <= config.data.val_fraction < 1.0:
+        raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
+    for key in ("epochs", "batch_size"):
+        if getattr(config.train, key) < 1:
+            raise PopcodeError(f"train.{key} must be at least 1")
+    if config.train.lr <= 0:
+        raise PopcodeError("train.lr must be positive")
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``section.key=value`` -> (section, key, value); the value is read as TOML, else as a string."""
+    path, sep, raw = text.partition("=")
+    section, dot, key = path.strip().partition(".")
+    if not sep or not dot or not key:
+        raise PopcodeError(f"an override is section.key=value (e.g. train.lr=1e-3), got {text!r}")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return section, key, value
+
+
+def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
+    """Read a TOML config (or the defaults when ``path`` is None) and apply overrides."""
+    data: dict[str, dict[str, Any]] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise PopcodeError(f"config file not found: {path}")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as error:
+            raise PopcodeError(f"{path} is not valid TOML: {error}") from error
+    for text in overrides:
+        section, key, value = parse_override(text)
+        table = data.setdefault(section, {})
+        if not isinstance(table, dict):
+            raise PopcodeError(f"config section [{section}] must be a table")
+        table[key] = value
+    return Config.from_dict(data)

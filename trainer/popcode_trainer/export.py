@@ -1,0 +1,167 @@
+"""Checkpoint -> ONNX model meeting DESIGN section 3, checked, optionally quantised.
+
+The float model is checked twice: ``onnx.checker`` on the graph and a parity
+run (onnxruntime vs torch on the same crops: max absolute difference, argmax
+identical). Quantised models are written beside it, each with its argmax
+agreement against the float model; all carry the same metadata.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from onnx import helper
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+
+from . import checkpoint
+from .network import ColumnBlockOutputLayer, NetworkConfig, build_network
+
+ONNX_OPSET = 17
+ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
+COREML_MAX_DIM = 16384  # onnxruntime's CoreML provider rejects larger tensor dimensions
+QUANTISATIONS = ("int8", "nbits4", "nbits8")
+NBITS_BLOCK_SIZE = 32
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """How closely one model's outputs follow a reference on the same crops."""
+
+    path: Path
+    max_abs_diff: float
+    argmax_agreement: float  # share of crops with the same argmax, in [0, 1]
+
+
+def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
+    """The trained network (eval mode) and its metadata, training summary included."""
+    state = checkpoint.load(path)
+    try:
+        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
+        model = build_network(NetworkConfig(**fields))
+        model.load_state_dict(state["model"])
+        metadata = ModelMetadata.from_props(state["metadata"])
+    except (KeyError, TypeError, RuntimeError) as error:
+        raise PopcodeError(f"{path} is not a popcode training checkpoint: {error}") from error
+    config = state["config"]
+    training = {
+        "dataset": {"splits": config["data"]["splits"], "obj_ids": config["data"]["obj_ids"]},
+        "epochs": int(state["epoch"]),
+        "git_revision": state.get("git_revision", "unknown"),
+        "best_val_error_deg": float(state["best_val_error_deg"]),
+        "config": config,
+    }
+    return model.eval(), dataclasses.replace(metadata, training=training)
+
+
+def _finish(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:
+    """Pin the IR version onnxruntime reads, attach the metadata, check and save."""
+    model.ir_version = ONNX_IR_VERSION
+    del model.metadata_props[:]
+    helper.set_model_props(model, metadata.to_props())
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str | Path,
+                split_output: int = 0) -> Path:
+    """Write the float ONNX model: input ``image`` [N, 1, S, S], output ``code`` [N, D].
+
+    ``split_output`` > 0 computes the output layer in column blocks of at most
+    that many outputs (CoreML accepts at most 16384).
+    """
+    out_path = Path(out_path)
+    if split_output < 0 or split_output > COREML_MAX_DIM:
+        raise PopcodeError(f"--split-output must lie in 1..{COREML_MAX_DIM} (0: no split), got {split_output}")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    size = metadata.input_size
+    if split_output and split_output < metadata.output_dim:
+        model = copy.deepcopy(model)
+        model.head = ColumnBlockOutputLayer(model.head, split_output)
+    with tempfile.TemporaryDirectory() as folder:
+        raw = Path(folder) / "raw.onnx"
+        torch.onnx.export(
+            model.eval(), (torch.zeros(2, 1, size, size),), str(raw), input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME], dynamic_axes={INPUT_NAME: {0: "N"}, OUTPUT_NAME: {0: "N"}},
+            opset_version=ONNX_OPSET, do_constant_folding=True, dynamo=False,
+        )
+        onnx_model = onnx.load(str(raw))
+    _finish(onnx_model, metadata, out_path)
+    return out_path
+
+
+def run_onnx(path: str | Path, crops: np.ndarray) -> np.ndarray:
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]
+
+
+def compare(path: Path, output: np.ndarray, reference: np.ndarray) -> Comparison:
+    return Comparison(path=path, max_abs_diff=float(np.abs(output - reference).max()),
+                      argmax_agreement=float(np.mean(output.argmax(1) == reference.argmax(1))))
+
+
+def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray) -> tuple[Comparison, np.ndarray]:
+    """onnxruntime vs torch on ``crops``; refuses an export whose argmax differs anywhere."""
+    with torch.no_grad():
+        reference = model.eval()(torch.from_numpy(np.asarray(crops, np.float32))).numpy()
+    result = compare(onnx_path, run_onnx(onnx_path, crops), reference)
+    if result.argmax_agreement < 1.0:
+        raise PopcodeError(f"{onnx_path}: onnxruntime and torch disagree on the argmax of "
+                           f"{100 * (1 - result.argmax_agreement):.1f}% of the crops "
+                           f"(max abs diff {result.max_abs_diff:.3g}); the export is wrong")
+    return result, reference
+
+
+def quantise(float_path: Path, kind: str, metadata: ModelMetadata) -> Path:
+    """Write ``<name>.<kind>.onnx`` beside the float model, with the same metadata.
+
+    int8: onnxruntime's dynamic quantisation, per-channel int8 weights.
+    nbits4/nbits8: weight-only ``MatMulNBits`` (blocks of 32) on the MatMul
+    nodes, i.e. the large output layer; the rest stays float.
+    """
+    if kind not in QUANTISATIONS:
+        raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
+    out_path = float_path.with_name(f"{float_path.stem}.{kind}.onnx")
+    if kind == "int8":
+        from onnxruntime.quantization import QuantType, quantize_dynamic
+
+        quantize_dynamic(float_path, out_path, per_channel=True, weight_type=QuantType.QInt8)
+        quantised = onnx.load(str(out_path))
+    else:
+        from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
+
+        quantiser = MatMulNBitsQuantizer(onnx.load(str(float_path)), bits=int(kind[len("nbits"):]),
+                                         block_size=NBITS_BLOCK_SIZE, is_symmetric=True,
+                                         op_types_to_quantize=("MatMul",))
+        quantiser.process()
+        quantised = quantiser.model.model
+    _finish(quantised, metadata, out_path)
+    return out_path
+
+
+def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: np.ndarray,
+                      quantisations: tuple[str, ...] = (), split_output: int = 0) -> list[Comparison]:
+    """Export, check parity, quantise; returns the float parity and each quantised model's agreement."""
+    model, metadata = load_checkpoint_model(checkpoint_path)
+    size = metadata.input_size
+    crops = np.asarray(crops, dtype=np.float32)
+    if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or len(crops) == 0:
+        raise PopcodeError(f"parity crops must be float32 [N, 1, {size}, {size}], got {crops.shape}")
+    float_path = export_onnx(model, metadata, out_path, split_output)
+    parity, reference = check_parity(model, float_path, crops)
+    results = [parity]
+    for kind in quantisations:
+        path = quantise(float_path, kind, metadata)
+        results.append(compare(path, run_onnx(path, crops), reference))
+    return results

@@ -1,0 +1,194 @@
+"""The paper's networks (section III-B and the toy network of section IV-A).
+
+Widths are not given in the paper. The defaults of :class:`NetworkConfig` follow
+the Augmented Autoencoder encoder that the paper names as its inspiration:
+5x5 convolutions with stride 2 and 128/256/256 channels take the 128x128 crop
+to 16x16. The 1x1 fourth convolution (GELU, after ConvNeXt) squeezes the 256
+channels to 32, so the flattened feature is 8192 wide and the first linear
+layer stays small (8.4 M weights instead of 67 M for 256 channels). The
+hidden widths 1024/512/256 narrow towards a 256-wide bottleneck: the target
+code is a smooth sum of a few Gaussian bumps, so 256 numbers describe it
+easily, and the output layer -- 256 x 92,232 = 23.6 M weights, by far the
+largest -- stays within what an edge device reads per crop in a few
+milliseconds (94 MB fp32, 24 MB int8).
+
+The output layer is a plain ``x @ W + b`` with ``W`` stored as ``(in, out)``
+so that ONNX export writes ``MatMul`` + ``Add`` rather than ``Gemm``: the
+weight-only ``MatMulNBits`` quantiser only rewrites ``MatMul`` nodes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+CONTRAST_EPS = 1e-3  # a flat crop (std 0) stays finite after normalisation
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Shape of the paper's network; stored in every checkpoint so export rebuilds it exactly."""
+
+    output_dim: int = 2562 * 36
+    input_size: int = 128
+    conv_channels: tuple[int, int, int] = (128, 256, 256)
+    conv_kernel: int = 5
+    squeeze_channels: int = 32  # the 1x1 fourth convolution
+    hidden: tuple[int, int, int] = (1024, 512, 256)
+    leaky_slope: float = 0.01
+
+
+@dataclass(frozen=True)
+class ToyNetworkConfig:
+    """The 1-D toy network of section IV-A: 64x64 input, 3 conv + max-pool, 4 linear, ReLU."""
+
+    output_dim: int = 36
+    input_size: int = 64
+    conv_channels: tuple[int, int, int] = (32, 64, 128)
+    hidden: tuple[int, int, int] = (256, 256, 256)
+
+
+def contrast_normalise(image: torch.Tensor) -> torch.Tensor:
+    """Zero mean, unit standard deviation per crop (paper IV-D); part of the exported graph."""
+    mean = image.mean(dim=(1, 2, 3), keepdim=True)
+    centred = image - mean
+    std = centred.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt()
+    return centred / (std + CONTRAST_EPS)
+
+
+class OutputLayer(nn.Module):
+    """``x @ W + b`` with ``W`` ``(in, out)``; exports as MatMul + Add."""
+
+    def __init__(self, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(in_features, out_features))
+        self.bias = nn.Parameter(torch.empty(out_features))
+        bound = 1.0 / math.sqrt(in_features)  # nn.Linear's default initialisation
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x @ self.weight + self.bias
+
+
+class ColumnBlockOutputLayer(nn.Module):
+    """An :class:`OutputLayer` cut into column blocks of at most ``block`` outputs, concatenated.
+
+    Same result; each block is its own weight in the exported graph, so no
+    tensor exceeds the 16384 limit of onnxruntime's CoreML provider.
+    """
+
+    def __init__(self, layer: OutputLayer, block: int) -> None:
+        super().__init__()
+        self.weights = nn.ParameterList([nn.Parameter(w.detach().clone()) for w in layer.weight.split(block, 1)])
+        self.biases = nn.ParameterList([nn.Parameter(b.detach().clone()) for b in layer.bias.split(block)])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x @ w + b for w, b in zip(self.weights, self.biases, strict=True)], dim=1)
+
+
+def _mlp(widths: list[int], activation: type[nn.Module] | nn.Module) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for fan_in, fan_out in zip(widths[:-1], widths[1:], strict=True):
+        layers += [nn.Linear(fan_in, fan_out), activation() if isinstance(activation, type) else activation]
+    return nn.Sequential(*layers)
+
+
+class PopcodeNet(nn.Module):
+    """Grey crop ``(N, 1, S, S)`` in [0, 1] -> output ``(N, output_dim)`` (paper section III-B)."""
+
+    def __init__(self, config: NetworkConfig) -> None:
+        super().__init__()
+        self.config = config
+        convs: list[nn.Module] = []
+        channels = 1
+        for width in config.conv_channels:
+            convs += [
+                nn.Conv2d(channels, width, config.conv_kernel, stride=2, padding=config.conv_kernel // 2, bias=False),
+                nn.BatchNorm2d(width),
+                nn.ReLU(inplace=True),
+            ]
+            channels = width
+        convs += [nn.Conv2d(channels, config.squeeze_channels, 1), nn.GELU()]
+        self.features = nn.Sequential(*convs)
+        side = config.input_size // 2 ** len(config.conv_channels)
+        flat = config.squeeze_channels * side * side
+        self.hidden = _mlp([flat, *config.hidden], nn.LeakyReLU(config.leaky_slope))
+        self.head = OutputLayer(config.hidden[-1], config.output_dim)
+
+    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
+        return self.features(contrast_normalise(image)).flatten(1)
+
+    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
+        return self.head(self.hidden(features))
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.forward_head(self.forward_features(image))
+
+
+class ToyNet(nn.Module):
+    """The toy experiment's network (section IV-A): one angle from a 64x64 image."""
+
+    def __init__(self, config: ToyNetworkConfig) -> None:
+        super().__init__()
+        self.config = config
+        convs: list[nn.Module] = []
+        channels = 1
+        for width in config.conv_channels:
+            convs += [nn.Conv2d(channels, width, 3, padding=1), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+            channels = width
+        self.features = nn.Sequential(*convs)
+        side = config.input_size // 2 ** len(config.conv_channels)
+        self.hidden = _mlp([channels * side * side, *config.hidden], nn.ReLU)
+        self.head = OutputLayer(config.hidden[-1], config.output_dim)
+
+    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
+        return self.features(contrast_normalise(image)).flatten(1)
+
+    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
+        return self.head(self.hidden(features))
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.forward_head(self.forward_features(image))
+
+
+def count_macs(model: nn.Module, input_size: int) -> int:
+    """Multiply-accumulates of one forward pass on one crop (convolutions, linear layers, output layer)."""
+    total = 0
+
+    def conv_hook(module: nn.Conv2d, _inputs: tuple, output: torch.Tensor) -> None:
+        nonlocal total
+        kernel = module.kernel_size[0] * module.kernel_size[1] * module.in_channels // module.groups
+        total += output[0].numel() * kernel
+
+    def linear_hook(module: nn.Module, inputs: tuple, output: torch.Tensor) -> None:
+        nonlocal total
+        total += inputs[0].shape[-1] * output.shape[-1]
+
+    hooks = []
+    for module in model.modules():
+        if isinstance(module, nn.Conv2d):
+            hooks.append(module.register_forward_hook(conv_hook))
+        elif isinstance(module, nn.Linear | OutputLayer):
+            hooks.append(module.register_forward_hook(linear_hook))
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        model(torch.zeros(1, 1, input_size, input_size))
+    model.train(was_training)
+    for hook in hooks:
+        hook.remove()
+    return total
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+
+def build_network(config: NetworkConfig | ToyNetworkConfig) -> nn.Module:
+    """The network a config describes (the checkpoint stores the config, export calls this)."""
+    return ToyNet(config) if isinstance(config, ToyNetworkConfig) else PopcodeNet(config)

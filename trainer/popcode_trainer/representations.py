@@ -1,0 +1,269 @@
+"""Output representations: what the network predicts, its target, its loss and its decoding.
+
+The population code is the paper's method; single variable, one-hot and
+multiple hypotheses are the baselines of section IV-C, trained with the same
+network and data. Targets are numpy (built in data-loader workers), losses are
+torch, and decoding is the runtime's :func:`popcode_runtime.decoding.decode_output`,
+so a trained model decodes in training exactly as it will in the runtime.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+import torch
+from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
+
+from popcode_runtime.code import CodeLayout, DecodedRotations, PopulationCode
+from popcode_runtime.crop import box_centre
+from popcode_runtime.decoding import decode_output
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
+from popcode_runtime.rotations import (
+    egocentric_to_allocentric,
+    geodesic_angle,
+    matrix_to_quaternion,
+    matrix_to_sixd,
+)
+from popcode_runtime.symmetries import (
+    SymmetryClass,
+    continuous_axis,
+    symmetry_class,
+    symmetry_rotations,
+)
+
+EPSILON_START = 0.05  # eq. 3: weight of the average loss, annealed linearly over training
+EPSILON_END = 0.01
+
+
+class InstanceLike(Protocol):
+    """The fields of ``popcode_trainer.data.bop.Instance`` a target needs."""
+
+    obj_id: int
+    R_m2c: np.ndarray
+    K: np.ndarray
+    box: tuple[float, float, float, float]
+
+
+def code_layout(objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int, sigma_deg: float) -> CodeLayout:
+    """The one code layout the pooled ``objects`` can share; refuses sets that cannot share one.
+
+    Objects with a continuous symmetry use the axis-only code, the others the
+    full code, so the two kinds cannot be pooled; pooled continuous objects
+    must share the symmetry axis, because the code (and its decoder) knows one.
+    """
+    if not objects:
+        raise PopcodeError("no objects to train on")
+    continuous = sorted(k for k, info in objects.items() if symmetry_class(info) == SymmetryClass.CONTINUOUS)
+    if not continuous:
+        return CodeLayout(n_axes=n_axes, n_angles=n_angles, sigma_deg=sigma_deg)
+    others = sorted(set(objects) - set(continuous))
+    if others:
+        raise PopcodeError(
+            f"objects {continuous} have a continuous symmetry (axis-only code) and objects {others} do not "
+            "(full code); they cannot share one model -- train them separately"
+        )
+    axis = continuous_axis(objects[continuous[0]])
+    for obj_id in continuous[1:]:
+        if abs(abs(float(axis @ continuous_axis(objects[obj_id]))) - 1.0) > 1e-6:
+            raise PopcodeError(
+                f"objects {continuous[0]} and {obj_id} have continuous symmetries about different model axes; "
+                "one axis-only code encodes one axis -- train them separately"
+            )
+    return CodeLayout(n_axes=n_axes, n_angles=n_angles, sigma_deg=sigma_deg, axis_only=True,
+                      symmetry_axis=tuple(axis))
+
+
+class OutputRepresentation:
+    """Base of the four representations: frames, metadata, decoding and the error up to symmetry."""
+
+    name: ClassVar[str]
+
+    def __init__(self, objects: Mapping[int, Mapping[str, Any]], layout: CodeLayout,
+                 rotation_frame: str = RotationFrame.EGOCENTRIC, num_hypotheses: int = 0) -> None:
+        self.objects = {int(k): dict(v) for k, v in objects.items()}
+        self.metadata = ModelMetadata(representation=self.name, code=layout, objects=self.objects,
+                                      rotation_frame=rotation_frame, num_hypotheses=num_hypotheses)
+        self.layout = layout
+        self._symmetries = {k: symmetry_rotations(info) for k, info in self.objects.items()}
+
+    @property
+    def output_dim(self) -> int:
+        return self.metadata.output_dim
+
+    def frame_rotation(self, R_m2c: np.ndarray, K: np.ndarray | None = None,
+                       box: tuple[float, float, float, float] | None = None) -> np.ndarray:
+        """The rotation the model predicts: ``R_m2c`` itself, or as seen along the ray to the box centre."""
+        if self.metadata.rotation_frame == RotationFrame.EGOCENTRIC:
+            return np.asarray(R_m2c, dtype=np.float64)
+        if K is None or box is None:
+            raise PopcodeError("allocentric targets need the camera matrix K and the box of each instance")
+        return egocentric_to_allocentric(R_m2c, K, box_centre(box))
+
+    def symmetries(self, obj_id: int) -> np.ndarray:
+        if obj_id not in self._symmetries:
+            raise PopcodeError(f"object {obj_id} is not one of this model's objects {sorted(self._symmetries)}")
+        return self._symmetries[obj_id]
+
+    def target(self, instance: InstanceLike) -> np.ndarray:
+        """float32 target of one instance (the data set's ``target_fn``)."""
+        R = self.frame_rotation(instance.R_m2c, instance.K, instance.box)
+        return self.target_from_rotation(R, int(instance.obj_id)).astype(np.float32)
+
+    def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        """Mean loss of a batch; ``progress`` in [0, 1] is the share of training done."""
+        raise NotImplementedError
+
+    def decode(self, output: np.ndarray) -> DecodedRotations:
+        """Rotations in the model's frame, decoded exactly as the runtime does."""
+        return decode_output(np.asarray(output, dtype=np.float32), self.metadata)
+
+    def errors_rad(self, R_pred: np.ndarray, R_true: np.ndarray, obj_ids: np.ndarray) -> np.ndarray:
+        """Rotation error ``(N,)`` [rad] up to symmetry, both rotations in the same frame.
+
+        Discrete symmetries: min over ``S`` of angle(R_pred, R_true S). A
+        continuous symmetry leaves only the symmetry axis defined, so the error
+        is the angle between the predicted and the true axis (min over the
+        discrete symmetries, which may flip it).
+        """
+        errors = np.empty(len(R_pred))
+        for obj_id in np.unique(obj_ids):
+            rows = np.flatnonzero(obj_ids == obj_id)
+            equivalent = R_true[rows, None] @ self.symmetries(int(obj_id))[None]  # (n, K, 3, 3)
+            if self.layout.axis_only:
+                a = np.asarray(self.layout.symmetry_axis)
+                cos = np.einsum("ni,nki->nk", R_pred[rows] @ a, equivalent @ a)
+                errors[rows] = np.arccos(np.clip(cos, -1.0, 1.0)).min(axis=1)
+            else:
+                errors[rows] = geodesic_angle(R_pred[rows, None], equivalent).min(axis=1)
+        return errors
+
+
+class PopulationCodeRepresentation(OutputRepresentation):
+    """The paper's method: MSE on the whole code, every symmetric pose a peak."""
+
+    name = Representation.POPULATION_CODE
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.code = PopulationCode(self.layout)
+
+    def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        return self.code.encode(R, self.symmetries(obj_id))
+
+    def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        return F.mse_loss(output, target)
+
+
+class OneHotRepresentation(OutputRepresentation):
+    """Baseline: the same grid as a class label, cross entropy.
+
+    The label is the neuron that the population code of the ground truth alone
+    (no symmetric copies) peaks at, i.e. the grid rotation nearest to it in
+    the code's metric; one label per crop, so symmetric poses are not marked.
+    """
+
+    name = Representation.ONE_HOT
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.code = PopulationCode(self.layout)
+
+    def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        self.symmetries(obj_id)  # refuses an unknown object
+        return np.array([np.argmax(self.code.encode(R))], dtype=np.float64)
+
+    def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        return F.cross_entropy(output, target[:, 0].long())
+
+
+class SingleVariableRepresentation(OutputRepresentation):
+    """Baseline: the 6-D rotation with the minimum L1 over symmetric targets, or the
+    symmetry axis (3-vector, MSE) for objects with a continuous symmetry.
+
+    The target lists every symmetric variant, padded to the largest symmetry
+    group among the pooled objects by repeating the first.
+    """
+
+    name = Representation.SINGLE_VARIABLE
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._variants = max(len(S) for S in self._symmetries.values())
+
+    def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        equivalent = R @ self.symmetries(obj_id)  # (K, 3, 3)
+        if self.layout.axis_only:
+            variants = equivalent @ np.asarray(self.layout.symmetry_axis)
+        else:
+            variants = matrix_to_sixd(equivalent)
+        padding = np.repeat(variants[:1], self._variants - len(variants), axis=0)
+        return np.concatenate([variants, padding]).reshape(-1)
+
+    def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        variants = target.view(len(target), self._variants, self.output_dim)
+        diff = output[:, None] - variants
+        per_variant = diff.pow(2).mean(-1) if self.layout.axis_only else diff.abs().mean(-1)
+        return per_variant.min(dim=1).values.mean()
+
+
+class MultiHypothesisRepresentation(OutputRepresentation):
+    """Baseline (Manhardt et al.): M quaternions, loss of eq. 3, mean shift at inference.
+
+    The target is the ground-truth quaternion alone: the hypotheses are meant
+    to discover symmetric poses by themselves. Distances use ``min(|h - q|,
+    |h + q|)`` because ``q`` and ``-q`` are the same rotation.
+    """
+
+    name = Representation.MULTI_HYPOTHESIS
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if self.metadata.num_hypotheses < 2:
+            raise PopcodeError("multi_hypothesis needs num_hypotheses >= 2 (eq. 3 divides by M - 1)")
+
+    def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        self.symmetries(obj_id)
+        return matrix_to_quaternion(R)
+
+    @staticmethod
+    def epsilon(progress: float) -> float:
+        """eq. 3's epsilon, linear from 0.05 at the start to 0.01 at the end of training."""
+        return EPSILON_START + (EPSILON_END - EPSILON_START) * min(max(progress, 0.0), 1.0)
+
+    def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        M = self.metadata.num_hypotheses
+        hypotheses = F.normalize(output.view(len(output), M, 4), dim=-1)
+        q = target[:, None]
+        squared = torch.minimum((hypotheses - q).pow(2).mean(-1), (hypotheses + q).pow(2).mean(-1))
+        weight = self.epsilon(progress) * M / (M - 1)
+        return (1.0 - weight) * squared.min(dim=1).values.mean() + weight * squared.mean()
+
+
+REPRESENTATIONS: dict[str, type[OutputRepresentation]] = {
+    cls.name: cls
+    for cls in (PopulationCodeRepresentation, OneHotRepresentation, SingleVariableRepresentation,
+                MultiHypothesisRepresentation)
+}
+
+
+def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int,
+                         sigma_deg: float, rotation_frame: str = RotationFrame.EGOCENTRIC,
+                         num_hypotheses: int = 0) -> OutputRepresentation:
+    """The representation called ``name`` for the pooled ``objects``; names the valid choices."""
+    if name not in REPRESENTATIONS:
+        raise PopcodeError(f"unknown representation {name!r}; choose one of {sorted(REPRESENTATIONS)}")
+    layout = code_layout(objects, n_axes, n_angles, sigma_deg)
+    hypotheses = num_hypotheses if name == Representation.MULTI_HYPOTHESIS else 0
+    return REPRESENTATIONS[name](objects, layout, rotation_frame, hypotheses)
+
+
+def representation_from_metadata(metadata: ModelMetadata) -> OutputRepresentation:
+    """Rebuild a representation from a model's (or checkpoint's) metadata."""
+    cls = REPRESENTATIONS[metadata.representation]
+    return cls(metadata.objects, metadata.code, metadata.rotation_frame, metadata.num_hypotheses)

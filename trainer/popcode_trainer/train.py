@@ -1,0 +1,268 @@
+"""The training loop: set-up -> (resume) -> epochs of batches -> validation -> checkpoint.
+
+Runs as one process or under ``torchrun`` (DDP). ``train.batch_size`` is the
+global batch, split evenly over ranks, so the paper's batch of 64 means the
+same thing on one CPU and on eight GPUs. Everything random in an epoch is
+seeded from ``(seed, epoch)``, which makes ``--resume`` continue bit-exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import random
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, Dataset
+from torch.utils.data.distributed import DistributedSampler
+from tqdm import tqdm
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import RotationFrame
+
+from . import checkpoint, distributed
+from .config import Config
+from .network import NetworkConfig, build_network
+from .representations import InstanceLike, OutputRepresentation
+
+METRICS_FILE = "metrics.csv"
+
+
+@dataclass(frozen=True)
+class EpochMetrics:
+    """One row of ``metrics.csv``; errors are up to symmetry, in the model's rotation frame."""
+
+    epoch: int
+    train_loss: float
+    val_loss: float
+    val_error_mean_deg: float
+    val_error_median_deg: float
+    samples_per_s: float
+    seconds: float
+
+
+def network_config(config: Config, representation: OutputRepresentation) -> NetworkConfig:
+    """The network config with the fields that follow from the representation and the crop."""
+    return dataclasses.replace(config.network, output_dim=representation.output_dim,
+                               input_size=config.data.crop_size)
+
+
+def _loader(dataset: Dataset, batch_size: int, context: distributed.Context, seed: int, epoch: int,
+            num_workers: int, train: bool) -> DataLoader:
+    """A loader whose order and worker seeds depend only on (seed, epoch)."""
+    generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    sampler = None
+    if context.distributed:
+        sampler = DistributedSampler(dataset, num_replicas=context.world_size, rank=context.rank,
+                                     shuffle=train, seed=seed, drop_last=train)
+        sampler.set_epoch(epoch)
+    return DataLoader(dataset, batch_size=batch_size, shuffle=train and sampler is None, sampler=sampler,
+                      generator=generator, num_workers=num_workers, drop_last=train,
+                      persistent_workers=False, pin_memory=context.device.type == "cuda")
+
+
+def _true_rotations(batch: dict[str, Any], representation: OutputRepresentation,
+                    instances: Sequence[InstanceLike] | None) -> np.ndarray:
+    """Ground truth in the model's frame; allocentric needs each instance's K and box."""
+    R_m2c = batch["R_m2c"].double().numpy()
+    if representation.metadata.rotation_frame == RotationFrame.EGOCENTRIC:
+        return R_m2c
+    if instances is None:
+        raise PopcodeError("validating an allocentric model needs the validation instances (for K and boxes)")
+    found = [instances[int(i)] for i in batch["index"]]
+    return np.stack([representation.frame_rotation(R, inst.K, inst.box) for R, inst in zip(R_m2c, found,
+                                                                                           strict=True)])
+
+
+@torch.no_grad()
+def validate(model: nn.Module, loader: DataLoader, representation: OutputRepresentation,
+             context: distributed.Context, instances: Sequence[InstanceLike] | None = None,
+             ) -> tuple[float, np.ndarray]:
+    """Mean loss and every rotation error [rad] up to symmetry over the (sharded) validation set."""
+    model.eval()
+    loss_sum, count, errors = 0.0, 0, []
+    for batch in loader:
+        output = model(batch["image"].to(context.device)).float()
+        target = batch["target"].to(context.device)
+        loss_sum += float(representation.loss(output, target, 1.0)) * len(target)
+        count += len(target)
+        R_pred = representation.decode(output.cpu().numpy()).R
+        R_true = _true_rotations(batch, representation, instances)
+        errors += representation.errors_rad(R_pred, R_true, batch["obj_id"].numpy()).tolist()
+    model.train()
+    loss_sum, count = distributed.sum_over_ranks([loss_sum, float(count)], context)
+    return loss_sum / max(count, 1.0), np.asarray(distributed.gather_lists(errors, context))
+
+
+def _append_metrics(path: Path, row: EpochMetrics) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as handle:
+        writer = csv.writer(handle)
+        if new:
+            writer.writerow([f.name for f in dataclasses.fields(EpochMetrics)])
+        writer.writerow(dataclasses.astuple(row))
+
+
+def _truncate_metrics(path: Path, last_epoch: int) -> None:
+    """Drop rows a crashed run wrote after its last checkpoint, so the log matches the state."""
+    if not path.exists():
+        return
+    with path.open(newline="") as handle:
+        rows = list(csv.reader(handle))
+    kept = rows[:1] + [r for r in rows[1:] if int(r[0]) <= last_epoch]
+    with path.open("w", newline="") as handle:
+        csv.writer(handle).writerows(kept)
+
+
+class _TensorBoard:
+    """Scalars to TensorBoard when it is installed; nothing otherwise."""
+
+    def __init__(self, out_dir: Path) -> None:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            self.writer = None
+        else:
+            self.writer = SummaryWriter(str(out_dir / "tensorboard"))
+
+    def log(self, row: EpochMetrics) -> None:
+        if self.writer is None:
+            return
+        for name, value in dataclasses.asdict(row).items():
+            if name != "epoch" and math.isfinite(value):
+                self.writer.add_scalar(name, value, row.epoch)
+        self.writer.flush()
+
+
+def train(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None = None,
+          resume: bool = False, val_instances: Sequence[InstanceLike] | None = None) -> list[EpochMetrics]:
+    """Train (or resume) per ``config``; writes checkpoints and metrics to ``config.train.out_dir``.
+
+    ``train_set``/``val_set`` yield dicts with ``image`` (1, S, S), ``target``,
+    ``R_m2c``, ``obj_id`` and ``index`` (the ``CropDataset`` contract);
+    ``val_instances[index]`` gives K and the box for allocentric validation.
+    Returns the metrics of the epochs this call ran.
+    """
+    cfg = config.train
+    context = distributed.setup(cfg.device)
+    try:
+        return _run(config, representation, train_set, val_set, resume, val_instances, context)
+    finally:
+        distributed.teardown(context)
+
+
+def _run(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None,
+         resume: bool, val_instances: Sequence[InstanceLike] | None,
+         context: distributed.Context) -> list[EpochMetrics]:
+    cfg = config.train
+    out_dir = Path(cfg.out_dir)
+    if cfg.batch_size % context.world_size:
+        raise PopcodeError(f"train.batch_size {cfg.batch_size} must be divisible by the {context.world_size} ranks")
+    rank_batch = cfg.batch_size // context.world_size
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+
+    net_config = network_config(config, representation)
+    model = build_network(net_config).to(context.device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    use_amp = cfg.amp and context.device.type == "cuda"
+    scaler = torch.amp.GradScaler(context.device.type, enabled=use_amp)
+    start_epoch, best_error = 0, math.inf
+
+    if resume:
+        state = checkpoint.load(out_dir / checkpoint.LAST)
+        differences = checkpoint.config_differences(state["config"], config.to_dict())
+        if differences:
+            raise PopcodeError(f"cannot resume {out_dir / checkpoint.LAST}: the config differs "
+                               f"({'; '.join(differences)}); use the run's config or a new train.out_dir")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scaler.load_state_dict(state["scaler"])
+        checkpoint.restore_rng_state(state["rng"])
+        start_epoch, best_error = int(state["epoch"]), float(state["best_val_error_deg"])
+        if context.is_main:
+            _truncate_metrics(out_dir / METRICS_FILE, start_epoch)
+    elif (out_dir / checkpoint.LAST).exists():
+        raise PopcodeError(f"{out_dir} already holds a run; pass --resume to continue it or choose a new out_dir")
+
+    # DDP averages gradients across ranks in backward; every rank steps the same optimizer state.
+    trained = DistributedDataParallel(model) if context.distributed else model
+    if context.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    tensorboard = _TensorBoard(out_dir) if context.is_main else None
+    revision = checkpoint.git_revision() if context.is_main else ""
+    history = []
+    for epoch in range(start_epoch, cfg.epochs):
+        if hasattr(train_set, "set_epoch"):
+            train_set.set_epoch(epoch)
+        loader = _loader(train_set, rank_batch, context, cfg.seed, epoch, config.data.num_workers, train=True)
+        steps = len(loader)
+        if steps == 0:
+            raise PopcodeError(f"the training set ({len(train_set)} crops) is smaller than one batch per rank "
+                               f"({rank_batch}); lower train.batch_size")
+        started = time.perf_counter()
+        loss_sum, seen = 0.0, 0
+        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not context.is_main, leave=False)
+        for step, batch in enumerate(bar):
+            image = batch["image"].to(context.device, non_blocking=True)
+            target = batch["target"].to(context.device, non_blocking=True)
+            with torch.autocast(context.device.type, enabled=use_amp):
+                output = trained(image)
+            loss = representation.loss(output.float(), target, (epoch + step / steps) / cfg.epochs)
+            optimizer.zero_grad(set_to_none=True)
+            scaler.scale(loss).backward()
+            scaler.step(optimizer)
+            scaler.update()
+            loss_sum += float(loss.detach()) * len(image)
+            seen += len(image)
+            rate = seen * context.world_size / (time.perf_counter() - started)
+            bar.set_postfix(loss=f"{loss_sum / seen:.4g}", samples_per_s=f"{rate:.1f}")
+        loss_sum, seen = distributed.sum_over_ranks([loss_sum, float(seen)], context)
+        seconds = time.perf_counter() - started
+
+        val_loss, errors_deg = math.nan, np.array([])
+        if val_set is not None and len(val_set) > 0:
+            val_loader = _loader(val_set, rank_batch, context, cfg.seed, epoch, config.data.num_workers, train=False)
+            val_loss, errors_rad = validate(model, val_loader, representation, context, val_instances)
+            errors_deg = np.degrees(errors_rad)
+        row = EpochMetrics(
+            epoch=epoch + 1, train_loss=loss_sum / seen, val_loss=val_loss,
+            val_error_mean_deg=float(errors_deg.mean()) if errors_deg.size else math.nan,
+            val_error_median_deg=float(np.median(errors_deg)) if errors_deg.size else math.nan,
+            samples_per_s=seen / seconds, seconds=seconds,
+        )
+        history.append(row)
+        if context.is_main:
+            improved = row.val_error_mean_deg < best_error
+            best_error = min(best_error, row.val_error_mean_deg) if errors_deg.size else best_error
+            state = {
+                "epoch": epoch + 1,
+                "config": config.to_dict(),
+                "network": dataclasses.asdict(net_config),
+                "metadata": representation.metadata.to_props(),
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "scaler": scaler.state_dict(),
+                "rng": checkpoint.rng_state(),
+                "best_val_error_deg": best_error,
+                "git_revision": revision,
+            }
+            _append_metrics(out_dir / METRICS_FILE, row)  # before the checkpoint: resume truncates extra rows
+            checkpoint.save_atomic(state, out_dir / checkpoint.LAST)
+            if improved:
+                checkpoint.save_atomic(state, out_dir / checkpoint.BEST)
+            tensorboard.log(row)
+            tqdm.write(f"epoch {row.epoch}: train loss {row.train_loss:.4g}, val loss {row.val_loss:.4g}, "
+                       f"val error mean {row.val_error_mean_deg:.2f} deg, median {row.val_error_median_deg:.2f} "
+                       f"deg, {row.samples_per_s:.1f} samples/s")
+    return history

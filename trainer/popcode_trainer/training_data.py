@@ -1,0 +1,85 @@
+"""BOP splits -> the pooled objects, a train/validation split and the crop data sets.
+
+Validation holds out whole images (scene, image), so crops of one frame never
+sit on both sides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from popcode_runtime.errors import PopcodeError
+
+from .config import Config
+from .data.augment import Augmentation
+from .data.bop import Instance, read_bop_split
+from .data.samples import CropDataset
+from .representations import OutputRepresentation, build_representation
+
+
+@dataclass
+class TrainingData:
+    representation: OutputRepresentation
+    train_set: CropDataset
+    val_set: CropDataset
+    val_instances: list[Instance]
+
+
+def read_instances(config: Config) -> tuple[list[Instance], dict[int, dict[str, Any]]]:
+    """Every usable instance of the configured splits and the objects' ``models_info`` entries."""
+    data = config.data
+    if not data.splits or not data.models_dir:
+        raise PopcodeError("set data.splits (BOP split folders) and data.models_dir in the config")
+    obj_ids = list(data.obj_ids) or None
+    instances: list[Instance] = []
+    models_info: dict[int, dict[str, Any]] = {}
+    for split_dir in data.splits:
+        split = read_bop_split(split_dir, data.models_dir, obj_ids=obj_ids,
+                               min_visib_fract=data.min_visib_fract, box=data.box)
+        instances += split.instances
+        models_info.update(split.models_info)
+    if not instances:
+        raise PopcodeError(f"no instances with visib_fract >= {data.min_visib_fract} of objects "
+                           f"{obj_ids or 'any'} in {list(data.splits)}")
+    used = sorted({inst.obj_id for inst in instances})
+    return instances, {obj_id: dict(models_info[obj_id]) for obj_id in used}
+
+
+def split_by_image(instances: list[Instance], val_fraction: float, seed: int) -> tuple[list[Instance],
+                                                                                     list[Instance]]:
+    """Hold out ``val_fraction`` of the images (seeded), with all their instances."""
+    keys = sorted({(str(inst.image_path), inst.scene_id, inst.im_id) for inst in instances})
+    order = np.random.default_rng(seed).permutation(len(keys))
+    held_out = {keys[i] for i in order[: int(round(val_fraction * len(keys)))]}
+    val = [inst for inst in instances if (str(inst.image_path), inst.scene_id, inst.im_id) in held_out]
+    train = [inst for inst in instances if (str(inst.image_path), inst.scene_id, inst.im_id) not in held_out]
+    return train, val
+
+
+def build_training_data(config: Config) -> TrainingData:
+    instances, objects = read_instances(config)
+    code, cfg = config.code, config.train
+    representation = build_representation(cfg.representation, objects, code.n_axes, code.n_angles, code.sigma_deg,
+                                          cfg.rotation_frame, cfg.num_hypotheses)
+    train, val = split_by_image(instances, config.data.val_fraction, cfg.seed)
+    augmentation = Augmentation() if config.data.augment else None
+    size = config.data.crop_size
+    return TrainingData(
+        representation=representation,
+        train_set=CropDataset(train, representation.target, augmentation=augmentation, crop_size=size, seed=cfg.seed),
+        val_set=CropDataset(val, representation.target, augmentation=None, crop_size=size, seed=cfg.seed),
+        val_instances=val,
+    )
+
+
+def validation_crops(config: Config, count: int = 64) -> np.ndarray:
+    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)``: the export's parity check input."""
+    instances, _ = read_instances(config)
+    _, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
+    chosen = (val or instances)[:count]
+    crops = CropDataset(chosen, lambda _: np.zeros(1, np.float32), augmentation=None,
+                        crop_size=config.data.crop_size, seed=config.train.seed)
+    return np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
