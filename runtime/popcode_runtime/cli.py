@@ -166,13 +166,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.batch = [1, 8, 32]
     if args.command == "bench" and (min(args.batch) < 1 or args.iterations < 1 or args.warmup < 0):
         parser.error("batch sizes and iterations must be positive, warmup non-negative")
+    return run_handler(args, "popcode")
+
+
+def run_handler(args: argparse.Namespace, prog: str) -> int:
+    """Run ``args.handler``; a ``PopcodeError`` becomes one line on stderr and exit code 2."""
     try:
-        return args.handler(args)
+        return int(args.handler(args) or 0)
     except PopcodeError as error:
-        print(f"popcode: error: {error}", file=sys.stderr)
+        print(f"{prog}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("popcode: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
 
 

@@ -8,7 +8,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from popcode_runtime import PopcodeError
+from popcode_runtime.cli import run_handler
 
 from . import __version__
 
@@ -33,15 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; bad input ends with one line on stderr and exit code 2."""
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.handler(args) or 0)
-    except PopcodeError as error:
-        print(f"popcode-train: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("popcode-train: interrupted", file=sys.stderr)
-        return 130
+    return run_handler(build_parser().parse_args(argv), "popcode-train")
 
 
 if __name__ == "__main__":

@@ -97,7 +97,24 @@ def _mlp(widths: list[int], activation: type[nn.Module] | nn.Module) -> nn.Seque
     return nn.Sequential(*layers)
 
 
-class PopcodeNet(nn.Module):
+class _CropNet(nn.Module):
+    """Shared shape of both networks: normalise, ``features`` (convs), ``hidden`` (MLP), ``head``."""
+
+    features: nn.Module
+    hidden: nn.Module
+    head: nn.Module
+
+    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
+        return self.features(contrast_normalise(image)).flatten(1)
+
+    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
+        return self.head(self.hidden(features))
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.forward_head(self.forward_features(image))
+
+
+class PopcodeNet(_CropNet):
     """Grey crop ``(N, 1, S, S)`` in [0, 1] -> output ``(N, output_dim)`` (paper section III-B)."""
 
     def __init__(self, config: NetworkConfig) -> None:
@@ -119,17 +136,9 @@ class PopcodeNet(nn.Module):
         self.hidden = _mlp([flat, *config.hidden], nn.LeakyReLU(config.leaky_slope))
         self.head = OutputLayer(config.hidden[-1], config.output_dim)
 
-    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
-        return self.features(contrast_normalise(image)).flatten(1)
-
-    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
-        return self.head(self.hidden(features))
-
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return self.forward_head(self.forward_features(image))
 
 
-class ToyNet(nn.Module):
+class ToyNet(_CropNet):
     """The toy experiment's network (section IV-A): one angle from a 64x64 image."""
 
     def __init__(self, config: ToyNetworkConfig) -> None:
@@ -145,14 +154,6 @@ class ToyNet(nn.Module):
         self.hidden = _mlp([channels * side * side, *config.hidden], nn.ReLU)
         self.head = OutputLayer(config.hidden[-1], config.output_dim)
 
-    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
-        return self.features(contrast_normalise(image)).flatten(1)
-
-    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
-        return self.head(self.hidden(features))
-
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return self.forward_head(self.forward_features(image))
 
 
 def count_macs(model: nn.Module, input_size: int) -> int:
