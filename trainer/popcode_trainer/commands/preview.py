@@ -27,7 +27,10 @@ _PAIRS_PER_ROW = 4
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("preview", help="PNG grid of augmented training crops and their targets")
+    parser = subparsers.add_parser(
+        "preview", help="PNG grid of augmented training crops and their targets",
+        description="Write a PNG grid of training crops as the network sees them (augmented unless "
+                    "--no-augmentation), each beside its population-code target drawn on a map of the sphere.")
     parser.add_argument("--split", required=True, type=Path, help="BOP split folder")
     parser.add_argument("--models", type=Path, help="models folder (default: SPLIT/models)")
     parser.add_argument("--out", required=True, type=Path, help="PNG to write")
