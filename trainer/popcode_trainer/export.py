@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,11 +90,15 @@ def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str |
         model.head = ColumnBlockOutputLayer(model.head, split_output)
     with tempfile.TemporaryDirectory() as folder:
         raw = Path(folder) / "raw.onnx"
-        torch.onnx.export(
-            model.eval(), (torch.zeros(2, 1, size, size),), str(raw), input_names=[INPUT_NAME],
-            output_names=[OUTPUT_NAME], dynamic_axes={INPUT_NAME: {0: "N"}, OUTPUT_NAME: {0: "N"}},
-            opset_version=ONNX_OPSET, do_constant_folding=True, dynamo=False,
-        )
+        # The TorchScript exporter is chosen on purpose (plain MatMul + Add graph, no extra
+        # dependencies); its deprecation notice is not something a user can act on.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            torch.onnx.export(
+                model.eval(), (torch.zeros(2, 1, size, size),), str(raw), input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME], dynamic_axes={INPUT_NAME: {0: "N"}, OUTPUT_NAME: {0: "N"}},
+                opset_version=ONNX_OPSET, do_constant_folding=True, dynamo=False,
+            )
         onnx_model = onnx.load(str(raw))
     _finish(onnx_model, metadata, out_path)
     return out_path
