@@ -211,7 +211,8 @@ class SplitMetrics:
                         for obj_id, mesh in self._meshes.items()}
         self.diameters_mm = {obj_id: model.diameter_mm for obj_id, model in self.objects.items()}
         self.ambiguous = ambiguous_objects(split.models_info)
-        self._renderers: dict[tuple[int, int, int], Any] = {}
+        self._renderer: Any = None
+        self._renderer_key: tuple[int, int, int] | None = None
         self.depth_mm: list[np.ndarray] | None = None
         without_depth = [inst for inst in split.instances if inst.depth_path is None]
         if vsd and without_depth:
@@ -225,36 +226,70 @@ class SplitMetrics:
         self.image_width_px = _image_widths_px(split.instances, self.depth_mm)
 
     def _render_depth(self, obj_id: int, K: np.ndarray, width: int, height: int) -> RenderDepth:
+        """Depth of the object in a pose; one OpenGL context per (object, image size), kept while in use.
+
+        Only one lives at a time: pyrender's EGL contexts share one display, and
+        closing any of them ends the others.
+        """
         from ..data.render import DepthRenderer
 
         key = (obj_id, width, height)
-        if key not in self._renderers:  # one OpenGL context per object and image size, not per call
+        if self._renderer_key != key:
+            self.close()
             mesh = self._meshes[obj_id]
-            self._renderers[key] = DepthRenderer(mesh.vertices, mesh.faces, width, height)
-        renderer = self._renderers[key]
+            self._renderer, self._renderer_key = DepthRenderer(mesh.vertices, mesh.faces, width, height), key
+        renderer = self._renderer
         return lambda R, t: renderer.render(K, R, t)
 
     def errors(self, R_est: np.ndarray) -> InstanceErrors:
-        """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order."""
+        """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order.
+
+        Instances are scored in groups of one object and image size, so each
+        group renders its depth with one renderer.
+        """
         instances = self.split.instances
         if np.shape(R_est) != (len(instances), 3, 3):
             raise PopcodeError(f"predictions have shape {np.shape(R_est)}; the split has {len(instances)} "
                                "instances, so (N, 3, 3) with N = that count is needed")
         if not np.isfinite(R_est).all():
             raise PopcodeError("predictions contain NaN or inf")
+        shapes = [np.shape(d) for d in self.depth_mm] if self.depth_mm is not None else [()] * len(instances)
+        keys = [(inst.obj_id, shape) for inst, shape in zip(instances, shapes, strict=True)]
+        parts = []
+        for key in sorted(set(keys)):
+            rows = np.array([i for i, k in enumerate(keys) if k == key])
+            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows])))
+        return _merge_rows(len(instances), parts)
+
+    def _group_errors(self, rows: np.ndarray, R_est: np.ndarray) -> InstanceErrors:
+        chosen = [self.split.instances[i] for i in rows]
+        depth = [self.depth_mm[i] for i in rows] if self.depth_mm is not None else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the skipped-VSD warning was given once, in __init__
             return compute_instance_errors(
-                np.array([inst.obj_id for inst in instances]), R_est, np.stack([inst.R_m2c for inst in instances]),
-                np.stack([inst.t_m2c_mm for inst in instances]), np.stack([inst.K for inst in instances]),
-                self.image_width_px, self.objects,
-                self.thresholds, self.depth_mm, self._render_depth if self.depth_mm is not None else None,
+                np.array([inst.obj_id for inst in chosen]), R_est, np.stack([inst.R_m2c for inst in chosen]),
+                np.stack([inst.t_m2c_mm for inst in chosen]), np.stack([inst.K for inst in chosen]),
+                self.image_width_px[rows], self.objects, self.thresholds, depth,
+                self._render_depth if depth is not None else None,
             )
 
     def close(self) -> None:
-        for renderer in self._renderers.values():
-            renderer.close()
-        self._renderers.clear()
+        if self._renderer is not None:
+            self._renderer.close()
+        self._renderer, self._renderer_key = None, None
+
+
+def _merge_rows(count: int, parts: Sequence[tuple[np.ndarray, InstanceErrors]]) -> InstanceErrors:
+    """One :class:`InstanceErrors` of ``count`` instances from parts that hold the given rows."""
+    merged: dict[str, np.ndarray | None] = {}
+    for name, first in parts[0][1].__dict__.items():
+        if first is None:
+            merged[name] = None
+            continue
+        merged[name] = np.empty((count, *np.shape(first)[1:]), dtype=np.asarray(first).dtype)
+        for rows, part in parts:
+            merged[name][rows] = getattr(part, name)
+    return InstanceErrors(**merged)
 
 
 def _image_widths_px(instances: Sequence[Instance], depth_mm: Sequence[np.ndarray] | None) -> np.ndarray:
