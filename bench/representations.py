@@ -16,7 +16,6 @@ images, training resumes from its last checkpoint, finished exports are kept.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -38,7 +37,7 @@ from popcode_trainer.data.bop import load_models_info  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
 from popcode_trainer.eval.evaluate import Method, MethodResult, OnnxModel, evaluate_models, read_eval_split  # noqa: E402
 from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
-from popcode_trainer.eval.tables import GROUPS, methods_markdown  # noqa: E402
+from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
 from popcode_trainer.export import export_checkpoint  # noqa: E402
 from popcode_trainer.train import train  # noqa: E402
 from popcode_trainer.training_data import build_training_data, validation_crops  # noqa: E402
@@ -224,7 +223,7 @@ def run_benchmark(size: BenchSize, out_dir: Path, size_name: str) -> dict[str, A
         "mssd_by_symmetry": ours_by_symmetry,
         "paper": {"table_iv_percent": PAPER_TABLE_IV, "mssd_by_symmetry": paper_mssd_by_symmetry()},
     }
-    (out_dir / "representations.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
+    (out_dir / "representations.json").write_text(to_json(record) + "\n")
     markdown = "\n\n".join([
         f"# Representations on the built-in objects ({size_name})",
         f"Machine: {record['machine']['cpu']}, {record['machine']['cores']} cores, {record['machine']['device']}; "
