@@ -19,7 +19,7 @@ import argparse
 import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -249,11 +249,13 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="small code and network; under 30 minutes on 2 CPU cores")
     chosen.add_argument("--full", action="store_const", const="full", dest="size",
                         help="the paper's code and network (for a GPU)")
+    parser.add_argument("--epochs", type=int, default=None, help="train this many epochs instead of the size's")
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default: bench/results/representations-SIZE)")
     args = parser.parse_args(argv)
     out_dir = args.out or Path(__file__).parent / "results" / f"representations-{args.size}"
-    run_benchmark(SIZES[args.size], out_dir, args.size)
+    size = SIZES[args.size] if args.epochs is None else replace(SIZES[args.size], epochs=args.epochs)
+    run_benchmark(size, out_dir, args.size)
 
 
 if __name__ == "__main__":

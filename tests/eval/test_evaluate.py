@@ -105,9 +105,10 @@ def test_without_depth_vsd_is_skipped_or_refused(split: Path, models: tuple[Path
     assert evaluate(no_depth, tmp_path / "refused", str(models[1]), "--vsd") == 2
     assert "VSD needs depth images" in capsys.readouterr().err
     with pytest.warns(UserWarning, match="VSD, e_VSD<0.3 and VSS are skipped"):
-        assert evaluate(no_depth, tmp_path / "skipped", str(models[1])) == 0
-    groups = json.loads((tmp_path / "skipped" / "report.json").read_text())["methods"]["model"]["groups"]
-    assert set(groups["All objects"]) == {"MSSD", "MSPD", "ADI"}
+        assert evaluate(no_depth, tmp_path / "skipped", str(models[1]), "--max-instances", "1") == 0
+    report = json.loads((tmp_path / "skipped" / "report.json").read_text())
+    assert report["instances_per_object"] == {"3": 1, "6": 1}
+    assert set(report["methods"]["model"]["groups"]["All objects"]) == {"MSSD", "MSPD", "ADI"}
 
 
 def test_models_and_objects_that_do_not_match_are_refused(split: Path, models: tuple[Path, Path], tmp_path: Path,

@@ -30,6 +30,7 @@ from popcode_runtime.metadata import RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric
 
 from ..data.bop import Instance, model_path, read_bop_split
+from ..export import load_checkpoint_model
 from .instance_errors import ObjectModel, compute_instance_errors
 from .pose_error import RenderDepth
 from .scores import InstanceErrors, Thresholds, scores_per_object
@@ -106,8 +107,6 @@ class CheckpointModel:
     """A training checkpoint run through torch, with the runtime's crop and decoding."""
 
     def __init__(self, path: str | Path, decoder: str = "argmax") -> None:
-        from ..export import load_checkpoint_model  # torch model building, only for checkpoints
-
         if decoder not in DECODERS:
             raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
         self.path, self.decoder = Path(path), decoder
