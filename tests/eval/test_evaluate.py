@@ -118,6 +118,11 @@ def test_models_and_objects_that_do_not_match_are_refused(split: Path, models: t
     assert "no object of the split ([5]) is known to every model" in capsys.readouterr().err
     assert evaluate(split, tmp_path / "out", str(models[1]), "--obj-ids", "5") == 2
     assert "no instances of objects [5]" in capsys.readouterr().err
+    both = ["--split", str(other), str(models[1])]
+    assert evaluate(split, tmp_path / "out", *both, "--obj-ids", "3", "5") == 2
+    assert "'model' has no model for objects [5] (its models know [3, 6])" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match=r"objects \[5\] of the split are not known to every model"):
+        assert evaluate(split, tmp_path / "out", *both, "--no-vsd") == 0
     with pytest.raises(PopcodeError, match="object 3 is in both"):
         methods_from_paths([models[1], models[1]], ["same", "same"])[0].model_of()
     with pytest.raises(PopcodeError, match="2 names for 1 models"):

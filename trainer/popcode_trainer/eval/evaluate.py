@@ -365,8 +365,9 @@ def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable
     """
     known = [set(method.model_of()) for method in methods]
     if obj_ids is not None:
+        wanted = set(obj_ids)
         for method, objects in zip(methods, known, strict=True):
-            lacking = sorted(set(obj_ids) - objects)
+            lacking = sorted(wanted - objects)
             if lacking:
                 raise PopcodeError(f"method {method.name!r} has no model for objects {lacking} "
                                    f"(its models know {sorted(objects)})")
