@@ -35,7 +35,15 @@ from popcode_trainer import checkpoint  # noqa: E402
 from popcode_trainer.config import Config  # noqa: E402
 from popcode_trainer.data.bop import load_models_info  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
-from popcode_trainer.eval.evaluate import Method, MethodResult, OnnxModel, evaluate_models, read_eval_split  # noqa: E402
+from popcode_trainer.eval.evaluate import (  # noqa: E402
+    EvalSplit,
+    Method,
+    MethodResult,
+    OnnxModel,
+    evaluate_models,
+    read_eval_split,
+)
+from popcode_trainer.eval.figures import plot_instance_code  # noqa: E402
 from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
 from popcode_trainer.export import export_checkpoint  # noqa: E402
@@ -186,6 +194,15 @@ def ours_mssd_by_symmetry(results: Sequence[MethodResult], models_info: Mapping[
                      for k in sorted(set(kinds.values()))} for r in results}
 
 
+def code_figures(method: Method, split: EvalSplit, out_dir: Path) -> list[Path]:
+    """The paper's Fig. 5 analogue: predicted vs target code of the first test crop of each model's objects."""
+    paths = []
+    for model in method.models:
+        instance = next(inst for inst in split.instances if inst.obj_id in model.obj_ids)
+        paths.append(plot_instance_code(model.estimator, instance, out_dir / f"code_obj{instance.obj_id}.png"))
+    return paths
+
+
 def run_benchmark(size: BenchSize, out_dir: Path, size_name: str) -> dict[str, Any]:
     """Render, train, export, evaluate; writes the report files and returns the JSON record."""
     started = time.perf_counter()
@@ -209,6 +226,7 @@ def run_benchmark(size: BenchSize, out_dir: Path, size_name: str) -> dict[str, A
     split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
     results = evaluate_models(methods, split)
     write_report(results, out_dir / "eval")
+    figures = code_figures(next(m for m in methods if m.name == Representation.POPULATION_CODE), split, out_dir)
     ours_by_symmetry = ours_mssd_by_symmetry(results, models_info)
     record = {
         "benchmark": "representations",
@@ -220,6 +238,7 @@ def run_benchmark(size: BenchSize, out_dir: Path, size_name: str) -> dict[str, A
         "train_seconds": train_seconds,
         "wall_seconds": time.perf_counter() - started,
         "results": report_dict(results),
+        "code_figures": [str(path) for path in figures],
         "mssd_by_symmetry": ours_by_symmetry,
         "paper": {"table_iv_percent": PAPER_TABLE_IV, "mssd_by_symmetry": paper_mssd_by_symmetry()},
     }

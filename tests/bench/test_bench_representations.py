@@ -43,3 +43,5 @@ def test_tiny_run_writes_every_table(bench, tmp_path: Path) -> None:
     assert markdown.count("| population_code (refined) |") >= 9  # 3 groups + 6 per-object tables (+ symmetry)
     assert "**All objects** (paper)" in markdown
     assert (tmp_path / "eval" / "errors_multi_hypothesis.csv").is_file()
+    assert [Path(p).name for p in record["code_figures"]] == ["code_obj1.png", "code_obj3.png"]
+    assert all(Path(p).read_bytes()[:4] == b"\x89PNG" for p in record["code_figures"])

@@ -15,9 +15,15 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from popcode_runtime.code import CodeLayout, check_code
+from popcode_runtime.crop import read_image
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import Representation
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 
+from ..data.bop import Instance
+from ..representations import representation_from_metadata
 from .pose_error import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
 
 
@@ -150,3 +156,15 @@ def plot_code_comparison(layout: CodeLayout, predicted: np.ndarray, target: np.n
     path = Path(path)
     figure.savefig(path)
     return path
+
+
+def plot_instance_code(estimator: PoseEstimator, instance: Instance, path: str | Path) -> Path:
+    """What the runtime predicts for one ground-truth instance beside the code it was trained towards."""
+    metadata = estimator.metadata
+    if metadata.representation != Representation.POPULATION_CODE:
+        raise PopcodeError(f"the code figure needs a population-code model, this one is {metadata.representation}")
+    prediction = estimator.predict(read_image(instance.image_path), [instance.box], K=instance.K,
+                                   obj_ids=[instance.obj_id], return_code=True)[0]
+    target = representation_from_metadata(metadata).target(instance)
+    title = f"object {instance.obj_id}, scene {instance.scene_id} image {instance.im_id}"
+    return plot_code_comparison(metadata.code, prediction.code, target, path, title)
