@@ -212,7 +212,7 @@ class SplitMetrics:
         self.ambiguous = ambiguous_objects(split.models_info)
         self._renderer: Any = None
         self._renderer_key: tuple[int, int, int] | None = None
-        self.depth_mm: list[np.ndarray] | None = None
+        self.use_depth = False
         without_depth = [inst for inst in split.instances if inst.depth_path is None]
         if vsd and without_depth:
             raise PopcodeError(f"VSD needs depth images, but {len(without_depth)} of {len(split.instances)} "
@@ -221,8 +221,8 @@ class SplitMetrics:
             warnings.warn(f"{len(without_depth)} instances have no depth image: VSD, e_VSD<0.3 and VSS are skipped",
                           stacklevel=2)
         elif vsd is not False:
-            self.depth_mm = [read_depth_mm(inst) for inst in split.instances]
-        self.image_width_px = _image_widths_px(split.instances, self.depth_mm)
+            self.use_depth = True
+        self.image_size_px = _image_sizes_px(split.instances)
 
     def _render_depth(self, obj_id: int, K: np.ndarray, width: int, height: int) -> RenderDepth:
         """Depth of the object in a pose; one OpenGL context per (object, image size), kept while in use.
@@ -252,8 +252,7 @@ class SplitMetrics:
                                "instances, so (N, 3, 3) with N = that count is needed")
         if not np.isfinite(R_est).all():
             raise PopcodeError("predictions contain NaN or inf")
-        shapes = [np.shape(d) for d in self.depth_mm] if self.depth_mm is not None else [()] * len(instances)
-        keys = [(inst.obj_id, shape) for inst, shape in zip(instances, shapes, strict=True)]
+        keys = [(inst.obj_id, *map(int, size)) for inst, size in zip(instances, self.image_size_px, strict=True)]
         parts = []
         for key in sorted(set(keys)):
             rows = np.array([i for i, k in enumerate(keys) if k == key])
@@ -262,13 +261,13 @@ class SplitMetrics:
 
     def _group_errors(self, rows: np.ndarray, R_est: np.ndarray) -> InstanceErrors:
         chosen = [self.split.instances[i] for i in rows]
-        depth = [self.depth_mm[i] for i in rows] if self.depth_mm is not None else None
+        depth = _DepthImages(chosen) if self.use_depth else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the skipped-VSD warning was given once, in __init__
             return compute_instance_errors(
                 np.array([inst.obj_id for inst in chosen]), R_est, np.stack([inst.R_m2c for inst in chosen]),
                 np.stack([inst.t_m2c_mm for inst in chosen]), np.stack([inst.K for inst in chosen]),
-                self.image_width_px[rows], self.objects, self.thresholds, depth,
+                self.image_size_px[rows, 0], self.objects, self.thresholds, depth,
                 self._render_depth if depth is not None else None,
             )
 
@@ -291,15 +290,27 @@ def _merge_rows(count: int, parts: Sequence[tuple[np.ndarray, InstanceErrors]]) 
     return InstanceErrors(**merged)
 
 
-def _image_widths_px(instances: Sequence[Instance], depth_mm: Sequence[np.ndarray] | None) -> np.ndarray:
-    """Width of each instance's image (MSPD thresholds scale with it); each image is read once."""
-    if depth_mm is not None:
-        return np.array([depth.shape[1] for depth in depth_mm], dtype=np.float64)
-    widths: dict[Path, int] = {}
+def _image_sizes_px(instances: Sequence[Instance]) -> np.ndarray:
+    """Width and height ``(N, 2)`` of each instance's image (MSPD thresholds scale with the width)."""
+    sizes: dict[Path, tuple[int, int]] = {}
     for inst in instances:
-        if inst.image_path not in widths:
-            widths[inst.image_path] = read_image(inst.image_path).shape[1]
-    return np.array([widths[inst.image_path] for inst in instances], dtype=np.float64)
+        if inst.image_path not in sizes:
+            height, width = read_image(inst.image_path).shape[:2]
+            sizes[inst.image_path] = (width, height)
+    return np.array([sizes[inst.image_path] for inst in instances], dtype=np.float64)
+
+
+class _DepthImages(Sequence[np.ndarray]):
+    """The instances' test depth images [mm], read when indexed: a large split never sits in memory."""
+
+    def __init__(self, instances: Sequence[Instance]) -> None:
+        self._instances = instances
+
+    def __len__(self) -> int:
+        return len(self._instances)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        return read_depth_mm(self._instances[index])
 
 
 @dataclass(frozen=True)
