@@ -6,8 +6,10 @@ import numpy as np
 from box_render import box_depth_renderer
 from symmetry_cases import CASES
 
+from popcode_runtime.code import CodeLayout, PopulationCode
+from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import symmetry_transforms
-from popcode_trainer.eval.figures import plot_sensitivity, sensitivity_curves
+from popcode_trainer.eval.figures import axis_activations, plot_code_comparison, plot_sensitivity, sensitivity_curves
 
 K = np.array([[600.0, 0.0, 80.0], [0.0, 600.0, 60.0], [0.0, 0.0, 1.0]])
 HALF_MM = np.array([40.0, 25.0, 10.0])
@@ -37,3 +39,18 @@ def test_without_a_renderer_the_depth_metrics_are_left_out():
     curves = sensitivity_curves(PTS_MM, syms, DIAMETER_MM, K, np.eye(3), T_MM, np.array([0.0, 90.0]),
                                 np.random.default_rng(1))
     assert set(curves.errors) == {"MSSD", "MSPD", "ADD", "ADI"}
+
+
+def test_code_comparison_figure_full_and_axis_only(tmp_path):
+    full = CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0)
+    axis_only = CodeLayout(n_axes=42, sigma_deg=30.0, axis_only=True, symmetry_axis=(0.0, 0.0, 1.0))
+    R = axis_angle_to_matrix(np.array([0.0, 0.6, 0.8]), 1.0)
+    for layout in (full, axis_only):
+        target = PopulationCode(layout).encode(R)
+        predicted = 0.7 * target + np.random.default_rng(0).normal(0.0, 0.02, target.shape)
+        activations = axis_activations(layout, target)
+        assert activations.shape == (42,)
+        assert np.argmax(activations) == PopulationCode(layout).decode(target).neuron[0] // (
+            1 if layout.axis_only else layout.n_angles)
+        path = plot_code_comparison(layout, predicted, target, tmp_path / f"code_{layout.axis_only}.png", "test")
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -17,6 +17,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "preview",
     "train",
     "export",
+    "evaluate",
 )
 
 

@@ -1,8 +1,9 @@
-"""Figure of metric sensitivity to rotation error (the paper's Fig. 4), as PNG.
+"""Figures as PNG: metric sensitivity to rotation error (the paper's Fig. 4) and a
+predicted beside a target population code (the paper's Figs. 1 and 5).
 
-The ground-truth pose of an object is rotated by growing angles about one random
-axis (in the camera frame, about the object's centre) and every metric's error is
-plotted against the angle, each normalised to be dimensionless.
+Sensitivity: the ground-truth pose of an object is rotated by growing angles
+about one random axis (in the camera frame, about the object's centre) and every
+metric's error is plotted against the angle, each normalised to be dimensionless.
 """
 
 from __future__ import annotations
@@ -13,9 +14,16 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from popcode_runtime.code import CodeLayout, check_code
+from popcode_runtime.crop import read_image
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import Representation
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 
+from ..data.bop import Instance
+from ..representations import representation_from_metadata
 from .pose_error import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
 
 
@@ -94,3 +102,69 @@ def plot_sensitivity(curves: SensitivityCurves, path: str | Path, title: str = "
     path = Path(path)
     figure.savefig(path)
     return path
+
+
+def axis_activations(layout: CodeLayout, code: np.ndarray) -> np.ndarray:
+    """Activation ``(n_axes,)`` of each preferred axis: the maximum over its angles (the code itself if axis-only)."""
+    code = check_code(code, layout.size)[0]
+    return code if layout.axis_only else code.reshape(layout.n_axes, layout.n_angles).max(axis=1)
+
+
+def _sphere_panel(figure: Figure, position: int, layout: CodeLayout, activations: np.ndarray, title: str,
+                  vmax: float) -> None:
+    """Preferred axes on a Mollweide map (longitude = azimuth, latitude = elevation), coloured by activation."""
+    axes = figure.add_subplot(position, projection="mollweide")
+    x, y, z = layout.axes.T
+    order = np.argsort(activations)  # strongest drawn last, on top
+    points = axes.scatter(np.arctan2(y, x)[order], np.arcsin(np.clip(z, -1.0, 1.0))[order], c=activations[order],
+                          s=max(2.0, 4000.0 / layout.n_axes), cmap="viridis", vmin=0.0, vmax=vmax)
+    axes.set_xticklabels([])
+    axes.grid(alpha=0.3)
+    axes.set_title(title, fontsize=9, pad=14)
+    figure.colorbar(points, ax=axes, orientation="horizontal", fraction=0.05, pad=0.05)
+
+
+def plot_code_comparison(layout: CodeLayout, predicted: np.ndarray, target: np.ndarray, path: str | Path,
+                         title: str = "") -> Path:
+    """Predicted and target code of one crop side by side on the sphere of preferred axes; returns ``path``.
+
+    A full code also gets its angle profile (activation over the preferred
+    angles) at the axis where the target peaks.
+    """
+    predicted_axes, target_axes = axis_activations(layout, predicted), axis_activations(layout, target)
+    vmax = float(max(predicted_axes.max(), target_axes.max(), 1e-6))
+    columns = 2 if layout.axis_only else 3
+    figure = Figure(figsize=(4.0 * columns, 3.4), dpi=150)
+    over_angles = "" if layout.axis_only else " (max over angles)"
+    _sphere_panel(figure, 100 + 10 * columns + 1, layout, predicted_axes, f"predicted{over_angles}", vmax)
+    _sphere_panel(figure, 100 + 10 * columns + 2, layout, target_axes, f"target{over_angles}", vmax)
+    if not layout.axis_only:
+        peak = int(np.argmax(target_axes))
+        profile = figure.add_subplot(133)
+        angles_deg = np.degrees(layout.angles_rad)
+        for name, code in (("predicted", predicted), ("target", target)):
+            values = check_code(code, layout.size)[0].reshape(layout.n_axes, layout.n_angles)[peak]
+            profile.plot(angles_deg, values, marker=".", label=name)
+        profile.set_xlabel("preferred angle [deg]")
+        profile.set_ylabel("activation")
+        profile.set_title(f"angles at the target's peak axis {peak}", fontsize=9)
+        profile.legend(fontsize=8)
+        profile.grid(alpha=0.3)
+    if title:
+        figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    path = Path(path)
+    figure.savefig(path)
+    return path
+
+
+def plot_instance_code(estimator: PoseEstimator, instance: Instance, path: str | Path) -> Path:
+    """What the runtime predicts for one ground-truth instance beside the code it was trained towards."""
+    metadata = estimator.metadata
+    if metadata.representation != Representation.POPULATION_CODE:
+        raise PopcodeError(f"the code figure needs a population-code model, this one is {metadata.representation}")
+    prediction = estimator.predict(read_image(instance.image_path), [instance.box], K=instance.K,
+                                   obj_ids=[instance.obj_id], return_code=True)[0]
+    target = representation_from_metadata(metadata).target(instance)
+    title = f"object {instance.obj_id}, scene {instance.scene_id} image {instance.im_id}"
+    return plot_code_comparison(metadata.code, prediction.code, target, path, title)

@@ -1,0 +1,133 @@
+"""``popcode-train evaluate`` end to end on a tiny rendered split, the ground truth as a method, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from popcode_runtime.errors import PopcodeError  # noqa: E402
+from popcode_trainer import checkpoint  # noqa: E402
+from popcode_trainer.cli import main  # noqa: E402
+from popcode_trainer.config import Config  # noqa: E402
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
+from popcode_trainer.eval.evaluate import (  # noqa: E402
+    SplitMetrics,
+    evaluate_rotations,
+    methods_from_paths,
+    read_eval_split,
+)
+from popcode_trainer.eval.tables import GROUPS  # noqa: E402
+from popcode_trainer.export import export_checkpoint  # noqa: E402
+from popcode_trainer.train import train  # noqa: E402
+from popcode_trainer.training_data import build_training_data, validation_crops  # noqa: E402
+
+OBJECTS = [3, 6]  # a 2-fold symmetric part and one without symmetry: both ambiguity groups
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return render_builtin_split(tmp_path_factory.mktemp("split"), 3, obj_ids=OBJECTS, random_position=True)
+
+
+@pytest.fixture(scope="module")
+def models(split: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A tiny population-code network trained one epoch on the split: its checkpoint and ONNX export."""
+    run_dir = tmp_path_factory.mktemp("run")
+    config = Config.from_dict({
+        "data": {"splits": [str(split)], "models_dir": str(split / BUILTIN_MODELS_FOLDER), "num_workers": 0,
+                 "val_fraction": 0.2},
+        "code": {"n_axes": 42, "n_angles": 12, "sigma_deg": 30.0},
+        "network": {"conv_channels": [4, 4, 4], "squeeze_channels": 2, "hidden": [16, 16, 16]},
+        "train": {"epochs": 1, "batch_size": 2, "out_dir": str(run_dir), "device": "cpu"},
+    })
+    data = build_training_data(config)
+    train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
+    onnx_path = export_checkpoint(run_dir / checkpoint.LAST, run_dir / "model.onnx", validation_crops(config))[0].path
+    return run_dir / checkpoint.LAST, onnx_path
+
+
+def evaluate(split: Path, out: Path, *args: str) -> int:
+    return main(["evaluate", *args, "--split", str(split), "--models-dir", str(split / BUILTIN_MODELS_FOLDER),
+                 "--out", str(out)])
+
+
+def test_the_ground_truth_scores_full_marks(split: Path) -> None:
+    eval_split = read_eval_split([split], split / BUILTIN_MODELS_FOLDER)
+    metrics = SplitMetrics(eval_split)
+    try:
+        result = evaluate_rotations("truth", np.stack([inst.R_m2c for inst in eval_split.instances]), metrics)
+    finally:
+        metrics.close()
+    assert sorted(result.per_object) == OBJECTS
+    assert list(result.groups) == list(GROUPS)
+    for scores in result.groups.values():
+        assert scores == {"VSD": 1.0, "MSSD": 1.0, "MSPD": 1.0, "e_VSD<0.3": 1.0, "VSS": 1.0, "ADI": 1.0}
+
+
+def test_checkpoint_and_onnx_side_by_side(split: Path, models: tuple[Path, Path], tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt, onnx_path = models
+    assert evaluate(split, tmp_path, str(ckpt), str(onnx_path), "--name", "torch", "--name", "runtime",
+                    "--bop19-csv") == 0
+    assert "**With ambiguity**" in capsys.readouterr().out
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert list(report["methods"]) == ["torch", "runtime"]
+    assert report["instances_per_object"] == {"3": 3, "6": 3}
+    for method in report["methods"].values():
+        assert list(method["groups"]) == list(GROUPS)
+        assert sorted(method["per_object"]) == ["3", "6"]
+        assert set(method["groups"]["All objects"]) == {"VSD", "MSSD", "MSPD", "e_VSD<0.3", "VSS", "ADI"}
+        assert method["model_ms_per_crop"] > 0
+    rows = {name: list(csv.DictReader((tmp_path / f"errors_{name}.csv").open())) for name in ("torch", "runtime")}
+    assert len(rows["torch"]) == 6
+    assert {"scene_id", "im_id", "obj_id", "gt_index", "mssd_mm", "mspd_px", "adi_mm", "vss"} <= set(rows["torch"][0])
+    # The runtime evaluates the exported model as torch evaluates the checkpoint: the same argmax rotations.
+    for a, b in zip(rows["torch"], rows["runtime"], strict=True):
+        assert float(a["mssd_mm"]) == pytest.approx(float(b["mssd_mm"]), abs=1e-6)
+    assert (tmp_path / "runtime_bop19.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")
+    assert "| MSSD / object | 3 | 6 |" in (tmp_path / "report.md").read_text()
+
+
+def test_without_depth_vsd_is_skipped_or_refused(split: Path, models: tuple[Path, Path], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    no_depth = tmp_path / "no_depth"
+    shutil.copytree(split, no_depth)
+    for folder in no_depth.glob("*/depth"):
+        shutil.rmtree(folder)
+    assert evaluate(no_depth, tmp_path / "refused", str(models[1]), "--vsd") == 2
+    assert "VSD needs depth images" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match="VSD, e_VSD<0.3 and VSS are skipped"):
+        assert evaluate(no_depth, tmp_path / "skipped", str(models[1]), "--max-instances", "1") == 0
+    report = json.loads((tmp_path / "skipped" / "report.json").read_text())
+    assert report["instances_per_object"] == {"3": 1, "6": 1}
+    assert set(report["methods"]["model"]["groups"]["All objects"]) == {"MSSD", "MSPD", "ADI"}
+
+
+def test_models_and_objects_that_do_not_match_are_refused(split: Path, models: tuple[Path, Path], tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    other = render_builtin_split(tmp_path / "other", 1, obj_ids=[5])
+    assert evaluate(other, tmp_path / "out", str(models[1])) == 2
+    assert "no object of the split ([5]) is known to every model" in capsys.readouterr().err
+    assert evaluate(split, tmp_path / "out", str(models[1]), "--obj-ids", "5") == 2
+    assert "no instances of objects [5]" in capsys.readouterr().err
+    both = ["--split", str(other), str(models[1])]
+    assert evaluate(split, tmp_path / "out", *both, "--obj-ids", "3", "5") == 2
+    assert "'model' has no model for objects [5] (its models know [3, 6])" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match=r"objects \[5\] of the split are not known to every model"):
+        assert evaluate(split, tmp_path / "out", *both, "--no-vsd") == 0
+    with pytest.raises(PopcodeError, match="object 3 is in both"):
+        methods_from_paths([models[1], models[1]], ["same", "same"])[0].model_of()
+    with pytest.raises(PopcodeError, match="2 names for 1 models"):
+        methods_from_paths([models[1]], ["a", "b"])
+    eval_split = read_eval_split([split], split / BUILTIN_MODELS_FOLDER)
+    metrics = SplitMetrics(eval_split, vsd=False)
+    with pytest.raises(PopcodeError, match="the split has 6 instances"):
+        evaluate_rotations("short", np.tile(np.eye(3), (5, 1, 1)), metrics)

@@ -1,0 +1,53 @@
+"""``popcode-train evaluate``: models + a BOP split -> per-instance errors and the paper's tables."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from popcode_runtime.decoding import DECODERS
+
+from ..eval.evaluate import EVAL_MIN_VISIB_FRACT, evaluate_models, methods_from_paths, read_eval_split
+from ..eval.report import report_markdown, write_report
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "evaluate", help="score models on a BOP split with the BOP rotation metrics",
+        description="Rotation from each model, translation from the ground truth (the paper's protocol). Writes "
+                    "per-instance errors (CSV), the per-object and with/without-ambiguity tables (markdown, JSON) "
+                    "and, if asked, BOP19 results files. Models given the same --name form one method (e.g. one "
+                    "model per object group).")
+    parser.add_argument("models", nargs="+", type=Path, metavar="MODEL",
+                        help="a training checkpoint (.pt, run with torch) or an ONNX model (run with the runtime)")
+    parser.add_argument("--split", dest="splits", action="append", required=True, type=Path, metavar="DIR",
+                        help="BOP split folder with scene folders (repeatable)")
+    parser.add_argument("--models-dir", type=Path, required=True,
+                        help="folder with the object meshes obj_XXXXXX.ply and models_info.json")
+    parser.add_argument("--name", dest="names", action="append", default=[], metavar="NAME",
+                        help="table row of each MODEL, in order (repeatable; default: the file name)")
+    parser.add_argument("--obj-ids", nargs="+", type=int, metavar="ID", help="evaluate only these objects")
+    parser.add_argument("--decoder", choices=DECODERS, default="argmax",
+                        help="how a population code becomes a rotation (default: argmax, the paper's)")
+    parser.add_argument("--out", type=Path, default=Path("eval"), help="output folder (default: ./eval)")
+    parser.add_argument("--bop19-csv", action="store_true", help="also write a BOP19 results CSV per method")
+    depth = parser.add_mutually_exclusive_group()
+    depth.add_argument("--vsd", dest="vsd", action="store_const", const=True,
+                       help="require VSD, e_VSD<0.3 and VSS (an error if the split has no depth images)")
+    depth.add_argument("--no-vsd", dest="vsd", action="store_const", const=False,
+                       help="skip the depth-based metrics (default: computed when the split has depth)")
+    parser.add_argument("--max-instances", type=int, metavar="N", help="evaluate at most N instances per object")
+    parser.add_argument("--min-visib-fract", type=float, default=EVAL_MIN_VISIB_FRACT,
+                        help=f"leave out instances with less of the object visible (default, as BOP19: "
+                             f"{EVAL_MIN_VISIB_FRACT})")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
+    methods = methods_from_paths(args.models, args.names, args.decoder)
+    results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids)
+    written = write_report(results, args.out, bop19_csv=args.bop19_csv)
+    print(report_markdown(results))
+    print("wrote " + ", ".join(str(path) for path in written))
+    return 0

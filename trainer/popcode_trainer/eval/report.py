@@ -1,0 +1,137 @@
+"""Evaluation results -> files: per-instance errors (CSV), the paper's tables (markdown, JSON), BOP19 CSV."""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from popcode_runtime.errors import PopcodeError
+
+from .evaluate import EvalSplit, MethodResult
+from .pose_error import rotation_error_deg
+from .results import PoseEstimate, write_bop19_results
+from .scores import METRICS, Thresholds
+from .tables import ambiguity_markdown, ambiguous_objects, per_object_markdown, to_json
+
+ERRORS_CSV = "errors_{name}.csv"
+BOP19_CSV = "{name}_bop19.csv"
+REPORT_MD = "report.md"
+REPORT_JSON = "report.json"
+
+
+def file_stem(name: str) -> str:
+    """A method name made safe for a file name."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "method"
+
+
+def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str, Any]]:
+    """One row per ground-truth instance: its ids and every error (depth errors when computed)."""
+    errors, split = result.errors, result.split
+    R_gt = np.stack([inst.R_m2c for inst in split.instances])
+    re_deg = rotation_error_deg(result.R_est, R_gt)
+    rows = []
+    for i, inst in enumerate(split.instances):
+        row: dict[str, Any] = {
+            "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index,
+            "re_deg": float(re_deg[i]), "mssd_mm": float(errors.mssd_mm[i]), "mspd_px": float(errors.mspd_px[i]),
+            "adi_mm": float(errors.adi_mm[i]),
+        }
+        if errors.vsd is not None:
+            for tau, value in zip(thresholds.vsd_taus, errors.vsd[i], strict=True):
+                row[f"vsd_tau{tau:.2f}"] = float(value)
+            row[f"vsd_tau{thresholds.vsd_single_tau_mm:g}mm"] = float(errors.vsd_single_tau[i])
+            row["vss"] = float(errors.vss[i])
+        rows.append(row)
+    return rows
+
+
+def write_instance_errors(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def timing_markdown(results: Sequence[MethodResult]) -> str:
+    """Model time per crop (crop + network + decoding) beside the metric computation time."""
+    lines = ["| Method | model ms / crop | metrics s |", "|---|---|---|"]
+    for result in results:
+        model = "–" if math.isnan(result.model_ms_per_crop) else f"{result.model_ms_per_crop:.2f}"
+        lines.append(f"| {result.name} | {model} | {result.metric_s:.1f} |")
+    return "\n".join(lines)
+
+
+def shared_split(results: Sequence[MethodResult]) -> EvalSplit:
+    """The split all results were scored on; results of different instances cannot share a table."""
+    if not results:
+        raise PopcodeError("no results to report")
+    split = results[0].split
+    for result in results[1:]:
+        if [(i.scene_id, i.im_id, i.gt_index) for i in result.split.instances] != [
+                (i.scene_id, i.im_id, i.gt_index) for i in split.instances]:
+            raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored on different instances")
+    return split
+
+
+def report_markdown(results: Sequence[MethodResult]) -> str:
+    """Table IV (with / without ambiguity), one per-object table per metric (Table III) and timings."""
+    split = shared_split(results)
+    counts = Counter(inst.obj_id for inst in split.instances)
+    ambiguity = ambiguous_objects(split.models_info)
+    ambiguous = [obj for obj in split.obj_ids if ambiguity[obj]]
+    parts = [
+        "## Scores by pose ambiguity (paper Table IV)",
+        f"Objects with ambiguity: {ambiguous or 'none'}; instances: {len(split.instances)}.",
+        ambiguity_markdown({r.name: r.groups for r in results}),
+        "## Scores per object (paper Table III)",
+    ]
+    present = [m for m in METRICS if any(m in s for r in results for s in r.per_object.values())]
+    for metric in present:
+        parts.append(per_object_markdown({r.name: r.per_object for r in results}, metric, dict(counts)))
+    parts += ["## Timing", timing_markdown(results)]
+    return "\n\n".join(parts) + "\n"
+
+
+def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
+    """The JSON report: per method its models, per-object and grouped scores and timings."""
+    split = shared_split(results)
+    return {
+        "instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
+        "methods": {
+            r.name: {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
+                     "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
+            for r in results
+        },
+    }
+
+
+def write_report(results: Sequence[MethodResult], out_dir: str | Path,
+                 thresholds: Thresholds | None = None, bop19_csv: bool = False) -> list[Path]:
+    """Write every file of an evaluation into ``out_dir``; returns their paths."""
+    split = shared_split(results)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    thresholds = thresholds or Thresholds()
+    written = []
+    for result in results:
+        stem = file_stem(result.name)
+        written.append(write_instance_errors(out_dir / ERRORS_CSV.format(name=stem),
+                                             instance_rows(result, thresholds)))
+        if bop19_csv:
+            path = out_dir / BOP19_CSV.format(name=stem)
+            write_bop19_results(path, [
+                PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, 1.0, R, inst.t_m2c_mm)
+                for inst, R in zip(split.instances, result.R_est, strict=True)
+            ])
+            written.append(path)
+    (out_dir / REPORT_MD).write_text(report_markdown(results))
+    (out_dir / REPORT_JSON).write_text(to_json(report_dict(results)) + "\n")
+    return [*written, out_dir / REPORT_MD, out_dir / REPORT_JSON]
