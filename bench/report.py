@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -20,8 +21,9 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 
 def machine() -> dict[str, Any]:
-    """The runtime's machine description plus the torch version and threads (the trainer side)."""
-    return {**machine_description(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    """The runtime's machine description, torch's version and threads, and the load (other work skews timings)."""
+    return {**machine_description(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "load_average_1m": os.getloadavg()[0]}
 
 
 def write_results(out_dir: str | Path, name: str, payload: dict[str, Any], markdown: str) -> tuple[Path, Path]:
