@@ -1,0 +1,276 @@
+"""Runtime latency against the memory-bandwidth floor: fp32, the quantised variants and torch eager.
+
+    PYTHONPATH=runtime:trainer python bench/latency.py [--quick] [--out DIR] [--networks paper small]
+
+Random weights (timing does not depend on them). Per network, variant, thread
+count (1 and all cores) and batch (1, 8, 32): end-to-end (crop + inference +
+argmax decode) and inference-only percentiles, from the runtime's own
+``benchmark_estimator``; torch eager on the same weights times ``model(crops)``.
+
+The floor of a variant is the bytes of its weights (every initializer of its
+graph, which one forward pass must read) over the memory read bandwidth
+measured here with the same number of threads (numpy sums over a large
+array, best of several). The output layer's share comes from onnxruntime's
+profiler (node times of ``/head/`` nodes over all node times, batch 1).
+Argmax agreement of the quantised variants with fp32 is measured on crops of
+rendered built-in objects; with random weights it says how much quantisation
+moves the peak of an untrained code, which is a harder test than a trained
+code's clear peak, but not the same one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from report import machine, markdown_table, write_results
+
+from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
+from popcode_runtime.code import CodeLayout
+from popcode_runtime.decoding import DECODERS, decode_output
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
+from popcode_trainer.config import Config
+from popcode_trainer.data.render import render_builtin_split
+from popcode_trainer.export import compare, export_onnx, quantise, run_onnx
+from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
+from popcode_trainer.training_data import validation_crops
+
+QUANTISED = {"int8-dynamic": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> export.quantise kind
+BATCHES = (1, 8, 32)
+
+
+@dataclass(frozen=True)
+class Network:
+    """A benchmarked network: its shape and the code layout its output encodes."""
+
+    config: NetworkConfig
+    layout: CodeLayout
+
+
+NETWORKS = {
+    "paper": Network(NetworkConfig(), CodeLayout()),
+    "small": Network(NetworkConfig(output_dim=642 * 36, conv_channels=(32, 64, 64), squeeze_channels=16,
+                                   hidden=(256, 256, 256)), CodeLayout(n_axes=642)),
+    "tiny": Network(NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4,
+                                  hidden=(32, 32, 32)), CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0)),
+}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How long to measure: timed calls per batch size, warm-up calls, bandwidth array and repeats."""
+
+    iterations: dict[int, int]
+    warmup: int
+    bandwidth_mb: int
+    bandwidth_repeats: int
+    profile_runs: int
+    render_per_object: int
+
+
+FULL = Budget({1: 100, 8: 15, 32: 6}, warmup=5, bandwidth_mb=512, bandwidth_repeats=7, profile_runs=30,
+              render_per_object=12)
+QUICK = Budget({1: 5, 8: 2, 32: 2}, warmup=1, bandwidth_mb=64, bandwidth_repeats=2, profile_runs=2,
+               render_per_object=1)
+
+
+def read_bandwidth_gb_s(threads: int, megabytes: int, repeats: int) -> float:
+    """Memory read bandwidth [GB/s]: ``threads`` numpy sums over slices of one large array, best run."""
+    array = np.ones(megabytes * 2**20 // 8)  # written once, so every page is resident
+    chunks = np.array_split(array, threads)
+    best = np.inf
+    with ThreadPoolExecutor(threads) as pool:  # numpy releases the GIL inside the sum
+        for _ in range(repeats):
+            started = time.perf_counter()
+            list(pool.map(np.sum, chunks))
+            best = min(best, time.perf_counter() - started)
+    return array.nbytes / best / 1e9
+
+
+def weight_bytes(path: Path) -> int:
+    """Bytes of every initializer of an ONNX graph: what one forward pass reads at least once."""
+    graph = onnx.load(str(path), load_external_data=False).graph
+    return sum(int(np.prod(init.dims, dtype=np.int64)) * onnx.helper.tensor_dtype_to_np_dtype(init.data_type).itemsize
+               for init in graph.initializer)
+
+
+def output_layer_share(path: Path, crops: np.ndarray, threads: int, runs: int, work: Path) -> float:
+    """Share of node time spent in the output layer (``/head/`` nodes), from onnxruntime's profiler."""
+    options = ort.SessionOptions()
+    options.enable_profiling = True
+    options.profile_file_prefix = str(work / f"profile-{path.stem}-{threads}")
+    options.intra_op_num_threads = threads
+    options.log_severity_level = 3
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    for _ in range(runs):
+        session.run(None, {INPUT_NAME: crops})
+    events = json.loads(Path(session.end_profiling()).read_text(encoding="utf-8"))
+    nodes = [e for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")]
+    total = sum(e["dur"] for e in nodes)
+    head = sum(e["dur"] for e in nodes if "/head/" in e["name"])
+    return head / total if total else float("nan")
+
+
+def rendered_crops(work: Path, per_object: int, size: int) -> np.ndarray:
+    """Crops ``(N, 1, S, S)`` of the rendered built-in objects: real-ish input for argmax agreement."""
+    split = render_builtin_split(work / "render", per_object, seed=1)
+    config = Config.from_dict({"data": {"splits": [str(split)], "models_dir": str(split / "models"),
+                                        "val_fraction": 0.0, "crop_size": size, "num_workers": 0}})
+    return validation_crops(config, count=10_000)  # no validation share: every instance
+
+
+def export_variants(name: str, network: Network, work: Path) -> tuple[PopcodeNet, dict[str, Path]]:
+    """Random-weight model in eval mode and its fp32 + quantised ONNX files."""
+    torch.manual_seed(0)
+    model = PopcodeNet(network.config).eval()
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=network.layout,
+                             objects={1: {"diameter": 100.0}}, input_size=network.config.input_size)
+    fp32 = export_onnx(model, metadata, work / f"{name}.onnx")
+    return model, {"fp32": fp32, **{v: quantise(fp32, kind, metadata) for v, kind in QUANTISED.items()}}
+
+
+def torch_stats(model: PopcodeNet, crops: np.ndarray, threads: int, budget: Budget) -> list[dict[str, Any]]:
+    """Inference-only latency of torch eager with ``threads`` intra-op threads."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.inference_mode():
+            rows = []
+            for batch in BATCHES:
+                x = torch.from_numpy(np.ascontiguousarray(crops[:1].repeat(batch, axis=0)))
+                times = time_calls(partial(model, x), budget.warmup, budget.iterations[batch])
+                rows.append(summarize(times, "inference", batch, threads).to_dict())
+    finally:
+        torch.set_num_threads(previous)
+    return rows
+
+
+def runtime_stats(path: Path, threads: int, budget: Budget) -> list[dict[str, Any]]:
+    """End-to-end and inference latency of the runtime's ``PoseEstimator`` for every batch size."""
+    estimator = PoseEstimator(path, threads=threads)
+    return [stats.to_dict() for batch in BATCHES
+            for stats in benchmark_estimator(estimator, (batch,), budget.warmup, budget.iterations[batch], threads)]
+
+
+def decoder_stats(path: Path, crops: np.ndarray, budget: Budget) -> dict[str, float]:
+    """Median decode time [ms] of each decoder on one batch-1 output of the model."""
+    estimator = PoseEstimator(path)
+    output = estimator.run(crops[:1])
+    return {decoder: float(np.median(time_calls(partial(decode_output, output, estimator.metadata, decoder),
+                                                budget.warmup, budget.iterations[1])))
+            for decoder in DECODERS}
+
+
+def bench_network(name: str, budget: Budget, thread_counts: Sequence[int], bandwidth: dict[int, float],
+                  crops: np.ndarray, work: Path) -> dict[str, Any]:
+    """Every record of one network, plus its size, output-layer shares and decoder times."""
+    network = NETWORKS[name]
+    model, paths = export_variants(name, network, work)
+    fp32_output = run_onnx(paths["fp32"], crops)
+    sizes = {variant: weight_bytes(path) for variant, path in paths.items()}
+    sizes["torch-eager"] = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()])
+    agreement = {v: compare(paths[v], run_onnx(paths[v], crops), fp32_output).argmax_agreement for v in QUANTISED}
+    records = []
+    shares = {}
+    for threads in thread_counts:
+        for variant in [*paths, "torch-eager"]:
+            if variant == "torch-eager":
+                rows = torch_stats(model, crops, threads, budget)
+            else:
+                rows = runtime_stats(paths[variant], threads, budget)
+                shares[f"{variant}@{threads}"] = output_layer_share(paths[variant], crops[:1], threads,
+                                                                    budget.profile_runs, work)
+            floor_ms = sizes[variant] / (bandwidth[threads] * 1e9) * 1e3
+            for row in rows:
+                record = {"variant": variant, "network": name, **row, "floor_ms": floor_ms,
+                          "x_floor": row["median_ms"] / floor_ms, "weight_mb": sizes[variant] / 1e6}
+                if variant in QUANTISED:
+                    record["argmax_agreement"] = agreement[variant]
+                if row["batch"] == 1 and row["stage"] == "inference" and variant != "torch-eager":
+                    record["output_layer_share"] = shares[f"{variant}@{threads}"]
+                records.append(record)
+    return {
+        "records": records,
+        "summary": {"network": name, "parameters": count_parameters(model),
+                    "macs_per_crop": count_macs(model, network.config.input_size),
+                    "output_layer_parameters": sum(p.numel() for p in model.head.parameters()),
+                    "decode_ms": decoder_stats(paths["fp32"], crops, budget),
+                    "agreement_crops": len(crops)},
+    }
+
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "" if value is None else f"{value:.{digits}f}"
+
+
+def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any]], bandwidth: dict[int, float],
+                    machine_line: str) -> str:
+    """The latency table, then per-network size, output-layer share and decoder tables."""
+    rows = [[r["network"], r["variant"], r["threads"], r["batch"], r["stage"], _fmt(r["median_ms"]),
+             _fmt(r["p90_ms"]), _fmt(r["p99_ms"]), _fmt(r["crops_per_s"], 0), _fmt(r["floor_ms"], 3),
+             _fmt(r["x_floor"], 1), _fmt(r.get("argmax_agreement"), 3), _fmt(r.get("output_layer_share"), 2)]
+            for r in records]
+    latency = markdown_table(["network", "variant", "threads", "batch", "stage", "median ms", "p90 ms", "p99 ms",
+                              "crops/s", "floor ms", "x floor", "argmax agr.", "output-layer share"], rows)
+    fp32_inference = {(r["network"], r["threads"]): r["median_ms"] for r in records
+                      if r["variant"] == "fp32" and r["stage"] == "inference" and r["batch"] == 1}
+    all_threads = max(bandwidth)
+    sizes = markdown_table(
+        ["network", "parameters", "output-layer parameters", "MMACs/crop", "argmax decode ms", "refined decode ms",
+         f"refined / fp32 inference (b1, {all_threads} threads)"],
+        [[s["network"], s["parameters"], s["output_layer_parameters"], _fmt(s["macs_per_crop"] / 1e6, 0),
+          _fmt(s["decode_ms"]["argmax"], 3), _fmt(s["decode_ms"]["refined"], 3),
+          _fmt(s["decode_ms"]["refined"] / fp32_inference[(s["network"], all_threads)], 3)] for s in summaries])
+    bandwidths = ", ".join(f"{t} thread(s): {gb:.1f} GB/s" for t, gb in bandwidth.items())
+    return "\n\n".join([f"Machine: {machine_line}", f"Read bandwidth: {bandwidths}", latency, sizes])
+
+
+def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
+    """Measure every network; write ``latency.json`` and ``latency.md`` into ``out_dir``; return the payload."""
+    budget = QUICK if quick else FULL
+    thread_counts = sorted({1, os.cpu_count() or 1})
+    bandwidth = {t: read_bandwidth_gb_s(t, budget.bandwidth_mb, budget.bandwidth_repeats) for t in thread_counts}
+    with tempfile.TemporaryDirectory() as folder:
+        work = Path(folder)
+        sizes = {NETWORKS[n].config.input_size for n in networks}
+        crops = {size: rendered_crops(work / str(size), budget.render_per_object, size) for size in sizes}
+        results = [bench_network(n, budget, thread_counts, bandwidth, crops[NETWORKS[n].config.input_size], work)
+                   for n in networks]
+    records = [record for result in results for record in result["records"]]
+    summaries = [result["summary"] for result in results]
+    description = machine()
+    markdown = render_markdown(records, summaries, bandwidth,
+                               f"{description['cpu']}, {description['cores']} cores, onnxruntime "
+                               f"{description['onnxruntime']}, torch {description['torch']}")
+    payload = {"bandwidth_gb_s": {str(t): gb for t, gb in bandwidth.items()}, "networks": summaries,
+               "records": records, "quick": quick}
+    write_results(out_dir, "latency", payload, markdown)
+    print(markdown)
+    return payload
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="few iterations: a smoke run, not a measurement")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for latency.json/.md")
+    parser.add_argument("--networks", nargs="+", choices=sorted(NETWORKS), default=["paper", "small"])
+    args = parser.parse_args(argv)
+    return run(args.networks, args.quick, args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,36 @@
+"""Shared output of the benchmarks: markdown tables and a JSON file that names the machine."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from popcode_runtime.benchmark import machine_description
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub markdown table; floats are printed as given (format them before)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def machine() -> dict[str, Any]:
+    """The runtime's machine description, torch's version and threads, and the load (other work skews timings)."""
+    return {**machine_description(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "load_average_1m": os.getloadavg()[0]}
+
+
+def write_results(out_dir: str | Path, name: str, payload: dict[str, Any], markdown: str) -> tuple[Path, Path]:
+    """Write ``<name>.json`` (payload + machine) and ``<name>.md`` into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    json_path, md_path = out_dir / f"{name}.json", out_dir / f"{name}.md"
+    json_path.write_text(json.dumps({"machine": machine(), **payload}, indent=1) + "\n", encoding="utf-8")
+    md_path.write_text(markdown + "\n", encoding="utf-8")
+    return json_path, md_path

@@ -1,0 +1,223 @@
+"""The paper's 1-D experiment (section IV-A, Table I): orientation of bars and arrows, every output representation.
+
+    PYTHONPATH=runtime:trainer python bench/toy_orientation.py [--quick] [--repeats 10] [--epochs 30] [--out DIR]
+
+Generator (ours; the paper shows examples only): a 64x64 black image with one
+white shape drawn by cv2 with anti-aliasing, orientation uniform in [0, 360),
+centre uniform within +-8 px of the image centre. A bar is a filled rectangle
+of length 24..48 px and width 3..8 px (180 deg symmetric); an arrow is a shaft
+of the same kind whose front end carries a filled triangular head 8..14 px
+long and 2.2..3 shaft-widths wide (not symmetric). Angles are counter-clockwise
+from the image's +x axis with y up.
+
+Network: the section IV-A ``ToyNet``. Training (ours; the paper gives none for
+this experiment): Adam, learning rate 1e-3, batch 32, ``--epochs`` epochs
+(default 30), a fresh network and a fresh 1000-image set split 800/200 per
+repeat. Targets: the scalar angle in radians (single variable), a one-hot over
+36 bins of 10 deg (MSE or cross entropy), a 36-neuron population code (10 deg
+spacing, Gaussian tuning sigma 20 deg, MSE) and, for bars, the code with both
+peaks (the angle and the angle + 180 deg, summed). The population codes are
+decoded by argmax (the paper's) and by the runtime's log-parabola refinement
+around the peak (``refine_angle``). Error: squared angle difference [deg^2] on
+the 200 test images, bars modulo 180 deg; mean +- sample std over repeats.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from report import markdown_table, write_results
+from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
+
+from popcode_runtime.code import CodeLayout
+from popcode_runtime.refine import refine_angle
+from popcode_trainer.network import ToyNet, ToyNetworkConfig
+
+IMAGE_SIZE = 64
+TRAIN_COUNT, TEST_COUNT = 800, 200
+LAYOUT = CodeLayout(n_axes=1, n_angles=36, sigma_deg=20.0)  # one circle of preferred angles, 10 deg apart
+LEARNING_RATE = 1e-3
+BATCH_SIZE = 32
+PERIOD_DEG = {"arrows": 360.0, "bars": 180.0}  # the error is taken modulo the shape's symmetry
+PAPER = {  # Table I, deg^2
+    ("arrows", "Single Variable"): "237 ± 69", ("bars", "Single Variable"): "3597 ± 423",
+    ("arrows", "One Hot (MSE)"): "112 ± 229", ("bars", "One Hot (MSE)"): "15.0 ± 1.7",
+    ("arrows", "One Hot (Cross Entropy)"): "13.8 ± 1.2", ("bars", "One Hot (Cross Entropy)"): "12.6 ± 1.2",
+    ("arrows", "Population Code"): "8.6 ± 0.5", ("bars", "Population Code"): "17.8 ± 2.3",
+    ("bars", "Population Code (Sym)"): "8.7 ± 0.5",
+}
+
+
+def _rotated(points: np.ndarray, angle_rad: float, centre: np.ndarray) -> np.ndarray:
+    """Shape points (x right, y up) rotated by ``angle_rad`` and placed at ``centre`` in pixel coordinates."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    x = points[:, 0] * c - points[:, 1] * s
+    y = points[:, 0] * s + points[:, 1] * c
+    return np.stack([centre[0] + x, centre[1] - y], axis=1)  # image y points down
+
+
+def draw_shape(kind: str, angle_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """One ``(64, 64)`` float32 image in [0, 1] of a bar or an arrow at ``angle_rad`` (see the module docstring)."""
+    length, width = rng.uniform(24, 48), rng.uniform(3, 8)
+    centre = IMAGE_SIZE / 2 + rng.uniform(-8, 8, size=2)
+    half_l, half_w = length / 2, width / 2
+    polygons = [np.array([[-half_l, -half_w], [half_l, -half_w], [half_l, half_w], [-half_l, half_w]])]
+    if kind == "arrows":
+        head_l, head_w = rng.uniform(8, 14), width * rng.uniform(2.2, 3.0) / 2
+        polygons.append(np.array([[half_l + head_l, 0.0], [half_l, head_w], [half_l, -head_w]]))
+    shift = 4  # sub-pixel vertices for cv2's fixed-point drawing
+    image = np.zeros((IMAGE_SIZE, IMAGE_SIZE), np.uint8)
+    cv2.fillPoly(image, [np.round(_rotated(p, angle_rad, centre) * 2**shift).astype(np.int32) for p in polygons],
+                 255, cv2.LINE_AA, shift)
+    return image.astype(np.float32) / 255.0
+
+
+def make_dataset(kind: str, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Images ``(count, 1, 64, 64)`` and their angles [rad] in [0, 2 pi)."""
+    angles = rng.uniform(0.0, 2.0 * np.pi, size=count)
+    images = np.stack([draw_shape(kind, a, rng) for a in angles])[:, None]
+    return images, angles
+
+
+def population_code(angles_rad: np.ndarray, peaks: int = 1) -> np.ndarray:
+    """Targets ``(N, 36)``: Gaussian tuning around each angle, and around angle + 180 deg when ``peaks`` is 2."""
+    code = np.zeros((len(angles_rad), LAYOUT.n_angles))
+    for k in range(peaks):
+        shifted = angles_rad[:, None] + k * np.pi - LAYOUT.angles_rad[None]
+        distance = np.angle(np.exp(1j * shifted))  # wrapped to (-pi, pi]
+        code += np.exp(-(distance**2) / (2.0 * LAYOUT.sigma_rad**2))
+    return code
+
+
+def decode_argmax(output: np.ndarray) -> np.ndarray:
+    return LAYOUT.angles_rad[np.argmax(output, axis=1)]
+
+
+def decode_refined(output: np.ndarray) -> np.ndarray:
+    return np.array([refine_angle(LAYOUT, int(np.argmax(row)), row) for row in output])
+
+
+@dataclass(frozen=True)
+class Method:
+    """One row group of Table I: output width, target, loss, and its decoders (name suffix -> decoder)."""
+
+    name: str
+    outputs: int
+    target: Callable[[np.ndarray], np.ndarray]
+    loss: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    decoders: dict[str, Callable[[np.ndarray], np.ndarray]]
+    datasets: tuple[str, ...] = ("arrows", "bars")
+
+
+def _one_hot(angles_rad: np.ndarray) -> np.ndarray:
+    bins = np.round(angles_rad / (2.0 * np.pi / LAYOUT.n_angles)).astype(int) % LAYOUT.n_angles
+    return np.eye(LAYOUT.n_angles)[bins]
+
+
+def _cross_entropy(output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return F.cross_entropy(output, target.argmax(dim=1))
+
+
+METHODS = (
+    Method("Single Variable", 1, lambda a: a[:, None], F.mse_loss, {"": lambda out: out[:, 0]}),
+    Method("One Hot (MSE)", 36, _one_hot, F.mse_loss, {"": decode_argmax}),
+    Method("One Hot (Cross Entropy)", 36, _one_hot, _cross_entropy, {"": decode_argmax}),
+    Method("Population Code", 36, population_code, F.mse_loss, {"": decode_argmax, " refined": decode_refined}),
+    Method("Population Code (Sym)", 36, lambda a: population_code(a, peaks=2), F.mse_loss,
+           {"": decode_argmax, " refined": decode_refined}, datasets=("bars",)),
+)
+
+
+def squared_error_deg2(predicted_rad: np.ndarray, true_rad: np.ndarray, period_deg: float) -> np.ndarray:
+    """Squared angle difference [deg^2], the difference wrapped to the shape's symmetry period."""
+    difference = np.degrees(predicted_rad - true_rad)
+    wrapped = (difference + period_deg / 2) % period_deg - period_deg / 2
+    return wrapped**2
+
+
+def train_and_predict(method: Method, images: np.ndarray, angles: np.ndarray, train_count: int, epochs: int,
+                      seed: int) -> np.ndarray:
+    """Train a fresh ``ToyNet`` on the first ``train_count`` images; its raw outputs on the remaining ones."""
+    torch.manual_seed(seed)
+    model = ToyNet(ToyNetworkConfig(output_dim=method.outputs))
+    optimizer = torch.optim.Adam(model.parameters(), lr=LEARNING_RATE)
+    x = torch.from_numpy(images[:train_count])
+    y = torch.from_numpy(method.target(angles[:train_count]).astype(np.float32))
+    generator = torch.Generator().manual_seed(seed)
+    model.train()
+    for _ in range(epochs):
+        for batch in torch.randperm(train_count, generator=generator).split(BATCH_SIZE):
+            loss = method.loss(model(x[batch]), y[batch])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+    model.eval()
+    with torch.inference_mode():
+        return model(torch.from_numpy(images[train_count:])).numpy()
+
+
+def run_repeats(repeats: int, epochs: int, train_count: int = TRAIN_COUNT,
+                test_count: int = TEST_COUNT) -> dict[tuple[str, str], list[float]]:
+    """Mean squared error [deg^2] of every (dataset, row) in every repeat, each on a new data set."""
+    errors: dict[tuple[str, str], list[float]] = {}
+    for repeat in range(repeats):
+        for dataset in PERIOD_DEG:
+            rng = np.random.default_rng([repeat, len(dataset)])
+            images, angles = make_dataset(dataset, train_count + test_count, rng)
+            for method in METHODS:
+                if dataset not in method.datasets:
+                    continue
+                output = train_and_predict(method, images, angles, train_count, epochs, seed=repeat)
+                for suffix, decode in method.decoders.items():
+                    error = squared_error_deg2(decode(output), angles[train_count:], PERIOD_DEG[dataset])
+                    errors.setdefault((dataset, method.name + suffix), []).append(float(error.mean()))
+                    print(f"repeat {repeat} {dataset} {method.name + suffix}: {error.mean():.1f} deg^2", flush=True)
+    return errors
+
+
+def summarise(errors: dict[tuple[str, str], list[float]]) -> list[dict[str, Any]]:
+    """One record per Table I row: mean and sample std over repeats, beside the paper's number."""
+    return [{"dataset": dataset, "method": method, "mean": float(np.mean(runs)),
+             "std": float(np.std(runs, ddof=1)) if len(runs) > 1 else 0.0, "runs": len(runs),
+             "paper": PAPER.get((dataset, method))} for (dataset, method), runs in errors.items()]
+
+
+def render_markdown(records: list[dict[str, Any]], epochs: int) -> str:
+    """Table I layout: one row per method, ours and the paper's for arrows and bars."""
+    methods = list(dict.fromkeys(r["method"] for r in records))
+    cell = {(r["dataset"], r["method"]): f"{r['mean']:.1f} ± {r['std']:.1f}" for r in records}
+    runs = max(r["runs"] for r in records)
+    rows = [[m, cell.get(("arrows", m), "N/A"), PAPER.get(("arrows", m), ""), cell.get(("bars", m), "N/A"),
+             PAPER.get(("bars", m), "")] for m in methods]
+    header = ["method", "arrows (ours)", "arrows (paper)", "bars (ours)", "bars (paper)"]
+    return (f"Squared angle error [deg²], mean ± std over {runs} runs, {epochs} epochs each "
+            f"(bars modulo 180°).\n\n" + markdown_table(header, rows))
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="1 repeat, 1 epoch, 64/32 images: a smoke run, not a result")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--epochs", type=int, default=30)
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for toy_orientation.json/.md")
+    args = parser.parse_args(argv)
+    repeats, epochs, sizes = (1, 1, (64, 32)) if args.quick else (args.repeats, args.epochs, (TRAIN_COUNT, TEST_COUNT))
+    records = summarise(run_repeats(repeats, epochs, *sizes))
+    markdown = render_markdown(records, epochs)
+    write_results(args.out, "toy_orientation", {"repeats": repeats, "epochs": epochs, "learning_rate": LEARNING_RATE,
+                                                "batch_size": BATCH_SIZE, "train_test": sizes, "records": records},
+                  markdown)
+    print(markdown)
+    return records
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""Smoke tests of the benchmarks: tiny sizes, the JSON contract and the table rows; never timings."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import latency
+import toy_orientation
+
+LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms"}
+
+
+def test_latency_writes_the_contract(tmp_path: Path) -> None:
+    latency.main(["--quick", "--networks", "tiny", "--out", str(tmp_path)])
+    payload = json.loads((tmp_path / "latency.json").read_text(encoding="utf-8"))
+    assert {"cpu", "cores", "onnxruntime", "torch"} <= set(payload["machine"])
+    records = payload["records"]
+    for record in records:
+        assert set(record) >= LATENCY_FIELDS
+        assert record["stage"] in ("end-to-end", "inference")
+        assert ("argmax_agreement" in record) == (record["variant"] in latency.QUANTISED)
+    variants = {r["variant"] for r in records}
+    assert variants == {"fp32", "torch-eager", *latency.QUANTISED}
+    assert {r["batch"] for r in records} == set(latency.BATCHES)
+    assert any(r["threads"] == 1 for r in records)
+    # Every runtime variant has both stages at every batch; torch eager has inference only.
+    runtime_rows = [r for r in records if r["variant"] != "torch-eager"]
+    assert len(runtime_rows) == 4 * len(latency.BATCHES) * 2 * len({r["threads"] for r in records})
+    assert all("output_layer_share" in r for r in runtime_rows if r["batch"] == 1 and r["stage"] == "inference")
+    assert set(payload["networks"][0]["decode_ms"]) == {"argmax", "refined"}
+    table = (tmp_path / "latency.md").read_text(encoding="utf-8")
+    assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(records) + 1  # + size table
+
+
+def test_toy_orientation_has_every_row_of_table_one(tmp_path: Path) -> None:
+    toy_orientation.main(["--quick", "--out", str(tmp_path)])
+    payload = json.loads((tmp_path / "toy_orientation.json").read_text(encoding="utf-8"))
+    records = payload["records"]
+    for record in records:
+        assert {"dataset", "method", "mean", "std", "runs"} <= set(record)
+        assert record["runs"] == 1
+    rows = {(r["dataset"], r["method"]) for r in records}
+    assert set(toy_orientation.PAPER) <= rows  # every row the paper reports
+    assert {("arrows", "Population Code refined"), ("bars", "Population Code (Sym) refined")} <= rows
+    assert ("arrows", "Population Code (Sym)") not in rows  # the paper's N/A
+    table = (tmp_path / "toy_orientation.md").read_text(encoding="utf-8")
+    for method in {m for _, m in rows}:
+        assert f"| {method} |" in table
