@@ -100,8 +100,8 @@ class BenchSize:
 
 
 SIZES = {
-    # About 20 minutes on 2 CPU cores: a 642 x 36 code and a network of a few per cent of the paper's width.
-    "quick": BenchSize(train_images_per_object=400, test_images_per_object=50, epochs=6, n_axes=642, n_angles=36,
+    # About 25 minutes on 2 shared CPU cores: a 642 x 36 code and a network of a few per cent of the paper's width.
+    "quick": BenchSize(train_images_per_object=400, test_images_per_object=50, epochs=12, n_axes=642, n_angles=36,
                        network={"conv_channels": [16, 32, 32], "squeeze_channels": 8, "hidden": [256, 128, 128]}),
     # The paper's code and network; for a GPU.
     "full": BenchSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562, n_angles=36,
