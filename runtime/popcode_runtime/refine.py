@@ -17,7 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .code import CodeLayout, DecodedRotations, PopulationCode, check_code
+from .code import CodeLayout, DecodedRotations, PopulationCode, check_code, fibonacci_lattice
 from .rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_between
 
 NEIGHBOURS = 8  # lattice neighbours of a peak used for the axis fit (Fibonacci cells have ~6)
@@ -27,8 +27,6 @@ _LOG_FLOOR = 1e-6
 @lru_cache(maxsize=8)
 def lattice_neighbours(n_axes: int, count: int = NEIGHBOURS) -> np.ndarray:
     """Indices ``(n, count)`` of each lattice axis's nearest other axes, nearest first."""
-    from .code import fibonacci_lattice
-
     axes = fibonacci_lattice(n_axes)
     count = min(count, n_axes - 1)
     result = np.empty((n_axes, count), dtype=np.int64)
