@@ -19,7 +19,7 @@ import argparse
 import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,11 +30,9 @@ import torch  # noqa: E402
 
 from popcode_runtime.benchmark import machine_description  # noqa: E402
 from popcode_runtime.metadata import Representation  # noqa: E402
-from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class  # noqa: E402
-from popcode_trainer import checkpoint  # noqa: E402
-from popcode_trainer.config import Config  # noqa: E402
+from popcode_runtime.symmetries import SymmetryClass, symmetry_class  # noqa: E402
 from popcode_trainer.data.bop import load_models_info  # noqa: E402
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER  # noqa: E402
 from popcode_trainer.eval.evaluate import (  # noqa: E402
     EvalSplit,
     Method,
@@ -46,9 +44,13 @@ from popcode_trainer.eval.evaluate import (  # noqa: E402
 from popcode_trainer.eval.figures import plot_instance_code  # noqa: E402
 from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
-from popcode_trainer.export import export_checkpoint  # noqa: E402
-from popcode_trainer.train import train  # noqa: E402
-from popcode_trainer.training_data import build_training_data, validation_crops  # noqa: E402
+from popcode_trainer.pipeline import (  # noqa: E402
+    SMALL_NETWORK,
+    PipelineSize,
+    object_groups,
+    render_splits,
+    train_and_export,
+)
 
 REFINED = "population_code (refined)"
 PAPER_METHODS = {Representation.SINGLE_VARIABLE: "Single Variable", Representation.ONE_HOT: "One Hot Vector",
@@ -79,75 +81,14 @@ PAPER_TABLE_III = {
 SYMMETRY_NAMES = {"c": "continuous", "n": "none", "2": "2-fold", "4": "4-fold"}
 
 
-@dataclass(frozen=True)
-class BenchSize:
-    """Data, code, network and training budget shared by every representation."""
-
-    train_images_per_object: int
-    test_images_per_object: int
-    epochs: int
-    n_axes: int
-    n_angles: int
-    network: dict[str, Any]
-    batch_size: int = 32
-    lr: float = 1e-3
-    num_hypotheses: int = 20
-    num_workers: int = 0
-    representations: tuple[str, ...] = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
-                                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
-    sigma_deg: float = 20.0
-    seed: int = 0
-
-
 SIZES = {
     # About 25 minutes on 2 shared CPU cores: a 642 x 36 code and a network of a few per cent of the paper's width.
-    "quick": BenchSize(train_images_per_object=400, test_images_per_object=50, epochs=12, n_axes=642, n_angles=36,
-                       network={"conv_channels": [16, 32, 32], "squeeze_channels": 8, "hidden": [256, 128, 128]}),
+    "quick": PipelineSize(train_images_per_object=400, test_images_per_object=50, epochs=12, n_axes=642, n_angles=36,
+                          network=SMALL_NETWORK),
     # The paper's code and network; for a GPU.
-    "full": BenchSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562, n_angles=36,
-                      network={}, batch_size=64, lr=2e-4, num_workers=8),
+    "full": PipelineSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562,
+                         n_angles=36, network={}, batch_size=64, lr=2e-4, num_workers=8),
 }
-
-
-def object_groups(models_info: Mapping[int, Mapping[str, Any]]) -> list[list[int]]:
-    """Objects that can share one model: continuous symmetries about one axis together, the rest together."""
-    by_axis: dict[tuple[float, ...], list[int]] = {}
-    full = []
-    for obj_id in sorted(models_info):
-        if symmetry_class(models_info[obj_id]) is SymmetryClass.CONTINUOUS:
-            axis = continuous_axis(models_info[obj_id])
-            axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis  # an axis and its reverse are one
-            by_axis.setdefault(tuple(np.round(axis, 6)), []).append(obj_id)
-        else:
-            full.append(obj_id)
-    return [*by_axis.values(), *([full] if full else [])]
-
-
-def training_config(size: BenchSize, representation: str, obj_ids: Sequence[int], split: Path, out_dir: Path) -> Config:
-    return Config.from_dict({
-        "data": {"splits": [str(split)], "models_dir": str(split / BUILTIN_MODELS_FOLDER), "obj_ids": list(obj_ids),
-                 "num_workers": size.num_workers},
-        "code": {"n_axes": size.n_axes, "n_angles": size.n_angles, "sigma_deg": size.sigma_deg},
-        "network": size.network,
-        "train": {"representation": representation, "epochs": size.epochs, "batch_size": size.batch_size,
-                  "lr": size.lr, "num_hypotheses": size.num_hypotheses, "seed": size.seed, "out_dir": str(out_dir),
-                  "device": "auto"},
-    })
-
-
-def train_and_export(size: BenchSize, representation: str, obj_ids: Sequence[int], split: Path,
-                     out_dir: Path) -> tuple[Path, float]:
-    """Train (resuming an interrupted run) and export one model; returns the ONNX path and training seconds."""
-    run_dir = out_dir / "runs" / f"{representation}_{'-'.join(map(str, obj_ids))}"
-    onnx_path = run_dir / "model.onnx"
-    config = training_config(size, representation, obj_ids, split, run_dir)
-    started = time.perf_counter()
-    if not onnx_path.exists():
-        data = build_training_data(config)
-        train(config, data.representation, data.train_set, data.val_set,
-              resume=(run_dir / checkpoint.LAST).exists(), val_instances=data.val_instances)
-        export_checkpoint(run_dir / checkpoint.LAST, onnx_path, validation_crops(config))
-    return onnx_path, time.perf_counter() - started
 
 
 def paper_table_iv_markdown() -> str:
@@ -203,14 +144,11 @@ def code_figures(method: Method, split: EvalSplit, out_dir: Path) -> list[Path]:
     return paths
 
 
-def run_benchmark(size: BenchSize, out_dir: Path, size_name: str) -> dict[str, Any]:
+def run_benchmark(size: PipelineSize, out_dir: Path, size_name: str) -> dict[str, Any]:
     """Render, train, export, evaluate; writes the report files and returns the JSON record."""
     started = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
-    train_split = render_builtin_split(out_dir / "train", size.train_images_per_object, seed=size.seed,
-                                       random_position=True, progress=True)
-    test_split = render_builtin_split(out_dir / "test", size.test_images_per_object, seed=size.seed + 1000,
-                                      random_position=True, progress=True)
+    train_split, test_split = render_splits(size, out_dir)
     models_info = load_models_info(train_split / BUILTIN_MODELS_FOLDER)
     groups = object_groups(models_info)
     methods, train_seconds = [], {}

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from popcode_trainer.pipeline import PipelineSize
+
 BENCH = Path(__file__).resolve().parents[2] / "bench" / "representations.py"
 
 
@@ -23,10 +25,10 @@ def bench():
 
 @pytest.mark.slow
 def test_tiny_run_writes_every_table(bench, tmp_path: Path) -> None:
-    size = bench.BenchSize(train_images_per_object=4, test_images_per_object=1, epochs=1, n_axes=42, n_angles=12,
-                           sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2,
-                                                    "hidden": [16, 16, 16]},
-                           batch_size=4, num_hypotheses=4)
+    size = PipelineSize(train_images_per_object=4, test_images_per_object=1, epochs=1, n_axes=42, n_angles=12,
+                        sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2,
+                                                 "hidden": [16, 16, 16]},
+                        batch_size=4, num_hypotheses=4)
     bench.run_benchmark(size, tmp_path, "smoke")
 
     record = json.loads((tmp_path / "representations.json").read_text())

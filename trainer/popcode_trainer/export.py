@@ -25,6 +25,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 from . import checkpoint
+from .data.files import write_bytes_atomic
 from .network import ColumnBlockOutputLayer, NetworkConfig, build_network
 
 ONNX_OPSET = 17
@@ -65,12 +66,13 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
 
 
 def _finish(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:
-    """Pin the IR version onnxruntime reads, attach the metadata, check and save."""
+    """Pin the IR version onnxruntime reads, attach the metadata, check and save atomically (an interrupted
+    export leaves no half-written model that a rerun would take for finished)."""
     model.ir_version = ONNX_IR_VERSION
     del model.metadata_props[:]
     helper.set_model_props(model, metadata.to_props())
     onnx.checker.check_model(model)
-    onnx.save(model, str(path))
+    write_bytes_atomic(path, model.SerializeToString())
 
 
 def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str | Path,

@@ -1,0 +1,39 @@
+"""``popcode-train demo``: the whole product on the built-in objects, into one run folder."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from popcode_runtime.errors import PopcodeError
+
+from ..demo import DEMO_SIZES, REPORT_FILE
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    sizes = "; ".join(f"{name}: {size.purpose}" for name, size in DEMO_SIZES.items())
+    parser = subparsers.add_parser(
+        "demo", help="render, train, export, evaluate and benchmark on the built-in objects",
+        description="Render the six built-in parts, train the population code and the single-variable baseline "
+                    "with the same network and budget, export ONNX (float and int8), evaluate both with the BOP "
+                    f"metrics through the runtime, time the runtime, and write {REPORT_FILE} with tables and "
+                    "figures. Rerun with the same --out to resume an interrupted demo.")
+    parser.add_argument("--size", choices=list(DEMO_SIZES), default="quick", help=f"budget ({sizes})")
+    parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default: runs/demo)")
+    parser.add_argument("--epochs", type=int, help="train this many epochs instead of the size's")
+    parser.add_argument("--images", type=int, metavar="N", help="training images per object instead of the size's")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..demo import run_demo  # torch, pyrender: imported once the arguments are valid
+
+    size = DEMO_SIZES[args.size].pipeline
+    for name, value in (("epochs", args.epochs), ("train_images_per_object", args.images)):
+        if value is not None:
+            if value < 1:
+                raise PopcodeError(f"--{name.split('_')[0]} must be at least 1, got {value}")
+            size = dataclasses.replace(size, **{name: value})
+    run_demo(args.size, args.out, size)
+    return 0
