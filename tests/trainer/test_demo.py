@@ -1,0 +1,115 @@
+"""The demo end to end at a tiny size: every file of the run folder, the report's links, resuming, the CLI."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from popcode_runtime import PoseEstimator, read_image
+from popcode_trainer.cli import main as cli_main
+from popcode_trainer.demo import POPCODE, SUMMARY_FILE, StagePlan, run_demo
+from popcode_trainer.eval.overview_figures import nearest_equivalent
+from popcode_trainer.pipeline import PipelineSize
+
+TINY = PipelineSize(train_images_per_object=8, test_images_per_object=2, epochs=1, n_axes=42, n_angles=12,
+                    sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2, "hidden": [16, 16, 16]},
+                    batch_size=4, representations=("population_code", "single_variable"))
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("demo")
+    return out, run_demo("tiny", out, TINY, latency_iterations=3)
+
+
+@pytest.mark.slow
+def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict]) -> None:
+    out, summary = demo_run
+    report = (out / "report.md").read_text()
+    links = re.findall(r"\]\(([^)]+)\)", report)
+    assert len(links) >= 10
+    for link in links:
+        assert (out / link).is_file(), link
+    assert json.loads((out / SUMMARY_FILE).read_text())["report"] == str(out / "report.md")
+    methods = {"population_code", "population_code (refined)", "population_code (int8)", "single_variable"}
+    assert set(summary["scores"]) == methods
+    for name in methods:
+        assert f"| {name} |" in report
+        all_objects = summary["scores"][name]["All objects"]
+        assert 0.0 <= all_objects["MSSD"] <= 1.0
+    # 3 models x 2 batches x 2 stages, each with a positive median
+    assert len(summary["latency"]) == 12
+    assert all(record["median_ms"] > 0 for record in summary["latency"])
+    for paths in summary["figures"].values():
+        for path in paths:
+            assert Path(path).read_bytes()[:8] == PNG_SIGNATURE
+
+
+@pytest.mark.slow
+def test_report_command_runs_on_the_runtime(demo_run: tuple[Path, dict]) -> None:
+    """The report's `popcode predict` example names a real model, image and box."""
+    out, _ = demo_run
+    line = next(line for line in (out / "report.md").read_text().splitlines() if line.startswith("popcode predict"))
+    _, _, model, image, _, box, *_ = line.split()
+    estimator = PoseEstimator(out / model)
+    prediction = estimator.predict(read_image(out / image), [[float(v) for v in box.split(",")]])[0]
+    assert np.allclose(prediction.R_m2c @ prediction.R_m2c.T, np.eye(3), atol=1e-5)
+
+
+@pytest.mark.slow
+def test_models_and_card(demo_run: tuple[Path, dict]) -> None:
+    out, summary = demo_run
+    popcode = [Path(p) for p in summary["models"][POPCODE]]
+    assert [sorted(PoseEstimator(p).metadata.objects) for p in popcode] == [[1, 2], [3, 4, 5, 6]]
+    for path in map(Path, summary["quantised_models"]):
+        assert PoseEstimator(path).metadata.representation == POPCODE
+    card = (out / "model_card.md").read_text()
+    assert "objects 3 (2 symmetric poses), 4 (4 symmetric poses)" in card
+    assert "popcode-train demo --size tiny" in card
+
+
+@pytest.mark.slow
+def test_rerun_resumes_without_retraining(demo_run: tuple[Path, dict]) -> None:
+    out, summary = demo_run
+    model = Path(summary["models"][POPCODE][0])
+    before = model.stat().st_mtime_ns
+    again = run_demo("tiny", out, TINY, latency_iterations=3)
+    assert model.stat().st_mtime_ns == before
+    assert set(again["scores"]) == set(summary["scores"])
+
+
+def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None:
+    plan = StagePlan([("a", 10.0), ("b", 30.0)])
+    assert plan.remaining_s() == 40.0
+    plan.done["a"] = 20.0  # twice as slow as estimated
+    assert plan.remaining_s() == pytest.approx(60.0)
+    with plan.stage("b"):
+        pass
+    assert "[2/2] b: about 1.0 min; about 1.0 min left overall" in capsys.readouterr().out
+
+
+def test_nearest_equivalent_picks_the_symmetric_pose() -> None:
+    flip = np.diag([-1.0, -1.0, 1.0])  # 180 deg about z
+    info = {"symmetries_discrete": [np.pad(flip, ((0, 1), (0, 1))).ravel().tolist()]}
+    info["symmetries_discrete"][0][-1] = 1.0
+    R_true = np.eye(3)
+    assert np.allclose(nearest_equivalent(R_true, flip, info), flip)
+    assert np.allclose(nearest_equivalent(R_true, np.eye(3), info), np.eye(3))
+
+
+def test_cli_refuses_zero_epochs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert cli_main(["demo", "--out", str(tmp_path), "--epochs", "0"]) == 2
+    assert "--epochs must be at least 1" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_cli_refuses_unknown_size(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["demo", "--out", str(tmp_path), "--size", "huge"])
+    assert exit_info.value.code == 2
+    assert "invalid choice: 'huge'" in capsys.readouterr().err
