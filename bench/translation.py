@@ -28,7 +28,7 @@ from typing import Any
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
-from report import markdown_table, write_results  # noqa: E402
+from report import machine, markdown_table, write_results  # noqa: E402
 
 from popcode_trainer.data.bop import Instance  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
@@ -93,14 +93,15 @@ def run_benchmark(out_dir: Path, images_per_object: int, size: int, seed: int) -
     }
 
 
-def to_markdown(payload: Mapping[str, Any]) -> str:
-    settings = payload["settings"]
+def to_markdown(payload: Mapping[str, Any], command: str) -> str:
+    settings, description = payload["settings"], machine()
     low, median, high = settings["box_px_min_median_max"]
     objects = sorted(next(iter(payload["per_object"].values())))
     per_object_rows = [[row, *(f"{summaries[obj]['median_te_percent']:.2f}" for obj in objects)]
                        for row, summaries in payload["per_object"].items()]
     return "\n\n".join([
         "# Translation from the box, ground-truth rotation (rendered built-in parts)",
+        f"Machine: {description['cpu']}, {description['cores']} cores, numpy {np.__version__}. Command: `{command}`",
         f"{settings['instances']} instances, {settings['image_size_px']} px images, boxes {low:.0f}–{high:.0f} px "
         f"(median {median:.0f}); te in mm and in % of the true distance ‖t‖.",
         translation_markdown(payload["translation"], label="Points, box"),
@@ -122,7 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     images, size = (3, 128) if args.quick else (args.images, args.size)
     work = args.out / f"translation-work-{images}x{size}"
     payload = run_benchmark(work, images, size, args.seed)
-    markdown = to_markdown(payload)
+    command = "PYOPENGL_PLATFORM=egl PYTHONPATH=runtime:trainer:bench python bench/translation.py" + (
+        " --quick" if args.quick else f" --images {images} --size {size} --seed {args.seed}")
+    markdown = to_markdown(payload, command)
     paths = write_results(args.out, "translation-quick" if args.quick else "translation", payload, markdown)
     print(markdown)
     print("wrote " + ", ".join(map(str, paths)))
