@@ -17,6 +17,7 @@ from .code import CodeLayout
 from .crop import CROP_PADDING, CROP_SIZE
 from .errors import PopcodeError
 from .symmetries import SymmetryClass, symmetry_class
+from .translation import object_points_mm
 
 FORMAT_VERSION = 1
 INPUT_NAME = "image"
@@ -72,6 +73,12 @@ class ModelMetadata:
             )
         if not self.objects:
             raise PopcodeError("metadata lists no objects")
+        for obj_id, info in self.objects.items():
+            if "hull_points_mm" in info:  # checked now, not at the first call that asks for a translation
+                try:
+                    object_points_mm(info)
+                except PopcodeError as error:
+                    raise PopcodeError(f"object {obj_id}: {error}") from error
         classes = {symmetry_class(info) for info in self.objects.values()}
         continuous = SymmetryClass.CONTINUOUS in classes
         if continuous and len(classes) > 1:

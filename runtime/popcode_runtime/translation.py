@@ -22,9 +22,12 @@ def object_points_mm(info: Mapping[str, Any]) -> np.ndarray:
     else the 8 corners of the BOP 3-D box (``min_x`` ... ``size_z``), which overestimate the
     silhouette and so bias the distance slightly high."""
     if "hull_points_mm" in info:
-        points = np.asarray(info["hull_points_mm"], dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
-            raise PopcodeError("hull_points_mm must be a list of at least 4 points [x, y, z]")
+        try:
+            points = np.asarray(info["hull_points_mm"], dtype=np.float64)
+        except (TypeError, ValueError):
+            points = np.empty(0)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4 or not np.isfinite(points).all():
+            raise PopcodeError("hull_points_mm must be a list of at least 4 finite points [x, y, z]")
         return points
     try:
         low = np.array([info["min_x"], info["min_y"], info["min_z"]], dtype=np.float64)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import latency
 import toy_orientation
+import translation
 
 LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms"}
 
@@ -47,3 +48,18 @@ def test_toy_orientation_has_every_row_of_table_one(tmp_path: Path) -> None:
     table = (tmp_path / "toy_orientation.md").read_text(encoding="utf-8")
     for method in {m for _, m in rows}:
         assert f"| {method} |" in table
+
+
+def test_translation_compares_hull_points_with_box_corners(tmp_path: Path) -> None:
+    translation.main(["--quick", "--out", str(tmp_path)])
+    payload = json.loads((tmp_path / "translation-quick.json").read_text(encoding="utf-8"))
+    assert {"cpu", "cores", "onnxruntime", "torch"} <= set(payload["machine"])
+    rows = payload["translation"]
+    assert list(rows) == list(translation.ROWS) and payload["settings"]["instances"] == 18
+    hull, corners, exact, _ = (rows[row] for row in translation.ROWS)
+    assert hull["median_te_percent"] < corners["median_te_percent"]  # corners lie outside the silhouette
+    assert exact["median_te_percent"] < hull["median_te_percent"]  # pixel rounding is the larger error
+    assert sorted(payload["per_object"][translation.ROWS[0]]) == ["1", "2", "3", "4", "5", "6"]
+    assert list(payload["full_pose_groups"]) == [translation.HULL, translation.CORNERS]
+    table = (tmp_path / "translation-quick.md").read_text(encoding="utf-8")
+    assert all(f"| {row} |" in table for row in translation.ROWS)

@@ -14,9 +14,12 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from popcode_runtime.errors import PopcodeError  # noqa: E402
+from popcode_runtime.estimator import PoseEstimator  # noqa: E402
+from popcode_runtime.translation import object_points_mm, translation_from_box  # noqa: E402
 from popcode_trainer import checkpoint  # noqa: E402
 from popcode_trainer.cli import main  # noqa: E402
 from popcode_trainer.config import Config  # noqa: E402
+from popcode_trainer.data.hull import HULL_POINTS  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
 from popcode_trainer.eval.evaluate import (  # noqa: E402
     SplitMetrics,
@@ -24,6 +27,7 @@ from popcode_trainer.eval.evaluate import (  # noqa: E402
     methods_from_paths,
     read_eval_split,
 )
+from popcode_trainer.eval.results import read_bop19_results  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS  # noqa: E402
 from popcode_trainer.export import export_checkpoint  # noqa: E402
 from popcode_trainer.train import train  # noqa: E402
@@ -131,3 +135,52 @@ def test_models_and_objects_that_do_not_match_are_refused(split: Path, models: t
     metrics = SplitMetrics(eval_split, vsd=False)
     with pytest.raises(PopcodeError, match="the split has 6 instances"):
         evaluate_rotations("short", np.tile(np.eye(3), (5, 1, 1)), metrics)
+
+
+def _relative_error(t_mm: np.ndarray, t_gt_mm: np.ndarray) -> float:
+    return float(np.linalg.norm(t_mm - t_gt_mm) / np.linalg.norm(t_gt_mm))
+
+
+def test_exported_hull_points_place_the_rendered_objects_in_their_boxes(split: Path, models: tuple[Path, Path]) -> None:
+    objects = PoseEstimator(models[1]).metadata.objects
+    assert all(8 <= len(objects[obj]["hull_points_mm"]) <= HULL_POINTS for obj in OBJECTS)
+    hull_errors, corner_errors = [], []
+    for inst in read_eval_split([split], split / BUILTIN_MODELS_FOLDER).instances:  # boxes: bbox_obj
+        info = objects[inst.obj_id]
+        corners = {key: value for key, value in info.items() if key != "hull_points_mm"}
+        hull_errors.append(_relative_error(
+            translation_from_box(inst.R_m2c, inst.box, inst.K, object_points_mm(info)), inst.t_m2c_mm))
+        corner_errors.append(_relative_error(
+            translation_from_box(inst.R_m2c, inst.box, inst.K, object_points_mm(corners)), inst.t_m2c_mm))
+        # Each rendered box edge lies within 1 px of the silhouette's (half a pixel of rounding to the pixel grid,
+        # half between the mask box's pixel-index edges and the continuous ones). The distance, read from the box
+        # size, is then off by at most 2 px / size, the position by 1 px at the focal length in x and in y; the
+        # hull points add at most 1 % (data/hull.py).
+        tolerance = 2.0 / min(inst.box[2:]) + 2.0 / inst.K[0, 0] + 0.01
+        assert hull_errors[-1] < tolerance, (inst.obj_id, inst.box)
+    assert np.mean(hull_errors) < np.mean(corner_errors) / 5  # the corners lie outside the silhouette
+
+
+def test_translation_from_the_box_is_reported_beside_the_rotation_protocol(split: Path, models: tuple[Path, Path],
+                                                                           tmp_path: Path) -> None:
+    assert evaluate(split, tmp_path, str(models[1]), "--translation", "--bop19-csv") == 0
+    full = json.loads((tmp_path / "report.json").read_text())["methods"]["model"]["full_pose"]
+    assert list(full["groups"]) == list(GROUPS) and sorted(full["per_object"]) == ["3", "6"]
+    for summary in (full["translation"], full["translation_gt_rotation"]):
+        assert summary["median_te_mm"] >= 0 and 0 <= summary["within_2_percent"] <= summary["within_5_percent"] <= 1
+    markdown = (tmp_path / "report.md").read_text()
+    assert "## Full 6-D pose: translation from the box" in markdown
+    assert "| model, ground-truth rotation |" in markdown and "**6-D scores**" in markdown
+
+    rows = list(csv.DictReader((tmp_path / "errors_model.csv").open()))
+    estimates = read_bop19_results(tmp_path / "model_6d_bop19.csv")
+    objects = PoseEstimator(models[1]).metadata.objects
+    instances = read_eval_split([split], split / BUILTIN_MODELS_FOLDER).instances
+    for row, estimate, inst in zip(rows, estimates, instances, strict=True):
+        # With the true rotation the fit is the runtime's, on the instance's box and camera with the model's points.
+        t_fit = translation_from_box(inst.R_m2c, inst.box, inst.K, object_points_mm(objects[inst.obj_id]))
+        assert float(row["te_gt_rotation_mm"]) == pytest.approx(np.linalg.norm(t_fit - inst.t_m2c_mm), abs=1e-6)
+        assert float(row["te_mm"]) == pytest.approx(np.linalg.norm(estimate.t_m2c_mm - inst.t_m2c_mm), abs=1e-6)
+        assert float(row["te_percent"]) == pytest.approx(100 * _relative_error(estimate.t_m2c_mm, inst.t_m2c_mm))
+    assert any(row["mssd_mm_6d"] != row["mssd_mm"] for row in rows)  # the 6-D errors use the fitted translation
+    assert {"vss_6d", "mspd_px_6d", "te_gt_rotation_percent"} <= set(rows[0])

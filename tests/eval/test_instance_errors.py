@@ -63,6 +63,21 @@ def test_errors_match_the_single_functions_with_per_instance_cameras():
     assert np.all(errors.vss <= errors.vsd_single_tau) and np.all(errors.vsd > 0)
 
 
+def test_estimated_translations_replace_the_truth_in_every_error():
+    obj_id, R_gt, t_gt, K, depth = _split(np.random.default_rng(4))
+    models = _models()
+    t_est = t_gt + np.array([3.0, -4.0, 0.0])  # 5 mm sideways
+    errors = compute_instance_errors(obj_id, R_gt, R_gt, t_gt, K, np.full(4, WIDTH), models,
+                                     depth_mm=depth, make_render_depth=_make_render, t_est_mm=t_est)
+    # Box corners are centrally symmetric, so a pure shift's MSSD is its length under every symmetry.
+    np.testing.assert_allclose(errors.mssd_mm, 5.0)
+    for i in range(4):
+        model = models[int(obj_id[i])]
+        expected = mspd(R_gt[i], t_est[i], R_gt[i], t_gt[i], K[i], model.pts_mm, model.syms)
+        assert errors.mspd_px[i] == pytest.approx(float(expected)) and errors.mspd_px[i] > 3.0
+    assert np.all(errors.vsd[:, 0] > 0)  # the shifted silhouette no longer covers the true one
+
+
 def test_without_depth_the_depth_metrics_are_skipped_with_a_warning():
     obj_id, R_gt, t_gt, K, _ = _split(np.random.default_rng(2))
     with pytest.warns(UserWarning, match="VSD"):

@@ -168,6 +168,14 @@ def test_mixing_continuous_and_discrete_objects_is_refused():
         metadata(objects={1: CASES["continuous"], 2: CASES["two_fold"]})
 
 
+@pytest.mark.parametrize("points", [[[0.0, 0.0, 0.0]] * 3, [[0.0, 0.0]] * 8, [["a", 1, 2]] * 4,
+                                    [[0.0, float("nan"), 0.0]] * 4])
+def test_malformed_hull_points_are_refused_at_load(points):
+    with pytest.raises(PopcodeError, match="object 1: hull_points_mm must be"):
+        metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": points}})
+    assert metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": [[1.0, 2.0, 3.0]] * 4}})
+
+
 def test_corrupt_or_missing_model_file(tmp_path, code_model):
     corrupt = tmp_path / "corrupt.onnx"
     corrupt.write_bytes(code_model.read_bytes()[:200])

@@ -26,6 +26,7 @@ from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 from . import checkpoint
 from .data.files import write_bytes_atomic
+from .data.hull import with_hull_points
 from .network import ColumnBlockOutputLayer, NetworkConfig, build_network
 
 ONNX_OPSET = 17
@@ -45,7 +46,11 @@ class Comparison:
 
 
 def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
-    """The trained network (eval mode) and its metadata, training summary included."""
+    """The trained network (eval mode) and its metadata, training summary and hull points included.
+
+    Each object's ``hull_points_mm`` come from its mesh in the training config's
+    models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
+    """
     state = checkpoint.load(path)
     try:
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
@@ -62,7 +67,8 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
         "best_val_error_deg": float(state["best_val_error_deg"]),
         "config": config,
     }
-    return model.eval(), dataclasses.replace(metadata, training=training)
+    objects = with_hull_points(metadata.objects, config["data"].get("models_dir"))
+    return model.eval(), dataclasses.replace(metadata, objects=objects, training=training)
 
 
 def _finish(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:

@@ -17,7 +17,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Rotation from each model, translation from the ground truth (the paper's protocol). Writes "
                     "per-instance errors (CSV), the per-object and with/without-ambiguity tables (markdown, JSON) "
                     "and, if asked, BOP19 results files. Models given the same --name form one method (e.g. one "
-                    "model per object group).")
+                    "model per object group). With --translation, full 6-D poses too: the translation fitted to "
+                    "each box as the runtime does it.")
     parser.add_argument("models", nargs="+", type=Path, metavar="MODEL",
                         help="a training checkpoint (.pt, run with torch) or an ONNX model (run with the runtime)")
     parser.add_argument("--split", dest="splits", action="append", required=True, type=Path, metavar="DIR",
@@ -31,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="how a population code becomes a rotation (default: argmax, the paper's)")
     parser.add_argument("--out", type=Path, default=Path("eval"), help="output folder (default: ./eval)")
     parser.add_argument("--bop19-csv", action="store_true", help="also write a BOP19 results CSV per method")
+    parser.add_argument("--translation", action="store_true",
+                        help="also fit the translation to each instance's box (with the predicted and with the "
+                             "ground-truth rotation), report its error and score the full 6-D poses")
     depth = parser.add_mutually_exclusive_group()
     depth.add_argument("--vsd", dest="vsd", action="store_const", const=True,
                        help="require VSD, e_VSD<0.3 and VSS (an error if the split has no depth images)")
@@ -46,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     methods = methods_from_paths(args.models, args.names, args.decoder)
-    results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids)
+    results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation)
     written = write_report(results, args.out, bop19_csv=args.bop19_csv)
     print(report_markdown(results))
     print("wrote " + ", ".join(str(path) for path in written))

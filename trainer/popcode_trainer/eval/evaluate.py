@@ -1,7 +1,8 @@
 """Models (checkpoints or ONNX files) + a BOP split -> per-instance errors and the paper's tables.
 
 Rotation from the model, translation from the ground truth (the paper's
-protocol). Several model files may form one method (one row of a table): a
+protocol); optionally also full 6-D poses, with the translation fitted to the
+box as the runtime does it (:mod:`.translation`). Several model files may form one method (one row of a table): a
 method trained per object group is a model per group, and each instance is
 routed to the model that knows its object. Object meshes and depth renderers
 are built once per split and shared by every method.
@@ -12,7 +13,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -35,6 +36,7 @@ from .instance_errors import ObjectModel, compute_instance_errors
 from .pose_error import RenderDepth
 from .scores import InstanceErrors, Thresholds, scores_per_object
 from .tables import ambiguous_objects, group_scores
+from .translation import object_points, translations_from_boxes
 
 EVAL_MIN_VISIB_FRACT = 0.1  # the BOP19 test targets: at least 10 % of the object visible
 
@@ -82,6 +84,7 @@ class RotationModel(Protocol):
 
     path: Path
     obj_ids: frozenset[int]
+    objects: Mapping[int, Mapping[str, Any]]  # the model's metadata entries: symmetries, extents, hull points
 
     def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
                 obj_ids: list[int]) -> np.ndarray:
@@ -95,7 +98,8 @@ class OnnxModel:
     def __init__(self, path: str | Path, decoder: str = "argmax") -> None:
         self.path = Path(path)
         self.estimator = PoseEstimator(self.path, decoder=decoder)
-        self.obj_ids = frozenset(self.estimator.metadata.objects)
+        self.objects = self.estimator.metadata.objects
+        self.obj_ids = frozenset(self.objects)
 
     def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
                 obj_ids: list[int]) -> np.ndarray:
@@ -111,7 +115,8 @@ class CheckpointModel:
             raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
         self.path, self.decoder = Path(path), decoder
         self.network, self.metadata = load_checkpoint_model(self.path)
-        self.obj_ids = frozenset(self.metadata.objects)
+        self.objects = self.metadata.objects
+        self.obj_ids = frozenset(self.objects)
 
     def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
                 obj_ids: list[int]) -> np.ndarray:
@@ -153,6 +158,10 @@ class Method:
                                        f"and {model.path}")
                 owner[obj_id] = model
         return owner
+
+    def object_points(self) -> dict[int, np.ndarray]:
+        """Object id -> the points its model's metadata gives the runtime to fit a box."""
+        return {obj_id: points for model in self.models for obj_id, points in object_points(model.objects).items()}
 
 
 def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True,
@@ -240,26 +249,37 @@ class SplitMetrics:
         renderer = self._renderer
         return lambda R, t: renderer.render(K, R, t)
 
-    def errors(self, R_est: np.ndarray) -> InstanceErrors:
+    def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None) -> InstanceErrors:
         """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order.
 
-        Instances are scored in groups of one object and image size, so each
-        group renders its depth with one renderer.
+        ``t_est_mm (N, 3)`` scores full 6-D poses; without it every estimate gets
+        the ground-truth translation (the paper's protocol). Instances are scored
+        in groups of one object and image size, so each group renders its depth
+        with one renderer.
         """
         instances = self.split.instances
         if np.shape(R_est) != (len(instances), 3, 3):
             raise PopcodeError(f"predictions have shape {np.shape(R_est)}; the split has {len(instances)} "
                                "instances, so (N, 3, 3) with N = that count is needed")
-        if not np.isfinite(R_est).all():
+        if t_est_mm is not None and np.shape(t_est_mm) != (len(instances), 3):
+            raise PopcodeError(f"translations have shape {np.shape(t_est_mm)}; (N, 3) with N = "
+                               f"{len(instances)} is needed")
+        if not np.isfinite(R_est).all() or (t_est_mm is not None and not np.isfinite(t_est_mm).all()):
             raise PopcodeError("predictions contain NaN or inf")
         keys = [(inst.obj_id, *map(int, size)) for inst, size in zip(instances, self.image_size_px, strict=True)]
         parts = []
         for key in sorted(set(keys)):
             rows = np.array([i for i, k in enumerate(keys) if k == key])
-            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows])))
+            t_rows = None if t_est_mm is None else np.asarray(t_est_mm, np.float64)[rows]
+            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows], t_rows)))
         return _merge_rows(len(instances), parts)
 
-    def _group_errors(self, rows: np.ndarray, R_est: np.ndarray) -> InstanceErrors:
+    def scores(self, errors: InstanceErrors) -> tuple[dict[int, dict[str, float]], dict[str, dict[str, float]]]:
+        """Scores per object and per ambiguity group (the paper's Tables III and IV)."""
+        return (scores_per_object(errors, self.diameters_mm, self.thresholds),
+                group_scores(errors, self.diameters_mm, self.ambiguous, self.thresholds))
+
+    def _group_errors(self, rows: np.ndarray, R_est: np.ndarray, t_est_mm: np.ndarray | None) -> InstanceErrors:
         chosen = [self.split.instances[i] for i in rows]
         depth = _DepthImages(chosen) if self.use_depth else None
         with warnings.catch_warnings():
@@ -268,7 +288,7 @@ class SplitMetrics:
                 np.array([inst.obj_id for inst in chosen]), R_est, np.stack([inst.R_m2c for inst in chosen]),
                 np.stack([inst.t_m2c_mm for inst in chosen]), np.stack([inst.K for inst in chosen]),
                 self.image_size_px[rows, 0], self.objects, self.thresholds, depth,
-                self._render_depth if depth is not None else None,
+                self._render_depth if depth is not None else None, t_est_mm,
             )
 
     def close(self) -> None:
@@ -314,6 +334,26 @@ class _DepthImages(Sequence[np.ndarray]):
 
 
 @dataclass(frozen=True)
+class FullPose:
+    """Full 6-D poses of one method: its rotations with the translation fitted to each instance's box."""
+
+    t_est_mm: np.ndarray  # (N, 3) from the method's rotation, split order
+    t_gt_rotation_mm: np.ndarray  # (N, 3) from the ground-truth rotation: the error of the box fit alone
+    errors: InstanceErrors  # of (R_est, t_est_mm)
+    per_object: dict[int, dict[str, float]]
+    groups: dict[str, dict[str, float]]
+
+
+def full_pose(R_est: np.ndarray, metrics: SplitMetrics, points_mm: Mapping[int, np.ndarray]) -> FullPose:
+    """Fit each instance's translation to its box (with ``R_est`` and with the truth) and score the 6-D poses."""
+    instances = metrics.split.instances
+    t_est_mm = translations_from_boxes(R_est, instances, points_mm)
+    t_gt_rotation_mm = translations_from_boxes(np.stack([inst.R_m2c for inst in instances]), instances, points_mm)
+    errors = metrics.errors(R_est, t_est_mm)
+    return FullPose(t_est_mm, t_gt_rotation_mm, errors, *metrics.scores(errors))
+
+
+@dataclass(frozen=True)
 class MethodResult:
     """What one method scored on the split; scores are fractions in [0, 1]."""
 
@@ -326,24 +366,32 @@ class MethodResult:
     groups: dict[str, dict[str, float]]
     model_ms_per_crop: float  # crop + network + decoding; NaN for given rotations
     metric_s: float
+    full_pose: FullPose | None = None  # when asked for: translation from the box, 6-D scores
 
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
-                       model_ms_per_crop: float = float("nan")) -> MethodResult:
-    """Score given rotations (one per split instance): the path for precomputed estimates."""
+                       model_ms_per_crop: float = float("nan"),
+                       points_mm: Mapping[int, np.ndarray] | None = None) -> MethodResult:
+    """Score given rotations (one per split instance): the path for precomputed estimates.
+
+    With ``points_mm`` (object id -> points the runtime fits to a box) full 6-D
+    poses are scored too, the translation fitted to each instance's box.
+    """
     started = time.perf_counter()
+    R_est = np.asarray(R_est, np.float64)
     errors = metrics.errors(R_est)
-    per_object = scores_per_object(errors, metrics.diameters_mm, metrics.thresholds)
-    groups = group_scores(errors, metrics.diameters_mm, metrics.ambiguous, metrics.thresholds)
-    return MethodResult(name, metrics.split, model_paths, np.asarray(R_est, np.float64), errors, per_object, groups,
-                        model_ms_per_crop, time.perf_counter() - started)
+    per_object, groups = metrics.scores(errors)
+    pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
+    return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups,
+                        model_ms_per_crop, time.perf_counter() - started, pose)
 
 
-def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True) -> MethodResult:
-    """Predict every instance of the split with the method's models, then score."""
+def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True,
+                   translation: bool = False) -> MethodResult:
+    """Predict every instance of the split with the method's models, then score (6-D too with ``translation``)."""
     R_est, model_s_per_crop = predict_rotations(method, metrics.split.instances, progress)
     return evaluate_rotations(method.name, R_est, metrics, tuple(str(m.path) for m in method.models),
-                              1000.0 * model_s_per_crop)
+                              1000.0 * model_s_per_crop, method.object_points() if translation else None)
 
 
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,
@@ -395,12 +443,16 @@ def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable
 
 def evaluate_models(methods: Sequence[Method], split: EvalSplit, thresholds: Thresholds | None = None,
                     vsd: bool | None = None, obj_ids: Iterable[int] | None = None,
-                    progress: bool = True) -> list[MethodResult]:
-    """Every method on the same split instances, sharing object models and depth renderers."""
+                    progress: bool = True, translation: bool = False) -> list[MethodResult]:
+    """Every method on the same split instances, sharing object models and depth renderers.
+
+    ``translation`` also fits each instance's translation to its box, as the
+    runtime does, and scores the full 6-D poses (:class:`FullPose`).
+    """
     if not methods:
         raise PopcodeError("no models to evaluate")
     metrics = SplitMetrics(_shared_split(methods, split, obj_ids), thresholds, vsd)
     try:
-        return [evaluate_model(method, metrics, progress) for method in methods]
+        return [evaluate_model(method, metrics, progress, translation) for method in methods]
     finally:
         metrics.close()

@@ -1,6 +1,7 @@
 """All per-instance errors of one method on one split: what ``popcode-train evaluate`` calls.
 
-Rotation only, as in the paper: every estimate uses the ground-truth translation.
+Rotation only, as in the paper, unless estimated translations are given: then
+every error is of the full 6-D pose.
 Vertex-based errors are batched per object; VSD renders each instance twice.
 """
 
@@ -43,6 +44,7 @@ class ObjectModel:
 def _vsd_errors(
     obj_id: np.ndarray,
     R_est: np.ndarray,
+    t_est_mm: np.ndarray,
     R_gt: np.ndarray,
     t_gt_mm: np.ndarray,
     K: np.ndarray,
@@ -57,7 +59,7 @@ def _vsd_errors(
         model = models[int(obj_id[i])]
         height, width = np.shape(depth_test)
         render = make_render_depth(int(obj_id[i]), K[i], width, height)
-        depth_est, depth_gt = render(R_est[i], t_gt_mm[i]), render(R_gt[i], t_gt_mm[i])
+        depth_est, depth_gt = render(R_est[i], t_est_mm[i]), render(R_gt[i], t_gt_mm[i])
         vsd_bop.append(vsd_from_depths(depth_est, depth_gt, depth_test, K[i], th.vsd_delta_mm, th.vsd_taus,
                                        model.diameter_mm))
         single, inf = vsd_from_depths(depth_est, depth_gt, depth_test, K[i], th.vsd_delta_mm,
@@ -78,20 +80,23 @@ def compute_instance_errors(
     thresholds: Thresholds | None = None,
     depth_mm: Sequence[np.ndarray] | None = None,
     make_render_depth: MakeRenderDepth | None = None,
+    t_est_mm: np.ndarray | None = None,
 ) -> InstanceErrors:
     """Errors of ``N`` rotation estimates against the ground truth, with the ground-truth translation.
 
     ``obj_id (N,)``, rotations ``(N, 3, 3)`` model-to-camera, ``t_gt_mm (N, 3)``,
     intrinsics ``K (N, 3, 3)``, ``image_width_px (N,)``; ``depth_mm`` the N test
     depth images [mm] (0 = no depth). Without depth images VSD, e_VSD<0.3 and VSS
-    are skipped with a warning.
+    are skipped with a warning. ``t_est_mm (N, 3)`` replaces the ground-truth
+    translation of the estimates: the errors of full 6-D poses.
     """
     th = thresholds or Thresholds()
     obj_id = np.asarray(obj_id).astype(int)
     R_est, R_gt = np.asarray(R_est, np.float64), np.asarray(R_gt, np.float64)
     t_gt_mm, K = np.asarray(t_gt_mm, np.float64), np.asarray(K, np.float64)
+    t_est_mm = t_gt_mm if t_est_mm is None else np.asarray(t_est_mm, np.float64)
     count = len(obj_id)
-    if not (len(R_est) == len(R_gt) == len(t_gt_mm) == len(K) == len(image_width_px) == count):
+    if not (len(R_est) == len(R_gt) == len(t_gt_mm) == len(t_est_mm) == len(K) == len(image_width_px) == count):
         raise PopcodeError(
             f"per-instance inputs differ in length: {count} object ids, {len(R_est)} estimates, "
             f"{len(R_gt)} ground-truth rotations, {len(t_gt_mm)} translations, {len(K)} intrinsics"
@@ -102,14 +107,14 @@ def compute_instance_errors(
     mssd_mm, mspd_px, adi_mm = np.empty(count), np.empty(count), np.empty(count)
     for obj in np.unique(obj_id):
         model, rows = models[int(obj)], np.flatnonzero(obj_id == obj)
-        args = (R_est[rows], t_gt_mm[rows], R_gt[rows], t_gt_mm[rows])
+        args = (R_est[rows], t_est_mm[rows], R_gt[rows], t_gt_mm[rows])
         mssd_mm[rows] = mssd(*args, model.pts_mm, model.syms)
         adi_mm[rows] = adi(*args, model.pts_mm)
         # MSPD takes one camera: batch the instances that share intrinsics.
         cameras, camera_of_row = np.unique(K[rows].reshape(len(rows), 9), axis=0, return_inverse=True)
         for c, camera in enumerate(cameras):
             sub = rows[camera_of_row.reshape(-1) == c]
-            mspd_px[sub] = mspd(R_est[sub], t_gt_mm[sub], R_gt[sub], t_gt_mm[sub], camera.reshape(3, 3),
+            mspd_px[sub] = mspd(R_est[sub], t_est_mm[sub], R_gt[sub], t_gt_mm[sub], camera.reshape(3, 3),
                                 model.pts_mm, model.syms)
     vsd = vsd_single = vss = None
     if depth_mm is None:
@@ -119,6 +124,7 @@ def compute_instance_errors(
     elif len(depth_mm) != count:
         raise PopcodeError(f"{len(depth_mm)} depth images for {count} instances")
     else:
-        vsd, vsd_single, vss = _vsd_errors(obj_id, R_est, R_gt, t_gt_mm, K, depth_mm, models, make_render_depth, th)
+        vsd, vsd_single, vss = _vsd_errors(obj_id, R_est, t_est_mm, R_gt, t_gt_mm, K, depth_mm, models,
+                                           make_render_depth, th)
     return InstanceErrors(obj_id, np.asarray(image_width_px, np.float64), mssd_mm, mspd_px, adi_mm,
                           vsd, vsd_single, vss)

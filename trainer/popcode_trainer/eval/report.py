@@ -1,4 +1,9 @@
-"""Evaluation results -> files: per-instance errors (CSV), the paper's tables (markdown, JSON), BOP19 CSV."""
+"""Evaluation results -> files: per-instance errors (CSV), the paper's tables (markdown, JSON), BOP19 CSV.
+
+With full 6-D poses (translation from the box) each file gains them beside the
+rotation-only results: error columns suffixed ``_6d``, a translation-error
+table and the 6-D scores, a second BOP19 file.
+"""
 
 from __future__ import annotations
 
@@ -15,13 +20,16 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 
 from .evaluate import EvalSplit, MethodResult
-from .pose_error import rotation_error_deg
+from .pose_error import rotation_error_deg, translation_error_mm
 from .results import PoseEstimate, write_bop19_results
-from .scores import METRICS, Thresholds
+from .scores import METRICS, InstanceErrors, Thresholds
 from .tables import ambiguity_markdown, ambiguous_objects, per_object_markdown, to_json
+from .translation import relative_translation_error, translation_markdown, translation_summary
 
 ERRORS_CSV = "errors_{name}.csv"
 BOP19_CSV = "{name}_bop19.csv"
+BOP19_6D_CSV = "{name}_6d_bop19.csv"
+GT_ROTATION = "ground-truth rotation"
 REPORT_MD = "report.md"
 REPORT_JSON = "report.json"
 
@@ -31,23 +39,37 @@ def file_stem(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "method"
 
 
+def _error_columns(errors: InstanceErrors, i: int, thresholds: Thresholds, suffix: str = "") -> dict[str, float]:
+    """Instance ``i``'s errors by column name (depth errors when computed), each name ending in ``suffix``."""
+    columns = {"mssd_mm": errors.mssd_mm[i], "mspd_px": errors.mspd_px[i], "adi_mm": errors.adi_mm[i]}
+    if errors.vsd is not None:
+        for tau, value in zip(thresholds.vsd_taus, errors.vsd[i], strict=True):
+            columns[f"vsd_tau{tau:.2f}"] = value
+        columns[f"vsd_tau{thresholds.vsd_single_tau_mm:g}mm"] = errors.vsd_single_tau[i]
+        columns["vss"] = errors.vss[i]
+    return {name + suffix: float(value) for name, value in columns.items()}
+
+
 def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str, Any]]:
-    """One row per ground-truth instance: its ids and every error (depth errors when computed)."""
-    errors, split = result.errors, result.split
+    """One row per ground-truth instance: its ids and every error; with full poses also te and the 6-D errors."""
+    split, pose = result.split, result.full_pose
     R_gt = np.stack([inst.R_m2c for inst in split.instances])
+    t_gt = np.stack([inst.t_m2c_mm for inst in split.instances])
     re_deg = rotation_error_deg(result.R_est, R_gt)
+    te = {} if pose is None else {
+        name: (translation_error_mm(t, t_gt), relative_translation_error(t, t_gt))
+        for name, t in (("te", pose.t_est_mm), ("te_gt_rotation", pose.t_gt_rotation_mm))
+    }
     rows = []
     for i, inst in enumerate(split.instances):
         row: dict[str, Any] = {
             "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index,
-            "re_deg": float(re_deg[i]), "mssd_mm": float(errors.mssd_mm[i]), "mspd_px": float(errors.mspd_px[i]),
-            "adi_mm": float(errors.adi_mm[i]),
+            "re_deg": float(re_deg[i]), **_error_columns(result.errors, i, thresholds),
         }
-        if errors.vsd is not None:
-            for tau, value in zip(thresholds.vsd_taus, errors.vsd[i], strict=True):
-                row[f"vsd_tau{tau:.2f}"] = float(value)
-            row[f"vsd_tau{thresholds.vsd_single_tau_mm:g}mm"] = float(errors.vsd_single_tau[i])
-            row["vss"] = float(errors.vss[i])
+        for name, (mm, fraction) in te.items():
+            row[f"{name}_mm"], row[f"{name}_percent"] = float(mm[i]), 100.0 * float(fraction[i])
+        if pose is not None:
+            row |= _error_columns(pose.errors, i, thresholds, "_6d")
         rows.append(row)
     return rows
 
@@ -96,21 +118,52 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
     present = [m for m in METRICS if any(m in s for r in results for s in r.per_object.values())]
     for metric in present:
         parts.append(per_object_markdown({r.name: r.per_object for r in results}, metric, dict(counts)))
+    parts += full_pose_markdown(results)
     parts += ["## Timing", timing_markdown(results)]
     return "\n\n".join(parts) + "\n"
+
+
+def translation_rows(results: Sequence[MethodResult]) -> dict[str, dict[str, float]]:
+    """Translation-error summaries: per method with its rotation, then with the ground-truth rotation."""
+    rows = {}
+    for result in results:
+        if result.full_pose is not None:
+            t_gt = np.stack([inst.t_m2c_mm for inst in result.split.instances])
+            rows[result.name] = translation_summary(result.full_pose.t_est_mm, t_gt)
+            rows[f"{result.name}, {GT_ROTATION}"] = translation_summary(result.full_pose.t_gt_rotation_mm, t_gt)
+    return rows
+
+
+def full_pose_markdown(results: Sequence[MethodResult]) -> list[str]:
+    """The translation-error table and the 6-D scores by ambiguity; nothing without full poses."""
+    posed = [r for r in results if r.full_pose is not None]
+    if not posed:
+        return []
+    return [
+        "## Full 6-D pose: translation from the box",
+        "The translation is fitted to each instance's box (the one it was cropped with) as the runtime does "
+        f"it, with the method's rotation and, to show the box fit alone, with the {GT_ROTATION}. "
+        "te is the distance to the true translation; % of the true distance ‖t‖.",
+        translation_markdown(translation_rows(posed)),
+        "**6-D scores** (rotation and translation estimated)",
+        ambiguity_markdown({r.name: r.full_pose.groups for r in posed}),
+    ]
 
 
 def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
     """The JSON report: per method its models, per-object and grouped scores and timings."""
     split = shared_split(results)
-    return {
-        "instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
-        "methods": {
-            r.name: {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
-                     "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
-            for r in results
-        },
-    }
+    translation = translation_rows(results)
+    methods: dict[str, Any] = {}
+    for r in results:
+        methods[r.name] = {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
+                           "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
+        if r.full_pose is not None:
+            methods[r.name]["full_pose"] = {
+                "translation": translation[r.name], "translation_gt_rotation": translation[f"{r.name}, {GT_ROTATION}"],
+                "groups": r.full_pose.groups, "per_object": r.full_pose.per_object,
+            }
+    return {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)), "methods": methods}
 
 
 def write_report(results: Sequence[MethodResult], out_dir: str | Path,
@@ -125,11 +178,17 @@ def write_report(results: Sequence[MethodResult], out_dir: str | Path,
         stem = file_stem(result.name)
         written.append(write_instance_errors(out_dir / ERRORS_CSV.format(name=stem),
                                              instance_rows(result, thresholds)))
-        if bop19_csv:
-            path = out_dir / BOP19_CSV.format(name=stem)
+        if not bop19_csv:
+            continue
+        t_gt = [inst.t_m2c_mm for inst in split.instances]
+        files = [(BOP19_CSV, t_gt)]
+        if result.full_pose is not None:
+            files.append((BOP19_6D_CSV, list(result.full_pose.t_est_mm)))
+        for pattern, translations in files:
+            path = out_dir / pattern.format(name=stem)
             write_bop19_results(path, [
-                PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, 1.0, R, inst.t_m2c_mm)
-                for inst, R in zip(split.instances, result.R_est, strict=True)
+                PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, 1.0, R, t)
+                for inst, R, t in zip(split.instances, result.R_est, translations, strict=True)
             ])
             written.append(path)
     (out_dir / REPORT_MD).write_text(report_markdown(results))

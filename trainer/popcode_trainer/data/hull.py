@@ -1,0 +1,100 @@
+"""A few points on an object's convex hull: what the runtime places to fit a box (``hull_points_mm``).
+
+The runtime finds the translation whose projected points fill the detected box
+(:mod:`popcode_runtime.translation`); it has no mesh, only what the model's
+metadata carries. A box edge is set by the hull's support function ``h(d) =
+max_p d·p`` in the direction of the edge, so the points are chosen for it:
+greedily, each new point is the hull vertex extreme in the direction where the
+chosen set falls furthest short of the whole hull (over 2000 directions).
+
+Measured on the built-in parts, 1000 random rotations each, off-centre, in
+perspective: with 64 points every box edge stays within 1.0 % of the box size,
+mean at most 0.26 % (the flanged sleeve's three 96-facet rims are the worst
+case; the polyhedral parts are exact), against up to 66 % (mean up to 23 %) for
+the 8 corners of the 3-D box. Farthest-point sampling of the hull vertices
+does as well on these clean meshes (0.7 %, mean 0.21 %) but not on a densified,
+slightly noisy copy, as a scan would be: up to 5.6 % against 0.9 % here.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from popcode_runtime.code import fibonacci_lattice
+from popcode_runtime.errors import PopcodeError
+
+from .bop import model_path
+from .render import load_mesh
+
+HULL_POINTS = 64  # about 1.5 kB of metadata per object
+HULL_DECIMALS = 2  # 0.01 mm: far below a pixel, keeps the metadata short
+_DIRECTIONS = 2000  # about 4.5 degrees apart
+
+
+def hull_vertices_mm(vertices_mm: np.ndarray) -> np.ndarray:
+    """Vertices ``(V, 3)`` of the convex hull of a point set; the points themselves if it has no volume."""
+    points = np.asarray(vertices_mm, dtype=np.float64)
+    try:
+        return np.asarray(trimesh.convex.convex_hull(points).vertices)
+    except Exception:  # qhull refuses flat or tiny point sets; their points are already few
+        return points
+
+
+def hull_points_mm(vertices_mm: np.ndarray, count: int = HULL_POINTS) -> np.ndarray:
+    """At most ``count`` hull vertices ``(P, 3)`` [mm] that keep the silhouette, rounded to 0.01 mm.
+
+    Fewer when they already reproduce the hull's support function in every
+    sampled direction (a box needs its 8 corners only).
+    """
+    if count < 4:
+        raise PopcodeError(f"need at least 4 hull points, got {count}")
+    hull = hull_vertices_mm(vertices_mm)
+    support = fibonacci_lattice(_DIRECTIONS) @ hull.T  # (D, V)
+    full = support.max(axis=1)
+    reached = np.full(len(full), -np.inf)
+    tolerance = 1e-9 * max(float(np.ptp(hull, axis=0).max()), 1.0)
+    chosen: list[int] = []
+    while len(chosen) < count:
+        shortfall = full - reached
+        direction = int(np.argmax(shortfall))
+        if shortfall[direction] <= tolerance:
+            break
+        vertex = int(np.argmax(support[direction]))
+        chosen.append(vertex)
+        reached = np.maximum(reached, support[:, vertex])
+    return np.round(hull[chosen], HULL_DECIMALS)
+
+
+def with_hull_points(objects: Mapping[int, Mapping[str, Any]], models_dir: str | Path | None,
+                     count: int = HULL_POINTS) -> dict[int, dict[str, Any]]:
+    """Copies of the ``models_info`` entries with ``hull_points_mm`` from each mesh in ``models_dir``.
+
+    Entries that already carry points keep them. Without a mesh the entry is
+    left as it is, with a warning: the runtime then uses the 3-D box corners,
+    which overestimate the silhouette and place the object too far away.
+    """
+    result = {int(obj_id): dict(info) for obj_id, info in objects.items()}
+    missing = []
+    for obj_id, info in result.items():
+        if "hull_points_mm" in info:
+            continue
+        try:
+            mesh = load_mesh(model_path(models_dir, obj_id)) if models_dir else None
+        except PopcodeError:
+            mesh = None
+        if mesh is None:
+            missing.append(obj_id)
+            continue
+        info["hull_points_mm"] = hull_points_mm(np.asarray(mesh.vertices), count).tolist()
+    if missing:
+        where = f"in {models_dir}" if models_dir else "(no models folder given)"
+        warnings.warn(f"no mesh {where} for objects {missing}: their metadata has no hull_points_mm, so "
+                      "translation from the box uses the 3-D box corners and places them too far away",
+                      stacklevel=2)
+    return result
