@@ -11,7 +11,8 @@ import pytest
 
 from popcode_runtime import PoseEstimator, read_image
 from popcode_trainer.cli import main as cli_main
-from popcode_trainer.demo import POPCODE, SUMMARY_FILE, StagePlan, run_demo
+from popcode_trainer.demo import StagePlan, run_demo
+from popcode_trainer.demo_report import POPCODE, SUMMARY_FILE
 from popcode_trainer.eval.overview_figures import nearest_equivalent
 from popcode_trainer.pipeline import PipelineSize
 
@@ -71,6 +72,11 @@ def test_models_and_card(demo_run: tuple[Path, dict]) -> None:
     card = (out / "model_card.md").read_text()
     assert "objects 3 (2 symmetric poses), 4 (4 symmetric poses)" in card
     assert "popcode-train demo --size tiny" in card
+    samples = json.loads(Path(summary["samples"]).read_text())["samples"]
+    assert [s["obj_id"] for s in samples] == [1, 2, 3, 4, 5, 6]
+    for sample in samples:
+        assert (Path(summary["samples"]).parent / sample["image"]).is_file()
+        assert np.allclose(np.linalg.det(np.array(sample["R_m2c"])), 1.0)
 
 
 @pytest.mark.slow

@@ -8,17 +8,16 @@ interrupted demo with the same folder continues where it stopped.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from popcode_runtime.benchmark import benchmark_estimator, machine_description
+from popcode_runtime.benchmark import benchmark_estimator
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
@@ -26,17 +25,14 @@ from popcode_runtime.metadata import Representation
 from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
 from .data.render import BUILTIN_MODELS_FOLDER
+from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
 from .eval.evaluate import EvalSplit, Method, MethodResult, OnnxModel, evaluate_models, read_eval_split
 from .eval.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
 from .eval.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
-from .eval.report import REPORT_MD, write_report
-from .eval.tables import methods_markdown, to_json
+from .eval.report import write_report
 from .pipeline import SMALL_NETWORK, PipelineSize, object_groups, render_splits, run_dir, train_and_export
 
-POPCODE, BASELINE = Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE
-QUANTISATION = "int8"
-REPORT_FILE = "report.md"
-SUMMARY_FILE = "summary.json"
+BASELINE = Representation.SINGLE_VARIABLE
 LATENCY_BATCHES = (1, 8)
 
 
@@ -122,14 +118,6 @@ def _train_stage(representation: str, obj_ids: Sequence[int]) -> str:
     return f"train {representation} for objects {', '.join(map(str, obj_ids))}"
 
 
-@dataclass(frozen=True)
-class TrainedModels:
-    """ONNX files per representation (one per object group) and the population code's quantised ones."""
-
-    by_representation: dict[str, list[Path]]
-    quantised: list[Path]
-
-
 def train_models(size: PipelineSize, groups: Sequence[Sequence[int]], train_split: Path, out_dir: Path,
                  stages: StagePlan) -> TrainedModels:
     by_representation: dict[str, list[Path]] = {}
@@ -172,14 +160,6 @@ def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, An
     return records
 
 
-def latency_markdown(records: Sequence[dict[str, Any]]) -> str:
-    lines = ["| model | MB | batch | stage | median ms | p90 ms | crops/s |", "|---|---|---|---|---|---|---|"]
-    for r in records:
-        lines.append(f"| {r['model']} | {r['megabytes']:.1f} | {r['batch']} | {r['stage']} | {r['median_ms']:.2f} | "
-                     f"{r['p90_ms']:.2f} | {1000 * r['batch'] / r['median_ms']:.0f} |")
-    return "\n".join(lines)
-
-
 def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: TrainedModels, run_dirs: Sequence[Path],
                  out_dir: Path) -> dict[str, list[Path]]:
     """Training curves, metric sensitivity, code on the sphere and a grid of crops with their poses."""
@@ -214,88 +194,6 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
     return figures
 
 
-def write_model_card(models: TrainedModels, results: Sequence[MethodResult], latency: Sequence[dict[str, Any]],
-                     size_name: str, size: PipelineSize, out_dir: Path) -> Path:
-    """What a user of the population-code models needs: objects, symmetry, data, accuracy, speed, how to rebuild."""
-    by_name = {r.name: r for r in results}
-    lines = [f"# Model card: population-code models of the built-in objects (demo size `{size_name}`)", ""]
-    for path, quantised in zip(models.by_representation[POPCODE], models.quantised, strict=True):
-        meta = PoseEstimator(path).metadata
-        objects = ", ".join(f"{o} ({_symmetry_name(meta.objects[o])})" for o in sorted(meta.objects))
-        layout = meta.code
-        lines.append(f"- `{path.name}` in `{path.parent.name}/`: objects {objects}; code "
-                     f"{layout.n_axes} axes" + ("" if layout.axis_only else f" x {layout.n_angles} angles")
-                     + f", sigma {layout.sigma_deg:.0f} deg; {meta.rotation_frame} rotation; "
-                     f"{path.stat().st_size / 1e6:.1f} MB ({QUANTISATION}: {quantised.stat().st_size / 1e6:.1f} MB)")
-    lines += [
-        "",
-        "## Training",
-        f"Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
-        f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation; "
-        f"{size.epochs} epochs, batch {size.batch_size}, Adam lr {size.lr}; network {size.network or 'paper size'}.",
-        "",
-        "## Accuracy (separate rendered test split; rotation from the model, translation from the ground truth)",
-        methods_markdown({name: r.groups["All objects"] for name, r in by_name.items()}),
-        "",
-        "## Latency (one thread)",
-        latency_markdown(latency),
-        "",
-        f"Measured on: {machine_description()['cpu']}.",
-        "",
-        "## Reproduce",
-        f"`popcode-train demo --size {size_name} --out DIR`; the models are `DIR/runs/population_code_*/model*.onnx`.",
-    ]
-    path = out_dir / "model_card.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def _symmetry_name(info: dict[str, Any]) -> str:
-    if info.get("symmetries_continuous"):
-        return "continuous" + (" + flip" if info.get("symmetries_discrete") else "")
-    count = len(info.get("symmetries_discrete", []))
-    return "no symmetry" if count == 0 else f"{count + 1} symmetric poses"
-
-
-def _demote_headings(markdown: str) -> str:
-    return "\n".join("#" + line if line.startswith("#") else line for line in markdown.splitlines())
-
-
-def report_markdown(size_name: str, size: PipelineSize, groups: Sequence[Sequence[int]], seconds: float,
-                    split: EvalSplit, eval_dir: Path, latency: Sequence[dict[str, Any]], figures: dict[str, list[Path]],
-                    model_card: Path, models: TrainedModels, out_dir: Path) -> str:
-    """The run's one-page report, with links relative to the run folder."""
-    def link(path: Path) -> str:
-        return os.path.relpath(path, out_dir)
-
-    machine = machine_description()
-    model_lines = [f"- {name}: " + ", ".join(f"[`{link(p)}`]({link(p)})" for p in paths)
-                   for name, paths in models.by_representation.items()]
-    model_lines.append(f"- {POPCODE} ({QUANTISATION}): "
-                       + ", ".join(f"[`{link(p)}`]({link(p)})" for p in models.quantised))
-    figure_lines = [f"### {title}\n\n" + "\n".join(f"![{title}]({link(p)})" for p in paths)
-                    for title, paths in figures.items()]
-    example = models.by_representation[POPCODE][-1]
-    example_objects = PoseEstimator(example).metadata.objects
-    instance = next(inst for inst in split.instances if inst.obj_id in example_objects)
-    box = ",".join(f"{v:g}" for v in instance.box)
-    return "\n\n".join([
-        f"# popcode demo (`--size {size_name}`)",
-        f"Rendered the six built-in parts ({size.train_images_per_object} training and "
-        f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
-        f"with the same network, data and budget ({size.epochs} epochs; objects pooled as {list(groups)}), "
-        f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
-        f"metrics. Took {seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores).",
-        "## Models\n\n" + "\n".join(model_lines) + f"\n\nModel card: [{link(model_card)}]({link(model_card)}). "
-        f"Try one with the runtime alone:\n\n```bash\npopcode info {link(example)}\n"
-        f"popcode predict {link(example)} {link(instance.image_path)} --box {box} --top-k 2\n```",
-        "## Accuracy\n\nFull tables: [" + link(eval_dir / REPORT_MD) + "](" + link(eval_dir / REPORT_MD) + ")\n\n"
-        + _demote_headings((eval_dir / REPORT_MD).read_text().split("## Scores per object")[0].strip()),
-        "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(latency),
-        "## Figures\n\n" + "\n\n".join(figure_lines),
-    ]) + "\n"
-
-
 def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
              latency_iterations: int = 50) -> dict[str, Any]:
     """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``)."""
@@ -317,27 +215,14 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
     models = train_models(size, groups, train_split, out_dir, stages)
     with stages.stage("evaluate"):
         split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
-        results = evaluate_models(demo_methods(models), split)
+        results = evaluate_models(demo_methods(models), split, translation=True)
         write_report(results, out_dir / "eval")
     with stages.stage("latency"):
         latency = measure_latency(models, latency_iterations)
     with stages.stage("figures"):
         run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
         figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
-        model_card = write_model_card(models, results, latency, size_name, size, out_dir)
-    seconds = time.perf_counter() - started
-    report = out_dir / REPORT_FILE
-    report.write_text(report_markdown(size_name, size, groups, seconds, split, out_dir / "eval", latency, figures,
-                                      model_card, models, out_dir))
-    summary = {
-        "size": size_name, "settings": asdict(size), "object_groups": groups, "wall_seconds": seconds,
-        "machine": machine_description(), "step_seconds": stages.done,
-        "scores": {r.name: r.groups for r in results}, "latency": list(latency),
-        "models": {name: [str(p) for p in paths] for name, paths in models.by_representation.items()},
-        "quantised_models": [str(p) for p in models.quantised],
-        "figures": {title: [str(p) for p in paths] for title, paths in figures.items()},
-        "report": str(report), "model_card": str(model_card),
-    }
-    (out_dir / SUMMARY_FILE).write_text(to_json(summary) + "\n")
-    print(f"\ndone in {_minutes(seconds)}; report: {report}", flush=True)
+    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done))
+    summary = write_outputs(run)
+    print(f"\ndone in {_minutes(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
     return summary

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
 
-from ..demo import DEMO_SIZES, REPORT_FILE
+from ..demo import DEMO_SIZES, run_demo
+from ..demo_report import REPORT_FILE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,8 +28,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import run_demo  # torch, pyrender: imported once the arguments are valid
-
     size = DEMO_SIZES[args.size].pipeline
     for name, value in (("epochs", args.epochs), ("train_images_per_object", args.images)):
         if value is not None:

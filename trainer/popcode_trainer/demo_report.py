@@ -1,0 +1,192 @@
+"""What a demo run leaves for its reader: the one-page report, the model card, sample images and the summary."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from popcode_runtime.benchmark import machine_description
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import Representation
+
+from .data.files import write_bytes_atomic
+from .eval.evaluate import EvalSplit, MethodResult
+from .eval.report import REPORT_MD, full_pose_markdown
+from .eval.tables import ambiguity_markdown, methods_markdown, to_json
+from .pipeline import PipelineSize
+
+POPCODE = Representation.POPULATION_CODE
+QUANTISATION = "int8"
+REPORT_FILE = "report.md"
+MODEL_CARD_FILE = "model_card.md"
+SUMMARY_FILE = "summary.json"
+SAMPLES_FILE = "samples.json"
+
+
+@dataclass(frozen=True)
+class TrainedModels:
+    """ONNX files per representation (one per object group) and the population code's quantised ones."""
+
+    by_representation: dict[str, list[Path]]
+    quantised: list[Path]
+
+
+@dataclass(frozen=True)
+class DemoRun:
+    """Everything a finished demo produced, for the files that describe it."""
+
+    size_name: str
+    size: PipelineSize
+    groups: list[list[int]]
+    out_dir: Path
+    models: TrainedModels
+    split: EvalSplit
+    results: list[MethodResult]
+    latency: list[dict[str, Any]]
+    figures: dict[str, list[Path]]
+    step_seconds: dict[str, float]
+
+    @property
+    def seconds(self) -> float:
+        return sum(self.step_seconds.values())
+
+    def link(self, path: Path) -> str:
+        """``path`` relative to the run folder, as the report links it."""
+        return os.path.relpath(path, self.out_dir)
+
+
+def latency_markdown(records: Sequence[dict[str, Any]]) -> str:
+    lines = ["| model | MB | batch | stage | median ms | p90 ms | crops/s |", "|---|---|---|---|---|---|---|"]
+    for r in records:
+        lines.append(f"| {r['model']} | {r['megabytes']:.1f} | {r['batch']} | {r['stage']} | {r['median_ms']:.2f} | "
+                     f"{r['p90_ms']:.2f} | {1000 * r['batch'] / r['median_ms']:.0f} |")
+    return "\n".join(lines)
+
+
+def symmetry_name(info: dict[str, Any]) -> str:
+    if info.get("symmetries_continuous"):
+        return "continuous" + (" + flip" if info.get("symmetries_discrete") else "")
+    count = len(info.get("symmetries_discrete", []))
+    return "no symmetry" if count == 0 else f"{count + 1} symmetric poses"
+
+
+def write_model_card(run: DemoRun) -> Path:
+    """What a user of the population-code models needs: objects, symmetry, data, accuracy, speed, how to rebuild."""
+    size = run.size
+    lines = [f"# Model card: population-code models of the built-in objects (demo size `{run.size_name}`)", ""]
+    for path, quantised in zip(run.models.by_representation[POPCODE], run.models.quantised, strict=True):
+        meta = PoseEstimator(path).metadata
+        objects = ", ".join(f"{o} ({symmetry_name(meta.objects[o])})" for o in sorted(meta.objects))
+        layout = meta.code
+        lines.append(f"- `{run.link(path)}`: objects {objects}; code {layout.n_axes} axes"
+                     + ("" if layout.axis_only else f" x {layout.n_angles} angles")
+                     + f", sigma {layout.sigma_deg:.0f} deg; {meta.rotation_frame} rotation; "
+                     f"{path.stat().st_size / 1e6:.1f} MB ({QUANTISATION}: {quantised.stat().st_size / 1e6:.1f} MB)")
+    lines += [
+        "",
+        "## Training",
+        "Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
+        f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation; "
+        f"{size.epochs} epochs, batch {size.batch_size}, Adam lr {size.lr}; network {size.network or 'paper size'}.",
+        "",
+        f"## Accuracy (all objects; {size.test_images_per_object} rendered test images per object, other seed; "
+        "rotation from the model, translation from the ground truth)",
+        "",
+        methods_markdown({r.name: r.groups["All objects"] for r in run.results}),
+        "",
+        "## Latency (one thread)",
+        "",
+        latency_markdown(run.latency),
+        "",
+        f"Measured on: {machine_description()['cpu']}, {os.cpu_count()} cores.",
+        "",
+        "## Reproduce",
+        "",
+        f"`popcode-train demo --size {run.size_name} --out DIR`; the models are "
+        "`DIR/runs/population_code_*/model*.onnx`.",
+    ]
+    path = run.out_dir / MODEL_CARD_FILE
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def write_samples(split: EvalSplit, out_dir: Path) -> Path:
+    """One test image per object with its box, camera and true pose (``samples.json``): what a runtime user
+    needs to try a model with ``popcode predict`` and compare with the truth."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    samples = []
+    for obj_id in split.obj_ids:
+        inst = next(inst for inst in split.instances if inst.obj_id == obj_id)
+        image = out_dir / f"obj{obj_id:02d}{inst.image_path.suffix}"
+        write_bytes_atomic(image, inst.image_path.read_bytes())
+        K = inst.K
+        samples.append({"image": image.name, "obj_id": obj_id, "box": [float(v) for v in inst.box],
+                        "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
+                        "R_m2c": np.asarray(inst.R_m2c).tolist(), "t_m2c_mm": np.asarray(inst.t_m2c_mm).tolist()})
+    path = out_dir / SAMPLES_FILE
+    write_bytes_atomic(path, (to_json({"samples": samples}) + "\n").encode())
+    return path
+
+
+def _demote_headings(markdown: str) -> str:
+    return "\n".join("#" + line if line.startswith("#") else line for line in markdown.splitlines())
+
+
+def _file_links(run: DemoRun, paths: Sequence[Path]) -> str:
+    return ", ".join(f"[`{run.link(p)}`]({run.link(p)})" for p in paths)
+
+
+def report_markdown(run: DemoRun, model_card: Path) -> str:
+    """The run's one-page report, with links relative to the run folder."""
+    size, machine = run.size, machine_description()
+    model_lines = [f"- {name}: {_file_links(run, paths)}" for name, paths in run.models.by_representation.items()]
+    model_lines.append(f"- {POPCODE} ({QUANTISATION}): {_file_links(run, run.models.quantised)}")
+    figure_lines = [f"### {title}\n\n" + "\n".join(f"![{title}]({run.link(p)})" for p in paths)
+                    for title, paths in run.figures.items()]
+    example = run.models.by_representation[POPCODE][-1]
+    example_objects = PoseEstimator(example).metadata.objects
+    instance = next(inst for inst in run.split.instances if inst.obj_id in example_objects)
+    box = ",".join(f"{v:g}" for v in instance.box)
+    eval_report = run.out_dir / "eval" / REPORT_MD
+    return "\n\n".join([
+        f"# popcode demo (`--size {run.size_name}`)",
+        f"Rendered the six built-in parts ({size.train_images_per_object} training and "
+        f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
+        f"with the same network, data and budget ({size.epochs} epochs; objects pooled as {run.groups}), "
+        f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
+        f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores).",
+        "## Models\n\n" + "\n".join(model_lines)
+        + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
+        f"```bash\npopcode info {run.link(example)}\n"
+        f"popcode predict {run.link(example)} {run.link(instance.image_path)} --box {box} --top-k 2\n```",
+        "## Accuracy (rotation from the model, translation from the ground truth: the paper's protocol)\n\n"
+        f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
+        + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),
+        _demote_headings("\n\n".join(full_pose_markdown(run.results))),
+        "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(run.latency),
+        "## Figures\n\n" + "\n\n".join(figure_lines),
+    ]) + "\n"
+
+
+def write_outputs(run: DemoRun) -> dict[str, Any]:
+    """Model card, samples, report and ``summary.json``; returns the summary."""
+    model_card = write_model_card(run)
+    samples = write_samples(run.split, run.out_dir / "samples")
+    report = run.out_dir / REPORT_FILE
+    report.write_text(report_markdown(run, model_card))
+    summary = {
+        "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
+        "wall_seconds": run.seconds, "machine": machine_description(), "step_seconds": run.step_seconds,
+        "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,
+        "models": {name: [str(p) for p in paths] for name, paths in run.models.by_representation.items()},
+        "quantised_models": [str(p) for p in run.models.quantised],
+        "figures": {title: [str(p) for p in paths] for title, paths in run.figures.items()},
+        "report": str(report), "model_card": str(model_card), "samples": str(samples),
+    }
+    (run.out_dir / SUMMARY_FILE).write_text(to_json(summary) + "\n")
+    return summary
