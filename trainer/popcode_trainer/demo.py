@@ -60,10 +60,10 @@ DEMO_SIZES = {
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.02
-SECONDS_PER_TRAINING_SAMPLE = 0.0045
-SECONDS_PER_EVALUATED_INSTANCE = 0.15
-SECONDS_LATENCY = 40.0
-SECONDS_FIGURES = 30.0
+SECONDS_PER_TRAINING_SAMPLE = 0.012
+SECONDS_PER_EVALUATED_INSTANCE = 0.03
+SECONDS_LATENCY = 10.0
+SECONDS_FIGURES = 10.0
 
 
 class StagePlan:
