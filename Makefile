@@ -13,8 +13,11 @@ $(BIN)/.installed: pyproject.toml runtime/pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ./runtime -e ".[dev]"
 	touch $@
 
-.PHONY: install test lint
+.PHONY: install demo test lint
 install: $(BIN)/.installed
+
+demo: $(BIN)/.installed
+	$(BIN)/popcode-train demo --out runs/demo
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest
