@@ -16,7 +16,8 @@ from popcode_runtime.crop import crop_square
 from popcode_trainer.cli import main
 from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture
 from popcode_trainer.data.bop import read_bop_split
-from popcode_trainer.data.samples import CropDataset, population_code_target
+from popcode_trainer.data.samples import CropDataset
+from popcode_trainer.representations import PerObjectPopulationCodes
 
 DRAWS = 2000
 SMALL_CODE = CodeLayout(n_axes=162, n_angles=12)
@@ -51,8 +52,12 @@ def split(builtin_split: Path):
     return read_bop_split(builtin_split, builtin_split / "models")
 
 
+def _codes(split) -> PerObjectPopulationCodes:
+    return PerObjectPopulationCodes(split.models_info, SMALL_CODE.n_axes, SMALL_CODE.n_angles, SMALL_CODE.sigma_deg)
+
+
 def _dataset(split, **kwargs) -> CropDataset:
-    return CropDataset(split.instances, population_code_target(split.models_info, SMALL_CODE), **kwargs)
+    return CropDataset(split.instances, _codes(split).target, **kwargs)
 
 
 def test_sample_contents_and_targets(split) -> None:
@@ -68,6 +73,9 @@ def test_sample_contents_and_targets(split) -> None:
     sizes = {instance.obj_id: dataset[index]["target"].numel() for index, instance in enumerate(split.instances)}
     assert sizes[1] == sizes[2] == SMALL_CODE.n_axes  # continuous symmetry: axis-only code
     assert sizes[3] == sizes[6] == SMALL_CODE.n_axes * SMALL_CODE.n_angles
+    codes = _codes(split)
+    assert codes.layout(1).axis_only and not codes.layout(3).axis_only
+    assert all(codes.layout(obj_id).size == size for obj_id, size in sizes.items())
 
 
 def test_augmented_samples_are_deterministic_per_seed_epoch_and_index(split) -> None:

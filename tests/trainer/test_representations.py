@@ -14,6 +14,7 @@ from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
 from popcode_trainer.representations import (
     MultiHypothesisRepresentation,
+    PerObjectPopulationCodes,
     build_representation,
     code_layout,
 )
@@ -118,3 +119,17 @@ def test_pooled_continuous_objects_must_share_the_axis() -> None:
 def test_discrete_and_asymmetric_objects_share_the_full_code() -> None:
     layout = code_layout({5: CASES["two_fold"], 6: CASES["none"]}, **SMALL)
     assert not layout.axis_only
+
+
+def test_per_object_codes_give_each_kind_its_own_layout_and_training_target() -> None:
+    objects = {1: CASES["continuous"], 2: CASES["four_fold"]}
+    codes = PerObjectPopulationCodes(objects, **SMALL)
+    assert codes.layout(1).axis_only and codes.layout(1).size == 42
+    assert not codes.layout(2).axis_only and codes.layout(2).size == 42 * 12
+    R = random_rotations(2, np.random.default_rng(3))
+    for obj_id, info in objects.items():
+        alone = build_representation(Representation.POPULATION_CODE, {obj_id: info}, **SMALL)
+        for instance in instances(R, obj_id):
+            np.testing.assert_array_equal(codes.target(instance), alone.target(instance))
+    with pytest.raises(PopcodeError, match="not one of the objects"):
+        codes.target(instances(R, 7)[0])

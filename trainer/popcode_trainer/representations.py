@@ -263,6 +263,36 @@ def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_
     return REPRESENTATIONS[name](objects, layout, rotation_frame, hypotheses)
 
 
+class PerObjectPopulationCodes:
+    """One population-code representation per object, for a split whose objects one model cannot
+    pool (continuous beside discrete symmetries, see :func:`code_layout`): previews still show each
+    object's own target, built exactly as training builds it.
+    """
+
+    def __init__(self, objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int, sigma_deg: float,
+                 rotation_frame: str = RotationFrame.EGOCENTRIC) -> None:
+        if not objects:
+            raise PopcodeError("no objects to build population codes for")
+        self.representations = {
+            int(obj_id): build_representation(Representation.POPULATION_CODE, {obj_id: info}, n_axes, n_angles,
+                                              sigma_deg, rotation_frame)
+            for obj_id, info in objects.items()
+        }
+
+    def _representation(self, obj_id: int) -> OutputRepresentation:
+        if int(obj_id) not in self.representations:
+            raise PopcodeError(f"object {obj_id} is not one of the objects {sorted(self.representations)}")
+        return self.representations[int(obj_id)]
+
+    def layout(self, obj_id: int) -> CodeLayout:
+        """The code layout of object ``obj_id``: axis-only for a continuous symmetry, else full."""
+        return self._representation(obj_id).layout
+
+    def target(self, instance: InstanceLike) -> np.ndarray:
+        """float32 target of one instance in its object's layout (the data set's ``target_fn``)."""
+        return self._representation(instance.obj_id).target(instance)
+
+
 def representation_from_metadata(metadata: ModelMetadata) -> OutputRepresentation:
     """Rebuild a representation from a model's (or checkpoint's) metadata."""
     cls = REPRESENTATIONS[metadata.representation]

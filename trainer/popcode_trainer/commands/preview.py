@@ -10,18 +10,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from popcode_runtime import CodeLayout, symmetry_class
 
-from popcode_runtime import CodeLayout, symmetry_class  # noqa: E402
-from popcode_runtime.code import fibonacci_lattice  # noqa: E402
-
-from ..data.augment import Augmentation  # noqa: E402
-from ..data.bop import read_bop_split  # noqa: E402
-from ..data.samples import CropDataset, population_code_target  # noqa: E402
+from ..data.augment import Augmentation
+from ..data.bop import read_bop_split
+from ..data.samples import CropDataset
+from ..eval.figures import axis_activations, sphere_panel
+from ..representations import PerObjectPopulationCodes
 
 _PAIRS_PER_ROW = 4
 
@@ -42,17 +40,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=run)
 
 
-def axis_activation(code: np.ndarray, n_axes: int) -> np.ndarray:
-    """Activation per preferred axis: the axis-only code itself, else the maximum over angles."""
-    return code if code.size == n_axes else code.reshape(n_axes, -1).max(axis=1)
-
-
-def write_preview(dataset: CropDataset, indices: list[int], layout: CodeLayout, models_info: dict, out: Path) -> None:
-    """Draw crops and targets of ``indices`` into a PNG at ``out``."""
-    axes_xyz = fibonacci_lattice(layout.n_axes)
-    longitude, latitude = np.arctan2(axes_xyz[:, 1], axes_xyz[:, 0]), np.arcsin(np.clip(axes_xyz[:, 2], -1, 1))
+def write_preview(dataset: CropDataset, indices: list[int], codes: PerObjectPopulationCodes, models_info: dict,
+                  out: Path) -> None:
+    """Draw crops and targets of ``indices`` into a PNG at ``out``, each target in its object's layout."""
     rows = -(-len(indices) // _PAIRS_PER_ROW)
-    figure = plt.figure(figsize=(4.2 * _PAIRS_PER_ROW, 2.0 * rows))
+    # A bare Figure renders with the Agg canvas and leaves pyplot's global state alone.
+    figure = Figure(figsize=(4.2 * _PAIRS_PER_ROW, 2.0 * rows), dpi=100)
     for slot, index in enumerate(indices):
         sample = dataset[index]
         image_ax = figure.add_subplot(rows, 2 * _PAIRS_PER_ROW, 2 * slot + 1)
@@ -60,29 +53,28 @@ def write_preview(dataset: CropDataset, indices: list[int], layout: CodeLayout, 
         image_ax.set_axis_off()
         kind = symmetry_class(models_info[sample["obj_id"]]).value
         image_ax.set_title(f"obj {sample['obj_id']} ({kind})", fontsize=8)
-        code_ax = figure.add_subplot(rows, 2 * _PAIRS_PER_ROW, 2 * slot + 2, projection="mollweide")
-        activation = axis_activation(sample["target"].numpy(), layout.n_axes)
-        order = np.argsort(activation)  # strongest on top
-        code_ax.scatter(longitude[order], latitude[order], c=activation[order], s=2, cmap="viridis", vmin=0.0)
-        code_ax.set_xticklabels([])
+        layout = codes.layout(sample["obj_id"])
+        activation = axis_activations(layout, sample["target"].numpy())
+        peak = float(activation.max())
+        code_ax = sphere_panel(figure, (rows, 2 * _PAIRS_PER_ROW, 2 * slot + 2), layout, activation,
+                               f"target, peak {peak:.2f}", vmax=max(peak, 1e-6), colorbar=False, fontsize=8)
         code_ax.set_yticklabels([])
-        code_ax.set_title(f"target, peak {activation.max():.2f}", fontsize=8)
     figure.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, dpi=100)
-    plt.close(figure)
+    figure.savefig(out)
 
 
 def run(args: argparse.Namespace) -> int:
     models_dir = args.models or args.split / "models"
     split = read_bop_split(args.split, models_dir, obj_ids=args.obj_ids)
-    layout = CodeLayout()
-    dataset = CropDataset(split.instances, population_code_target(split.models_info, layout),
+    paper = CodeLayout()
+    codes = PerObjectPopulationCodes(split.models_info, paper.n_axes, paper.n_angles, paper.sigma_deg)
+    dataset = CropDataset(split.instances, codes.target,
                           augmentation=None if args.no_augmentation else Augmentation(),
                           backgrounds=args.backgrounds, seed=args.seed)
     rng = np.random.default_rng(args.seed)
     count = min(args.count, len(dataset))
     indices = sorted(rng.choice(len(dataset), size=count, replace=False).tolist())
-    write_preview(dataset, indices, layout, split.models_info, args.out)
+    write_preview(dataset, indices, codes, split.models_info, args.out)
     print(f"preview of {count} crops written to {args.out}")
     return 0

@@ -7,8 +7,7 @@ before each epoch (with ``persistent_workers=False``, the default, workers see t
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from popcode_runtime import CodeLayout, PopcodeError, PopulationCode, read_image, symmetry_rotations
+from popcode_runtime import PopcodeError, read_image
 from popcode_runtime.crop import CROP_PADDING, crop_square
-from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds
 from .bop import Instance
@@ -88,26 +86,3 @@ class CropDataset(Dataset):
             "index": index,
         }
 
-
-def population_code_target(models_info: Mapping[int, Mapping[str, Any]],
-                           layout: CodeLayout | None = None) -> Callable[[Instance], np.ndarray]:
-    """Target function of the population code (DESIGN.md section 2) for each object's symmetries.
-
-    Objects with a continuous symmetry get the axis-only code about their axis; the others the
-    full code summed over their discrete symmetries. Default layout: the paper's.
-    """
-    layout = layout or CodeLayout()
-    codes: dict[int, tuple[PopulationCode, np.ndarray]] = {}
-
-    def target(instance: Instance) -> np.ndarray:
-        if instance.obj_id not in codes:
-            info = models_info[instance.obj_id]
-            object_layout = layout
-            if symmetry_class(info) is SymmetryClass.CONTINUOUS:
-                axis = tuple(float(v) for v in continuous_axis(info))
-                object_layout = dataclasses.replace(layout, axis_only=True, symmetry_axis=axis)
-            codes[instance.obj_id] = (PopulationCode(object_layout), symmetry_rotations(info))
-        code, symmetries = codes[instance.obj_id]
-        return code.encode(instance.R_m2c, symmetries)
-
-    return target

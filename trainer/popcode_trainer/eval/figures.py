@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from popcode_runtime.code import CodeLayout, check_code
@@ -110,18 +111,25 @@ def axis_activations(layout: CodeLayout, code: np.ndarray) -> np.ndarray:
     return code if layout.axis_only else code.reshape(layout.n_axes, layout.n_angles).max(axis=1)
 
 
-def _sphere_panel(figure: Figure, position: int, layout: CodeLayout, activations: np.ndarray, title: str,
-                  vmax: float) -> None:
-    """Preferred axes on a Mollweide map (longitude = azimuth, latitude = elevation), coloured by activation."""
-    axes = figure.add_subplot(position, projection="mollweide")
+def sphere_panel(figure: Figure, position: int | tuple[int, int, int], layout: CodeLayout, activations: np.ndarray,
+                 title: str, vmax: float, colorbar: bool = True, fontsize: float = 9) -> Axes:
+    """Preferred axes on a Mollweide map (longitude = azimuth, latitude = elevation), coloured by activation.
+
+    ``position`` is a subplot position (``131`` or ``(rows, columns, index)``); the one drawing of a
+    code on the sphere, shared by the code figures and ``popcode-train preview``.
+    """
+    position = position if isinstance(position, tuple) else (position,)
+    axes = figure.add_subplot(*position, projection="mollweide")
     x, y, z = layout.axes.T
     order = np.argsort(activations)  # strongest drawn last, on top
     points = axes.scatter(np.arctan2(y, x)[order], np.arcsin(np.clip(z, -1.0, 1.0))[order], c=activations[order],
                           s=max(2.0, 4000.0 / layout.n_axes), cmap="viridis", vmin=0.0, vmax=vmax)
     axes.set_xticklabels([])
     axes.grid(alpha=0.3)
-    axes.set_title(title, fontsize=9, pad=14)
-    figure.colorbar(points, ax=axes, orientation="horizontal", fraction=0.05, pad=0.05)
+    axes.set_title(title, fontsize=fontsize, pad=14)
+    if colorbar:
+        figure.colorbar(points, ax=axes, orientation="horizontal", fraction=0.05, pad=0.05)
+    return axes
 
 
 def plot_code_comparison(layout: CodeLayout, predicted: np.ndarray, target: np.ndarray, path: str | Path,
@@ -136,8 +144,8 @@ def plot_code_comparison(layout: CodeLayout, predicted: np.ndarray, target: np.n
     columns = 2 if layout.axis_only else 3
     figure = Figure(figsize=(4.0 * columns, 3.4), dpi=150)
     over_angles = "" if layout.axis_only else " (max over angles)"
-    _sphere_panel(figure, 100 + 10 * columns + 1, layout, predicted_axes, f"predicted{over_angles}", vmax)
-    _sphere_panel(figure, 100 + 10 * columns + 2, layout, target_axes, f"target{over_angles}", vmax)
+    sphere_panel(figure, 100 + 10 * columns + 1, layout, predicted_axes, f"predicted{over_angles}", vmax)
+    sphere_panel(figure, 100 + 10 * columns + 2, layout, target_axes, f"target{over_angles}", vmax)
     if not layout.axis_only:
         peak = int(np.argmax(target_axes))
         profile = figure.add_subplot(133)
