@@ -163,15 +163,15 @@ def train_and_predict(method: Method, images: np.ndarray, angles: np.ndarray, tr
         return model(torch.from_numpy(images[train_count:])).numpy()
 
 
-def run_repeats(repeats: int, epochs: int, train_count: int = TRAIN_COUNT,
-                test_count: int = TEST_COUNT) -> dict[tuple[str, str], list[float]]:
+def run_repeats(repeats: int, epochs: int, train_count: int = TRAIN_COUNT, test_count: int = TEST_COUNT,
+                methods: Sequence[Method] = METHODS) -> dict[tuple[str, str], list[float]]:
     """Mean squared error [deg^2] of every (dataset, row) in every repeat, each on a new data set."""
     errors: dict[tuple[str, str], list[float]] = {}
     for repeat in range(repeats):
         for dataset in PERIOD_DEG:
             rng = np.random.default_rng([repeat, len(dataset)])
             images, angles = make_dataset(dataset, train_count + test_count, rng)
-            for method in METHODS:
+            for method in methods:
                 if dataset not in method.datasets:
                     continue
                 output = train_and_predict(method, images, angles, train_count, epochs, seed=repeat)
@@ -201,18 +201,26 @@ def render_markdown(records: list[dict[str, Any]], epochs: int) -> str:
             f"(bars modulo 180°).\n\n" + markdown_table(header, rows))
 
 
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text.lower()).strip("_")
+
+
 def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
                         help="1 repeat, 1 epoch, 64/32 images: a smoke run, not a result")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--epochs", type=int, default=30)
+    parser.add_argument("--methods", nargs="+", metavar="NAME", choices=[m.name for m in METHODS],
+                        help="train only these rows (default: all); results go to toy_orientation-<rows>.json/.md")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for toy_orientation.json/.md")
     args = parser.parse_args(argv)
     repeats, epochs, sizes = (1, 1, (64, 32)) if args.quick else (args.repeats, args.epochs, (TRAIN_COUNT, TEST_COUNT))
-    records = summarise(run_repeats(repeats, epochs, *sizes))
+    methods = [m for m in METHODS if not args.methods or m.name in args.methods]
+    name = "toy_orientation" + ("-" + "-".join(_slug(m.name) for m in methods) if args.methods else "")
+    records = summarise(run_repeats(repeats, epochs, *sizes, methods=methods))
     markdown = render_markdown(records, epochs)
-    write_results(args.out, "toy_orientation", {"repeats": repeats, "epochs": epochs, "learning_rate": LEARNING_RATE,
+    write_results(args.out, name, {"repeats": repeats, "epochs": epochs, "learning_rate": LEARNING_RATE,
                                                 "batch_size": BATCH_SIZE, "train_test": sizes, "records": records},
                   markdown)
     print(markdown)
