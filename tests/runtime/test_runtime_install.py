@@ -12,10 +12,19 @@ import pytest
 from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
-from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
+from popcode_runtime import (
+    CodeLayout,
+    ModelMetadata,
+    PopulationCode,
+    PoseEstimator,
+    Representation,
+    read_image,
+    symmetry_rotations,
+)
 from popcode_runtime.rotations import geodesic_angle, random_rotations
 
 RUNTIME_DIR = Path(__file__).resolve().parents[2] / "runtime"
+MODELS = RUNTIME_DIR.parent / "models"
 TRAINER_ONLY = {"torch", "onnx", "trimesh", "pyrender", "matplotlib", "scipy", "popcode-trainer"}
 REQUIRES = (
     "import importlib.metadata as m, re;"
@@ -51,6 +60,18 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     assert result.returncode == 0, result.stderr
     R_pred = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
     assert np.degrees(geodesic_angle(R_pred, R @ S).min()) < 12.0
+
+    # The shipped model runs on its sample image with the runtime alone, as the README shows.
+    shipped = MODELS / "builtin-parts-3-6.onnx"
+    sample = next(s for s in json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]
+                  if s["obj_id"] == 3)
+    box = ",".join(f"{v:g}" for v in sample["box"])
+    result = subprocess.run([str(popcode), "predict", str(shipped), str(MODELS / "samples" / sample["image"]),
+                             "--box", box, "--top-k", "2", "--json"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
+    R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c
+    assert np.allclose(R_venv, R_here, atol=1e-5)
 
     failing = subprocess.run([str(popcode), "info", str(tmp_path / "missing.onnx")], capture_output=True, text=True)
     assert failing.returncode == 2 and "not found" in failing.stderr and "Traceback" not in failing.stderr
