@@ -15,7 +15,30 @@ profiler (node times of ``/head/`` nodes over all node times, batch 1).
 Argmax agreement of the quantised variants with fp32 is measured on crops of
 rendered built-in objects; with random weights it says how much quantisation
 moves the peak of an untrained code, which is a harder test than a trained
-code's clear peak, but not the same one.
+code's clear peak, but not the same one. int8 is calibrated on the even
+crops; agreement is measured on the odd ones. The compute floor is the MACs
+over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
+estimate, not a strict bound -- with the cores shared, the 2-thread peak is
+depressed and some 2-thread rows fall below 1x.
+
+Findings (2-core AMD EPYC, AVX-512 VNNI; ``results/latency.md``):
+
+- The paper network is compute-bound. Its three 5x5 convs are 1.27 of the
+  1.31 GMAC per crop and ~78 % of fp32 node time; at the single-thread
+  fp32 GEMM peak (~49 GMAC/s) they need >= 26 ms, 5.5x the 4.8 ms
+  weight-read floor. fp32 ran at 1.2x (quiet, 31 ms) to 1.7x (load 5,
+  46 ms) of that compute floor, so nothing cheap reaches the memory floor:
+  BatchNorm is already folded into the convs at export (no
+  BatchNormalization node), onnxruntime's default ORT_ENABLE_ALL fuses
+  Conv+Relu and runs the convs in its blocked NCHWc layout (EXTENDED, no
+  NCHWc: 36 vs 32 ms), and intra-op spinning on/off changed nothing beyond
+  the noise of the shared cores. Torch eager (oneDNN) is no faster.
+- Static int8 runs the convs as VNNI QLinearConv (uint8 x int8 GEMM ~4.4x
+  the fp32 peak): ~3.3x faster than fp32 at 100 % argmax agreement.
+- The ``light`` trunk (conv 32/64/128, the paper's MLP and code) is 142
+  MMAC: fp32 ~8 ms, 1.4x its memory floor, the output layer then ~57 % of
+  the time; int8 ~3.8 ms, the scale of the paper's 3.2 ms on an Apple M1,
+  which suggests a trunk about this light there.
 """
 
 from __future__ import annotations
