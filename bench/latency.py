@@ -15,7 +15,30 @@ profiler (node times of ``/head/`` nodes over all node times, batch 1).
 Argmax agreement of the quantised variants with fp32 is measured on crops of
 rendered built-in objects; with random weights it says how much quantisation
 moves the peak of an untrained code, which is a harder test than a trained
-code's clear peak, but not the same one.
+code's clear peak, but not the same one. int8 is calibrated on the even
+crops; agreement is measured on the odd ones. The compute floor is the MACs
+over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
+estimate, not a strict bound -- with the cores shared, the 2-thread peak is
+depressed and some 2-thread rows fall below 1x.
+
+Findings (2-core AMD EPYC, AVX-512 VNNI; ``results/latency.md``):
+
+- The paper network is compute-bound. Its three 5x5 convs are 1.27 of the
+  1.31 GMAC per crop and ~78 % of fp32 node time; at the single-thread
+  fp32 GEMM peak (~49 GMAC/s) they need >= 26 ms, 5.5x the 4.8 ms
+  weight-read floor. fp32 ran at 1.2x (quiet, 31 ms) to 1.7x (load 5,
+  46 ms) of that compute floor, so nothing cheap reaches the memory floor:
+  BatchNorm is already folded into the convs at export (no
+  BatchNormalization node), onnxruntime's default ORT_ENABLE_ALL fuses
+  Conv+Relu and runs the convs in its blocked NCHWc layout (EXTENDED, no
+  NCHWc: 36 vs 32 ms), and intra-op spinning on/off changed nothing beyond
+  the noise of the shared cores. Torch eager (oneDNN) is no faster.
+- Static int8 runs the convs as VNNI QLinearConv (uint8 x int8 GEMM ~4.4x
+  the fp32 peak): ~3.3x faster than fp32 at 100 % argmax agreement.
+- The ``light`` trunk (conv 32/64/128, the paper's MLP and code) is 142
+  MMAC: fp32 ~8 ms, 1.4x its memory floor, the output layer then ~57 % of
+  the time; int8 ~3.8 ms, the scale of the paper's 3.2 ms on an Apple M1,
+  which suggests a trunk about this light there.
 """
 
 from __future__ import annotations
@@ -36,6 +59,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from onnx import TensorProto, helper, numpy_helper
 from report import machine, markdown_table, write_results
 
 from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
@@ -45,11 +69,11 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.export import compare, export_onnx, quantise, run_onnx
+from popcode_trainer.export import ONNX_IR_VERSION, ONNX_OPSET, compare, export_onnx, quantise, run_onnx
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 from popcode_trainer.training_data import validation_crops
 
-QUANTISED = {"int8-dynamic": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> export.quantise kind
+QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> export.quantise kind
 BATCHES = (1, 8, 32)
 
 
@@ -63,6 +87,8 @@ class Network:
 
 NETWORKS = {
     "paper": Network(NetworkConfig(), CodeLayout()),
+    # The paper's code and MLP on a 10x cheaper trunk: what the trunk costs (the paper's 3.2 ms on M1).
+    "light": Network(NetworkConfig(conv_channels=(32, 64, 128)), CodeLayout()),
     "small": Network(NetworkConfig(output_dim=642 * 36, conv_channels=(32, 64, 64), squeeze_channels=16,
                                    hidden=(256, 256, 256)), CodeLayout(n_axes=642)),
     "tiny": Network(NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4,
@@ -80,12 +106,14 @@ class Budget:
     bandwidth_repeats: int
     profile_runs: int
     render_per_object: int
+    peak_repeats: int
 
 
 FULL = Budget({1: 100, 8: 15, 32: 6}, warmup=5, bandwidth_mb=512, bandwidth_repeats=7, profile_runs=30,
-              render_per_object=12)
+              render_per_object=40, peak_repeats=10)
 QUICK = Budget({1: 5, 8: 2, 32: 2}, warmup=1, bandwidth_mb=64, bandwidth_repeats=2, profile_runs=2,
-               render_per_object=1)
+               render_per_object=1, peak_repeats=1)
+GEMM_SIDE = 1024  # the peak is measured on a square GEMM this size
 
 
 def read_bandwidth_gb_s(threads: int, megabytes: int, repeats: int) -> float:
@@ -101,15 +129,44 @@ def read_bandwidth_gb_s(threads: int, megabytes: int, repeats: int) -> float:
     return array.nbytes / best / 1e9
 
 
+def _gemm_model(integer: bool) -> bytes:
+    """One ``[M, K] x [K, K]`` MatMul (fp32) or MatMulInteger (uint8 x int8, what static int8 runs)."""
+    rng = np.random.default_rng(0)
+    weight = (rng.integers(-64, 64, (GEMM_SIDE, GEMM_SIDE), dtype=np.int8) if integer
+              else rng.standard_normal((GEMM_SIDE, GEMM_SIDE), dtype=np.float32))
+    x = helper.make_tensor_value_info("x", TensorProto.UINT8 if integer else TensorProto.FLOAT, ["M", GEMM_SIDE])
+    y = helper.make_tensor_value_info("y", TensorProto.INT32 if integer else TensorProto.FLOAT, ["M", GEMM_SIDE])
+    node = helper.make_node("MatMulInteger" if integer else "MatMul", ["x", "w"], ["y"])
+    graph = helper.make_graph([node], "gemm", [x], [y], [numpy_helper.from_array(weight, "w")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
+    model.ir_version = ONNX_IR_VERSION
+    return model.SerializeToString()
+
+
+def gemm_peak_gmac_s(threads: int, integer: bool, repeats: int) -> float:
+    """Multiply-accumulates per second [GMAC/s] of onnxruntime's GEMM on this CPU, best of ``repeats``.
+
+    The compute floor of a network is its MACs over this: the 5x5 convs run
+    as GEMMs (im2col) and cannot beat it, whatever the memory bandwidth.
+    """
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    session = ort.InferenceSession(_gemm_model(integer), options, providers=["CPUExecutionProvider"])
+    x = (np.random.default_rng(1).integers(0, 256, (GEMM_SIDE, GEMM_SIDE)).astype(np.uint8) if integer
+         else np.random.default_rng(1).standard_normal((GEMM_SIDE, GEMM_SIDE), dtype=np.float32))
+    best = min(time_calls(partial(session.run, None, {"x": x}), 1, repeats))
+    return GEMM_SIDE**3 / (best * 1e-3) / 1e9
+
+
 def weight_bytes(path: Path) -> int:
     """Bytes of every initializer of an ONNX graph: what one forward pass reads at least once."""
     graph = onnx.load(str(path), load_external_data=False).graph
-    return sum(int(np.prod(init.dims, dtype=np.int64)) * onnx.helper.tensor_dtype_to_np_dtype(init.data_type).itemsize
+    return sum(int(np.prod(init.dims, dtype=np.int64)) * helper.tensor_dtype_to_np_dtype(init.data_type).itemsize
                for init in graph.initializer)
 
 
-def output_layer_share(path: Path, crops: np.ndarray, threads: int, runs: int, work: Path) -> float:
-    """Share of node time spent in the output layer (``/head/`` nodes), from onnxruntime's profiler."""
+def node_shares(path: Path, crops: np.ndarray, threads: int, runs: int, work: Path) -> dict[str, float]:
+    """Shares of node time in the output layer (``/head/`` nodes) and in convolutions, from onnxruntime's profiler."""
     options = ort.SessionOptions()
     options.enable_profiling = True
     options.profile_file_prefix = str(work / f"profile-{path.stem}-{threads}")
@@ -120,9 +177,10 @@ def output_layer_share(path: Path, crops: np.ndarray, threads: int, runs: int, w
         session.run(None, {INPUT_NAME: crops})
     events = json.loads(Path(session.end_profiling()).read_text(encoding="utf-8"))
     nodes = [e for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")]
-    total = sum(e["dur"] for e in nodes)
+    total = sum(e["dur"] for e in nodes) or float("nan")
     head = sum(e["dur"] for e in nodes if "/head/" in e["name"])
-    return head / total if total else float("nan")
+    convs = sum(e["dur"] for e in nodes if "Conv" in e["args"].get("op_name", ""))  # Conv, QLinearConv, FusedConv
+    return {"output_layer_share": head / total, "conv_share": convs / total}
 
 
 def rendered_crops(work: Path, per_object: int, size: int) -> np.ndarray:
@@ -133,14 +191,15 @@ def rendered_crops(work: Path, per_object: int, size: int) -> np.ndarray:
     return validation_crops(config, count=10_000)  # no validation share: every instance
 
 
-def export_variants(name: str, network: Network, work: Path) -> tuple[PopcodeNet, dict[str, Path]]:
-    """Random-weight model in eval mode and its fp32 + quantised ONNX files."""
+def export_variants(name: str, network: Network, calibration: np.ndarray,
+                    work: Path) -> tuple[PopcodeNet, dict[str, Path]]:
+    """Random-weight model in eval mode and its fp32 + quantised ONNX files (int8 calibrated on ``calibration``)."""
     torch.manual_seed(0)
     model = PopcodeNet(network.config).eval()
     metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=network.layout,
                              objects={1: {"diameter": 100.0}}, input_size=network.config.input_size)
     fp32 = export_onnx(model, metadata, work / f"{name}.onnx")
-    return model, {"fp32": fp32, **{v: quantise(fp32, kind, metadata) for v, kind in QUANTISED.items()}}
+    return model, {"fp32": fp32, **{v: quantise(fp32, kind, metadata, calibration) for v, kind in QUANTISED.items()}}
 
 
 def torch_stats(model: PopcodeNet, crops: np.ndarray, threads: int, budget: Budget) -> list[dict[str, Any]]:
@@ -176,40 +235,46 @@ def decoder_stats(path: Path, crops: np.ndarray, budget: Budget) -> dict[str, fl
 
 
 def bench_network(name: str, budget: Budget, thread_counts: Sequence[int], bandwidth: dict[int, float],
-                  crops: np.ndarray, work: Path) -> dict[str, Any]:
-    """Every record of one network, plus its size, output-layer shares and decoder times."""
+                  peaks: dict[tuple[int, bool], float], crops: np.ndarray, work: Path) -> dict[str, Any]:
+    """Every record of one network, plus its size, node-time shares and decoder times.
+
+    int8 is calibrated on the even crops; every variant's argmax agreement
+    with fp32 is measured on the odd ones, which calibration never saw.
+    """
     network = NETWORKS[name]
-    model, paths = export_variants(name, network, work)
-    fp32_output = run_onnx(paths["fp32"], crops)
+    calibration, held_out = crops[::2], crops[1::2]
+    model, paths = export_variants(name, network, calibration, work)
+    macs = count_macs(model, network.config.input_size)
+    fp32_output = run_onnx(paths["fp32"], held_out)
     sizes = {variant: weight_bytes(path) for variant, path in paths.items()}
     sizes["torch-eager"] = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()])
-    agreement = {v: compare(paths[v], run_onnx(paths[v], crops), fp32_output).argmax_agreement for v in QUANTISED}
+    agreement = {v: compare(paths[v], run_onnx(paths[v], held_out), fp32_output).argmax_agreement for v in QUANTISED}
     records = []
-    shares = {}
     for threads in thread_counts:
         for variant in [*paths, "torch-eager"]:
             if variant == "torch-eager":
-                rows = torch_stats(model, crops, threads, budget)
+                rows, shares = torch_stats(model, crops, threads, budget), {}
             else:
                 rows = runtime_stats(paths[variant], threads, budget)
-                shares[f"{variant}@{threads}"] = output_layer_share(paths[variant], crops[:1], threads,
-                                                                    budget.profile_runs, work)
+                shares = node_shares(paths[variant], crops[:1], threads, budget.profile_runs, work)
             floor_ms = sizes[variant] / (bandwidth[threads] * 1e9) * 1e3
+            compute_floor_ms = macs / (peaks[(threads, variant == "int8-static")] * 1e9) * 1e3
             for row in rows:
                 record = {"variant": variant, "network": name, **row, "floor_ms": floor_ms,
-                          "x_floor": row["median_ms"] / floor_ms, "weight_mb": sizes[variant] / 1e6}
+                          "x_floor": row["median_ms"] / floor_ms, "weight_mb": sizes[variant] / 1e6,
+                          "compute_floor_ms": compute_floor_ms * row["batch"],
+                          "x_compute_floor": row["median_ms"] / (compute_floor_ms * row["batch"])}
                 if variant in QUANTISED:
                     record["argmax_agreement"] = agreement[variant]
-                if row["batch"] == 1 and row["stage"] == "inference" and variant != "torch-eager":
-                    record["output_layer_share"] = shares[f"{variant}@{threads}"]
+                if row["batch"] == 1 and row["stage"] == "inference":
+                    record.update(shares)
                 records.append(record)
     return {
         "records": records,
-        "summary": {"network": name, "parameters": count_parameters(model),
-                    "macs_per_crop": count_macs(model, network.config.input_size),
+        "summary": {"network": name, "parameters": count_parameters(model), "macs_per_crop": macs,
                     "output_layer_parameters": sum(p.numel() for p in model.head.parameters()),
                     "decode_ms": decoder_stats(paths["fp32"], crops, budget),
-                    "agreement_crops": len(crops)},
+                    "agreement_crops": len(held_out), "calibration_crops": len(calibration)},
     }
 
 
@@ -217,15 +282,30 @@ def _fmt(value: float | None, digits: int = 2) -> str:
     return "" if value is None else f"{value:.{digits}f}"
 
 
+def summary_table(records: list[dict[str, Any]]) -> str:
+    """Batch 1, 1 thread, inference: each variant against both floors and fp32 (the issue's targets)."""
+    rows = [r for r in records if r["batch"] == 1 and r["threads"] == 1 and r["stage"] == "inference"]
+    fp32 = {r["network"]: r["median_ms"] for r in rows if r["variant"] == "fp32"}
+    return markdown_table(
+        ["network", "variant", "median ms", "x memory floor", "compute floor ms", "x compute floor", "fp32 / this",
+         "argmax agr.", "conv share", "output-layer share"],
+        [[r["network"], r["variant"], _fmt(r["median_ms"]), _fmt(r["x_floor"], 1), _fmt(r["compute_floor_ms"]),
+          _fmt(r["x_compute_floor"], 1), _fmt(fp32[r["network"]] / r["median_ms"], 1),
+          _fmt(r.get("argmax_agreement"), 3), _fmt(r.get("conv_share"), 2), _fmt(r.get("output_layer_share"), 2)]
+         for r in rows])
+
+
 def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any]], bandwidth: dict[int, float],
-                    machine_line: str) -> str:
-    """The latency table, then per-network size, output-layer share and decoder tables."""
+                    peaks: dict[tuple[int, bool], float], machine_line: str) -> str:
+    """Batch-1 summary, the full latency table, then per-network size and decoder tables."""
     rows = [[r["network"], r["variant"], r["threads"], r["batch"], r["stage"], _fmt(r["median_ms"]),
              _fmt(r["p90_ms"]), _fmt(r["p99_ms"]), _fmt(r["crops_per_s"], 0), _fmt(r["floor_ms"], 3),
-             _fmt(r["x_floor"], 1), _fmt(r.get("argmax_agreement"), 3), _fmt(r.get("output_layer_share"), 2)]
+             _fmt(r["x_floor"], 1), _fmt(r["compute_floor_ms"]), _fmt(r.get("argmax_agreement"), 3),
+             _fmt(r.get("conv_share"), 2), _fmt(r.get("output_layer_share"), 2)]
             for r in records]
     latency = markdown_table(["network", "variant", "threads", "batch", "stage", "median ms", "p90 ms", "p99 ms",
-                              "crops/s", "floor ms", "x floor", "argmax agr.", "output-layer share"], rows)
+                              "crops/s", "floor ms", "x floor", "compute floor ms", "argmax agr.", "conv share",
+                              "output-layer share"], rows)
     fp32_inference = {(r["network"], r["threads"]): r["median_ms"] for r in records
                       if r["variant"] == "fp32" and r["stage"] == "inference" and r["batch"] == 1}
     all_threads = max(bandwidth)
@@ -236,7 +316,12 @@ def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any
           _fmt(s["decode_ms"]["argmax"], 3), _fmt(s["decode_ms"]["refined"], 3),
           _fmt(s["decode_ms"]["refined"] / fp32_inference[(s["network"], all_threads)], 3)] for s in summaries])
     bandwidths = ", ".join(f"{t} thread(s): {gb:.1f} GB/s" for t, gb in bandwidth.items())
-    return "\n\n".join([f"Machine: {machine_line}", f"Read bandwidth: {bandwidths}", latency, sizes])
+    gemm = ", ".join(f"{t} thread(s): fp32 {peaks[(t, False)]:.0f}, uint8 x int8 {peaks[(t, True)]:.0f} GMAC/s"
+                     for t in bandwidth)
+    floors = ("Floors: memory = weight bytes / read bandwidth; compute = MACs per crop x batch / GEMM peak "
+              "(int8 peak for int8-static, fp32 peak otherwise).")
+    return "\n\n".join([f"Machine: {machine_line}", f"Read bandwidth: {bandwidths}", f"GEMM peak: {gemm}", floors,
+                        "Batch 1, 1 thread, inference:", summary_table(records), "All runs:", latency, sizes])
 
 
 def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
@@ -244,19 +329,23 @@ def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
     budget = QUICK if quick else FULL
     thread_counts = sorted({1, os.cpu_count() or 1})
     bandwidth = {t: read_bandwidth_gb_s(t, budget.bandwidth_mb, budget.bandwidth_repeats) for t in thread_counts}
+    peaks = {(t, integer): gemm_peak_gmac_s(t, integer, budget.peak_repeats)
+             for t in thread_counts for integer in (False, True)}
     with tempfile.TemporaryDirectory() as folder:
         work = Path(folder)
         sizes = {NETWORKS[n].config.input_size for n in networks}
         crops = {size: rendered_crops(work / str(size), budget.render_per_object, size) for size in sizes}
-        results = [bench_network(n, budget, thread_counts, bandwidth, crops[NETWORKS[n].config.input_size], work)
-                   for n in networks]
+        results = [bench_network(n, budget, thread_counts, bandwidth, peaks, crops[NETWORKS[n].config.input_size],
+                                 work) for n in networks]
     records = [record for result in results for record in result["records"]]
     summaries = [result["summary"] for result in results]
     description = machine()
-    markdown = render_markdown(records, summaries, bandwidth,
+    markdown = render_markdown(records, summaries, bandwidth, peaks,
                                f"{description['cpu']}, {description['cores']} cores, onnxruntime "
                                f"{description['onnxruntime']}, torch {description['torch']}")
-    payload = {"bandwidth_gb_s": {str(t): gb for t, gb in bandwidth.items()}, "networks": summaries,
+    payload = {"bandwidth_gb_s": {str(t): gb for t, gb in bandwidth.items()},
+               "gemm_peak_gmac_s": {f"{t} {'int8' if int8 else 'fp32'}": gmac for (t, int8), gmac in peaks.items()},
+               "networks": summaries,
                "records": records, "quick": quick}
     write_results(out_dir, "latency", payload, markdown)
     print(markdown)
@@ -267,7 +356,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="few iterations: a smoke run, not a measurement")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for latency.json/.md")
-    parser.add_argument("--networks", nargs="+", choices=sorted(NETWORKS), default=["paper", "small"])
+    parser.add_argument("--networks", nargs="+", choices=sorted(NETWORKS), default=["paper", "light", "small"])
     args = parser.parse_args(argv)
     return run(args.networks, args.quick, args.out)
 

@@ -9,7 +9,8 @@ import latency
 import toy_orientation
 import translation
 
-LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms"}
+LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms",
+                  "compute_floor_ms"}
 
 
 def test_latency_writes_the_contract(tmp_path: Path) -> None:
@@ -28,10 +29,14 @@ def test_latency_writes_the_contract(tmp_path: Path) -> None:
     # Every runtime variant has both stages at every batch; torch eager has inference only.
     runtime_rows = [r for r in records if r["variant"] != "torch-eager"]
     assert len(runtime_rows) == 4 * len(latency.BATCHES) * 2 * len({r["threads"] for r in records})
-    assert all("output_layer_share" in r for r in runtime_rows if r["batch"] == 1 and r["stage"] == "inference")
+    assert all({"output_layer_share", "conv_share"} <= set(r) for r in runtime_rows
+               if r["batch"] == 1 and r["stage"] == "inference")
+    assert set(payload["gemm_peak_gmac_s"]) == {f"{t} {kind}" for t in {r["threads"] for r in records}
+                                               for kind in ("fp32", "int8")}
     assert set(payload["networks"][0]["decode_ms"]) == {"argmax", "refined"}
     table = (tmp_path / "latency.md").read_text(encoding="utf-8")
-    assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(records) + 1  # + size table
+    summary_rows = len(latency.QUANTISED) + 2  # batch 1, 1 thread: fp32, the quantised variants, torch eager
+    assert sum(line.startswith("| tiny |") for line in table.splitlines()) == summary_rows + len(records) + 1
 
 
 def test_toy_orientation_has_every_row_of_table_one(tmp_path: Path) -> None:

@@ -6,15 +6,19 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 import torch
 from synthetic import K, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
+from popcode_runtime.code import CodeLayout
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_trainer import checkpoint
-from popcode_trainer.export import export_checkpoint, load_checkpoint_model
+from popcode_trainer.export import compare, export_checkpoint, export_onnx, load_checkpoint_model, quantise, run_onnx
+from popcode_trainer.network import NetworkConfig, PopcodeNet
 from popcode_trainer.train import train
 
 
@@ -25,6 +29,14 @@ def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarr
     train(config, rep, train_set, val_set, val_instances=val_set.instances)
     crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
     return tmp_path / "run" / checkpoint.LAST, crops
+
+
+def optimised_op_types(path: Path, out: Path) -> list[str]:
+    """Op types of the graph onnxruntime's CPU provider runs after its optimisations."""
+    options = ort.SessionOptions()
+    options.optimized_model_filepath = str(out)
+    ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return [node.op_type for node in onnx.load(str(out)).graph.node]
 
 
 @pytest.mark.parametrize("name", Representation.ALL)
@@ -78,6 +90,36 @@ def test_export_meets_the_contract_and_quantises(tmp_path: Path) -> None:
         assert {p.key: p.value for p in quantised_model.metadata_props} == \
             {p.key: p.value for p in model.metadata_props}
     assert "MatMulNBits" in {n.op_type for n in onnx.load(str(quantised[1].path)).graph.node}
+    assert quantised[0].argmax_agreement >= 0.99  # calibrated on these crops
     head = [init for init in model.graph.initializer if init.name.startswith("head.")]
     assert len(head) == 12 and max(max(init.dims) for init in head) <= 100  # 504 outputs in blocks of 100
     PoseEstimator(quantised[1].path)  # the runtime accepts a quantised model
+
+
+def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
+    """No ConvInteger (dynamic, slow on CPU): every Conv/Gemm/MatMul reads int8 weights and int8 activations.
+
+    Untrained, as in bench/latency.py: equal (zero) folded BatchNorm biases
+    reach the graph through Identity, which must not keep a conv in float.
+    """
+    config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4, hidden=(32, 32, 32))
+    torch.manual_seed(0)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE,
+                             code=CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0), objects={1: {"diameter": 100.0}})
+    float_path = export_onnx(PopcodeNet(config).eval(), metadata, tmp_path / "model.onnx")
+    assert "Identity" in {node.op_type for node in onnx.load(str(float_path)).graph.node}
+    crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])
+    int8_path = quantise(float_path, "int8", metadata, calibration=crops)
+    graph = onnx.load(str(int8_path)).graph
+    assert not {"ConvInteger", "MatMulInteger", "DynamicQuantizeLinear"} & {node.op_type for node in graph.node}
+    dequantised = {node.output[0] for node in graph.node if node.op_type == "DequantizeLinear"}
+    heavy = [node for node in graph.node if node.op_type in ("Conv", "Gemm", "MatMul")]
+    assert len(heavy) == 4 + 3 + 1 and all(set(node.input[:2]) <= dequantised for node in heavy)
+    # What onnxruntime runs: every QDQ group fused into an integer kernel, no float conv or matmul left.
+    running = optimised_op_types(int8_path, tmp_path / "optimised.onnx")
+    assert running.count("QLinearConv") == 4 and not {"Conv", "Gemm", "MatMul", "FusedConv"} & set(running)
+    assert all(node.op_type != "QuantizeLinear" for node in graph.node if "image" in node.input)  # float normalisation
+    agreement = compare(int8_path, run_onnx(int8_path, crops), run_onnx(float_path, crops))
+    assert agreement.argmax_agreement == 1.0  # calibrated on these crops
+    with pytest.raises(PopcodeError, match="calibration crops"):
+        quantise(float_path, "int8", metadata)

@@ -27,8 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help=f"compute the output layer in column blocks of at most COLUMNS outputs "
                              f"(use {COREML_MAX_DIM} for onnxruntime's CoreML provider on Apple M1)")
     parser.add_argument("--crops", type=Path,
-                        help="crops for the parity check, a .npy float32 [N, 1, 128, 128] in [0, 1] "
-                             "(default: validation crops of the checkpoint's data)")
+                        help="crops for the parity check and int8 calibration, a .npy float32 [N, 1, 128, 128] "
+                             "in [0, 1] (default: validation crops of the checkpoint's data)")
     parser.set_defaults(handler=run)
 
 
