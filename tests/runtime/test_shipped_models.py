@@ -50,7 +50,7 @@ def test_every_builtin_part_has_one_small_model() -> None:
 @pytest.mark.parametrize("decoder", ["argmax", "refined"])
 def test_samples_are_estimated_up_to_symmetry(decoder: str) -> None:
     owners = shipped_models()
-    errors = []
+    errors, distance_errors = [], []
     for sample in samples():
         estimator = PoseEstimator(owners[sample["obj_id"]], decoder=decoder)
         image = read_image(SAMPLES.parent / sample["image"])
@@ -58,8 +58,9 @@ def test_samples_are_estimated_up_to_symmetry(decoder: str) -> None:
                                        translation=True)[0]
         info = estimator.metadata.objects[sample["obj_id"]]
         errors.append(error_up_to_symmetry_deg(prediction.R_m2c, np.array(sample["R_m2c"]), info))
-        # The distance from the box is within 10 % when the rotation is roughly right.
-        if errors[-1] < ROUGHLY_RIGHT_DEG:
-            t_true = np.array(sample["t_m2c_mm"])
-            assert np.linalg.norm(prediction.t_m2c_mm - t_true) < 0.1 * np.linalg.norm(t_true)
+        t_true = np.array(sample["t_m2c_mm"])
+        distance_errors.append(np.linalg.norm(prediction.t_m2c_mm - t_true) / np.linalg.norm(t_true))
     assert np.median(errors) < ROUGHLY_RIGHT_DEG, errors
+    # With the true rotation the box fit is within 1 % (bench/translation.py); a rotation tens of degrees
+    # off changes the silhouette, so the translation is asked to be within 10 % of the distance.
+    assert np.median(distance_errors) < 0.1, distance_errors
