@@ -67,7 +67,7 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
                   if s["obj_id"] == 3)
     box = ",".join(f"{v:g}" for v in sample["box"])
     result = subprocess.run([str(popcode), "predict", str(shipped), str(MODELS / "samples" / sample["image"]),
-                             "--box", box, "--top-k", "2", "--json"], capture_output=True, text=True)
+                             "--box", box, "--obj-id", "3", "--top-k", "2", "--json"], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
     R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c

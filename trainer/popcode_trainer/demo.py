@@ -45,10 +45,10 @@ class DemoSize:
 
 
 DEMO_SIZES = {
-    "quick": DemoSize(PipelineSize(train_images_per_object=400, test_images_per_object=40, epochs=12, n_axes=642,
+    "quick": DemoSize(PipelineSize(train_images_per_object=1000, test_images_per_object=40, epochs=20, n_axes=642,
                                    n_angles=36, network=SMALL_NETWORK, representations=(POPCODE, BASELINE)),
                       "about 15 minutes on a 2-core CPU"),
-    "medium": DemoSize(PipelineSize(train_images_per_object=2000, test_images_per_object=100, epochs=30, n_axes=642,
+    "medium": DemoSize(PipelineSize(train_images_per_object=4000, test_images_per_object=100, epochs=40, n_axes=642,
                                     n_angles=36, network=SMALL_NETWORK, representations=(POPCODE, BASELINE)),
                        "a few hours on a 2-core CPU, minutes on a GPU"),
     "paper": DemoSize(PipelineSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562,
@@ -59,9 +59,9 @@ DEMO_SIZES = {
 
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
-SECONDS_PER_RENDERED_IMAGE = 0.02
-SECONDS_PER_TRAINING_SAMPLE = 0.012
-SECONDS_PER_EVALUATED_INSTANCE = 0.03
+SECONDS_PER_RENDERED_IMAGE = 0.008
+SECONDS_PER_TRAINING_SAMPLE = 0.0035
+SECONDS_PER_EVALUATED_INSTANCE = 0.05
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 

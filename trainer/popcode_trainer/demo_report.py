@@ -163,7 +163,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         "## Models\n\n" + "\n".join(model_lines)
         + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
         f"```bash\npopcode info {run.link(example)}\n"
-        f"popcode predict {run.link(example)} {run.link(instance.image_path)} --box {box} --top-k 2\n```",
+        f"popcode predict {run.link(example)} {run.link(instance.image_path)} --box {box} "
+        f"--obj-id {instance.obj_id} --top-k 2\n```",
         "## Accuracy (rotation from the model, translation from the ground truth: the paper's protocol)\n\n"
         f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
         + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),
