@@ -32,7 +32,7 @@ def bash_commands(markdown: str) -> list[list[str]]:
 
 
 COMMANDS = bash_commands(README)
-INLINE_BENCH = re.findall(r"`PYTHONPATH=\S+ python (bench/\w+\.py)((?: --?\w+)*)`", README)
+INLINE_BENCH = re.findall(r"`PYTHONPATH=\S+ python (bench/\w+\.py)([^`]*)`", README)
 
 
 def _ids(commands: list[list[str]]) -> list[str]:
@@ -83,7 +83,7 @@ def test_links_and_images_exist() -> None:
 
 @pytest.mark.parametrize("script, options", INLINE_BENCH)
 def test_bench_commands_parse(script: str, options: str) -> None:
-    result = subprocess.run([sys.executable, str(ROOT / script), *options.split(), "--help"],
+    result = subprocess.run([sys.executable, str(ROOT / script), *shlex.split(options), "--help"],
                             capture_output=True, text=True, cwd=ROOT)
     assert result.returncode == 0, result.stderr
 
