@@ -30,6 +30,7 @@ from .eval.evaluate import EvalSplit, Method, MethodResult, OnnxModel, evaluate_
 from .eval.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
 from .eval.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from .eval.report import write_report
+from .network import NetworkConfig
 from .pipeline import SMALL_NETWORK, PipelineSize, object_groups, render_splits, run_dir, train_and_export
 
 BASELINE = Representation.SINGLE_VARIABLE
@@ -101,7 +102,8 @@ def _minutes(seconds: float) -> str:
 def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int) -> StagePlan:
     """The demo's steps with their estimated seconds on the reference CPU."""
     images = objects * (size.train_images_per_object + size.test_images_per_object)
-    width = np.prod(size.network.get("conv_channels", [128, 256, 256])) / np.prod(SMALL_NETWORK["conv_channels"])
+    conv_channels = size.network.get("conv_channels", NetworkConfig.conv_channels)
+    width = np.prod(conv_channels) / np.prod(SMALL_NETWORK["conv_channels"])
     stages = [("render", images * SECONDS_PER_RENDERED_IMAGE)]
     for representation in size.representations:
         for obj_ids in groups:

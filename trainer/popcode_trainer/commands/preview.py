@@ -18,7 +18,7 @@ from popcode_runtime import CodeLayout, symmetry_class
 from ..data.augment import Augmentation
 from ..data.bop import read_bop_split
 from ..data.samples import CropDataset
-from ..eval.figures import axis_activations, sphere_panel
+from ..eval.figures import axis_activations, save_figure, sphere_panel
 from ..representations import PerObjectPopulationCodes
 
 _PAIRS_PER_ROW = 4
@@ -59,9 +59,7 @@ def write_preview(dataset: CropDataset, indices: list[int], codes: PerObjectPopu
         code_ax = sphere_panel(figure, (rows, 2 * _PAIRS_PER_ROW, 2 * slot + 2), layout, activation,
                                f"target, peak {peak:.2f}", vmax=max(peak, 1e-6), colorbar=False, fontsize=8)
         code_ax.set_yticklabels([])
-    figure.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out)
+    save_figure(figure, out)
 
 
 def run(args: argparse.Namespace) -> int:

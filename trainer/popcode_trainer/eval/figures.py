@@ -84,6 +84,16 @@ def sensitivity_curves(
     return SensitivityCurves(angles_deg, axis, errors)
 
 
+def save_figure(figure: Figure, path: str | Path) -> Path:
+    """Lay the figure out (unless it has its own layout engine), write it as a PNG and return the path."""
+    if figure.get_layout_engine() is None:
+        figure.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path)
+    return path
+
+
 def plot_sensitivity(curves: SensitivityCurves, path: str | Path, title: str = "") -> Path:
     """Write the curves as a PNG at ``path`` and return the path."""
     # A bare Figure renders with the Agg canvas and leaves pyplot's global state alone.
@@ -99,10 +109,7 @@ def plot_sensitivity(curves: SensitivityCurves, path: str | Path, title: str = "
     axes.set_ylim(bottom=0.0)
     axes.grid(alpha=0.3)
     axes.legend(fontsize=8)
-    figure.tight_layout()
-    path = Path(path)
-    figure.savefig(path)
-    return path
+    return save_figure(figure, path)
 
 
 def axis_activations(layout: CodeLayout, code: np.ndarray) -> np.ndarray:
@@ -160,10 +167,7 @@ def plot_code_comparison(layout: CodeLayout, predicted: np.ndarray, target: np.n
         profile.grid(alpha=0.3)
     if title:
         figure.suptitle(title, fontsize=10)
-    figure.tight_layout()
-    path = Path(path)
-    figure.savefig(path)
-    return path
+    return save_figure(figure, path)
 
 
 def plot_instance_code(estimator: PoseEstimator, instance: Instance, path: str | Path) -> Path:

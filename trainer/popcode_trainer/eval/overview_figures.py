@@ -16,6 +16,7 @@ from popcode_runtime.symmetries import symmetry_transforms
 
 from ..train import METRICS_FILE
 from .evaluate import MethodResult
+from .figures import save_figure
 
 AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # object x, y, z
 
@@ -48,10 +49,7 @@ def plot_training_curves(metrics_files: Mapping[str, str | Path], path: str | Pa
         axes.set_xlabel("epoch")
         axes.grid(alpha=0.3)
         axes.legend(fontsize=7)
-    figure.tight_layout()
-    path = Path(path)
-    figure.savefig(path)
-    return path
+    return save_figure(figure, path)
 
 
 def nearest_equivalent(R_true: np.ndarray, R_est: np.ndarray, info: Mapping) -> np.ndarray:
@@ -95,9 +93,7 @@ def plot_crop_grid(result: MethodResult, path: str | Path, per_object: int = 2, 
         axes.set_title(f"obj {inst.obj_id}: {error_deg:.0f}°", fontsize=8)
         axes.set_axis_off()
     figure.suptitle(f"{result.name}: estimated (solid) and true (dashed) axes x/y/z = red/green/blue", fontsize=9)
-    path = Path(path)
-    figure.savefig(path)
-    return path
+    return save_figure(figure, path)
 
 
 def metrics_files_of(run_dirs: Sequence[Path]) -> dict[str, Path]:
