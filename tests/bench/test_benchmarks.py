@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import latency
+import numpy as np
 import toy_orientation
 import translation
 
@@ -40,7 +41,7 @@ def test_latency_writes_the_contract(tmp_path: Path) -> None:
 
 
 def test_toy_orientation_has_every_row_of_table_one(tmp_path: Path) -> None:
-    toy_orientation.main(["--quick", "--out", str(tmp_path)])
+    toy_orientation.main(["--quick", "--jobs", "2", "--out", str(tmp_path)])  # also the process pool
     payload = json.loads((tmp_path / "toy_orientation.json").read_text(encoding="utf-8"))
     records = payload["records"]
     for record in records:
@@ -53,6 +54,20 @@ def test_toy_orientation_has_every_row_of_table_one(tmp_path: Path) -> None:
     table = (tmp_path / "toy_orientation.md").read_text(encoding="utf-8")
     for method in {m for _, m in rows}:
         assert f"| {method} |" in table
+
+
+def test_toy_shapes_lie_inside_the_image_pointing_at_their_angle() -> None:
+    # An arrow whose head leaves the image is a bar: no network can tell its direction.
+    rng = np.random.default_rng(0)
+    size, border = toy_orientation.IMAGE_SIZE, toy_orientation.BORDER
+    for kind in toy_orientation.PERIOD_DEG:
+        for angle in rng.uniform(0.0, 2.0 * np.pi, size=300):
+            polygons = toy_orientation.shape_polygons(kind, angle, rng)
+            points = np.concatenate(polygons)
+            assert points.min() >= border and points.max() <= size - border
+            if kind == "arrows":  # the head's tip lies along the angle (y up) from the shaft's centre
+                direction = polygons[1][0] - polygons[0].mean(axis=0)
+                assert np.isclose(np.arctan2(-direction[1], direction[0]) % (2 * np.pi), angle, atol=1e-9)
 
 
 def test_translation_compares_hull_points_with_box_corners(tmp_path: Path) -> None:
