@@ -12,11 +12,14 @@ graph, which one forward pass must read) over the memory read bandwidth
 measured here with the same number of threads (numpy sums over a large
 array, best of several). The output layer's share comes from onnxruntime's
 profiler (node times of ``/head/`` nodes over all node times, batch 1).
-Argmax agreement of the quantised variants with fp32 is measured on crops of
-rendered built-in objects; with random weights it says how much quantisation
-moves the peak of an untrained code, which is a harder test than a trained
-code's clear peak, but not the same one. int8 is calibrated on the even
-crops; agreement is measured on the odd ones. The compute floor is the MACs
+Argmax and pose agreement of the quantised variants with fp32 are measured on
+crops of rendered built-in objects; with random weights they say how much
+quantisation moves the peak of an untrained code, which is a harder test than
+a trained code's clear peak, but not the same one. The model is of one object
+without symmetry, so the pose agreement (same decoded rotation within one
+grid step, see ``popcode_trainer.export.pose_agreement``) differs from the
+argmax agreement only by peaks that moved to a grid neighbour. int8 is
+calibrated on the even crops; agreement is measured on the odd ones. The compute floor is the MACs
 over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
 estimate, not a strict bound -- with the cores shared, the 2-thread peak is
 depressed and some 2-thread rows fall below 1x.
@@ -184,22 +187,24 @@ def node_shares(path: Path, crops: np.ndarray, threads: int, runs: int, work: Pa
 
 
 def rendered_crops(work: Path, per_object: int, size: int) -> np.ndarray:
-    """Crops ``(N, 1, S, S)`` of the rendered built-in objects: real-ish input for argmax agreement."""
+    """Crops ``(N, 1, S, S)`` of the rendered built-in objects: real-ish input for the agreement with fp32."""
     split = render_builtin_split(work / "render", per_object, seed=1)
     config = Config.from_dict({"data": {"splits": [str(split)], "models_dir": str(split / "models"),
                                         "val_fraction": 0.0, "crop_size": size, "num_workers": 0}})
-    return validation_crops(config, count=10_000)  # no validation share: every instance
+    return validation_crops(config, count=10_000)[0]  # no validation share: every instance
 
 
 def export_variants(name: str, network: Network, calibration: np.ndarray,
-                    work: Path) -> tuple[PopcodeNet, dict[str, Path]]:
-    """Random-weight model in eval mode and its fp32 + quantised ONNX files (int8 calibrated on ``calibration``)."""
+                    work: Path) -> tuple[PopcodeNet, ModelMetadata, dict[str, Path]]:
+    """Random-weight model in eval mode, its metadata and its fp32 + quantised ONNX files (int8 calibrated on
+    ``calibration``)."""
     torch.manual_seed(0)
     model = PopcodeNet(network.config).eval()
     metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=network.layout,
                              objects={1: {"diameter": 100.0}}, input_size=network.config.input_size)
     fp32 = export_onnx(model, metadata, work / f"{name}.onnx")
-    return model, {"fp32": fp32, **{v: quantise(fp32, kind, metadata, calibration) for v, kind in QUANTISED.items()}}
+    variants = {v: quantise(fp32, kind, metadata, calibration) for v, kind in QUANTISED.items()}
+    return model, metadata, {"fp32": fp32, **variants}
 
 
 def torch_stats(model: PopcodeNet, crops: np.ndarray, threads: int, budget: Budget) -> list[dict[str, Any]]:
@@ -238,17 +243,17 @@ def bench_network(name: str, budget: Budget, thread_counts: Sequence[int], bandw
                   peaks: dict[tuple[int, bool], float], crops: np.ndarray, work: Path) -> dict[str, Any]:
     """Every record of one network, plus its size, node-time shares and decoder times.
 
-    int8 is calibrated on the even crops; every variant's argmax agreement
-    with fp32 is measured on the odd ones, which calibration never saw.
+    int8 is calibrated on the even crops; every variant's argmax and pose
+    agreement with fp32 are measured on the odd ones, which calibration never saw.
     """
     network = NETWORKS[name]
     calibration, held_out = crops[::2], crops[1::2]
-    model, paths = export_variants(name, network, calibration, work)
+    model, metadata, paths = export_variants(name, network, calibration, work)
     macs = count_macs(model, network.config.input_size)
     fp32_output = run_onnx(paths["fp32"], held_out)
     sizes = {variant: weight_bytes(path) for variant, path in paths.items()}
     sizes["torch-eager"] = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()])
-    agreement = {v: compare(paths[v], run_onnx(paths[v], held_out), fp32_output).argmax_agreement for v in QUANTISED}
+    agreement = {v: compare(paths[v], run_onnx(paths[v], held_out), fp32_output, metadata) for v in QUANTISED}
     records = []
     for threads in thread_counts:
         for variant in [*paths, "torch-eager"]:
@@ -265,7 +270,8 @@ def bench_network(name: str, budget: Budget, thread_counts: Sequence[int], bandw
                           "compute_floor_ms": compute_floor_ms * row["batch"],
                           "x_compute_floor": row["median_ms"] / (compute_floor_ms * row["batch"])}
                 if variant in QUANTISED:
-                    record["argmax_agreement"] = agreement[variant]
+                    record["argmax_agreement"] = agreement[variant].argmax_agreement
+                    record["pose_agreement"] = agreement[variant].pose_agreement
                 if row["batch"] == 1 and row["stage"] == "inference":
                     record.update(shares)
                 records.append(record)
@@ -288,10 +294,11 @@ def summary_table(records: list[dict[str, Any]]) -> str:
     fp32 = {r["network"]: r["median_ms"] for r in rows if r["variant"] == "fp32"}
     return markdown_table(
         ["network", "variant", "median ms", "x memory floor", "compute floor ms", "x compute floor", "fp32 / this",
-         "argmax agr.", "conv share", "output-layer share"],
+         "argmax agr.", "pose agr.", "conv share", "output-layer share"],
         [[r["network"], r["variant"], _fmt(r["median_ms"]), _fmt(r["x_floor"], 1), _fmt(r["compute_floor_ms"]),
           _fmt(r["x_compute_floor"], 1), _fmt(fp32[r["network"]] / r["median_ms"], 1),
-          _fmt(r.get("argmax_agreement"), 3), _fmt(r.get("conv_share"), 2), _fmt(r.get("output_layer_share"), 2)]
+          _fmt(r.get("argmax_agreement"), 3), _fmt(r.get("pose_agreement"), 3), _fmt(r.get("conv_share"), 2),
+          _fmt(r.get("output_layer_share"), 2)]
          for r in rows])
 
 
@@ -301,11 +308,11 @@ def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any
     rows = [[r["network"], r["variant"], r["threads"], r["batch"], r["stage"], _fmt(r["median_ms"]),
              _fmt(r["p90_ms"]), _fmt(r["p99_ms"]), _fmt(r["crops_per_s"], 0), _fmt(r["floor_ms"], 3),
              _fmt(r["x_floor"], 1), _fmt(r["compute_floor_ms"]), _fmt(r.get("argmax_agreement"), 3),
-             _fmt(r.get("conv_share"), 2), _fmt(r.get("output_layer_share"), 2)]
+             _fmt(r.get("pose_agreement"), 3), _fmt(r.get("conv_share"), 2), _fmt(r.get("output_layer_share"), 2)]
             for r in records]
     latency = markdown_table(["network", "variant", "threads", "batch", "stage", "median ms", "p90 ms", "p99 ms",
-                              "crops/s", "floor ms", "x floor", "compute floor ms", "argmax agr.", "conv share",
-                              "output-layer share"], rows)
+                              "crops/s", "floor ms", "x floor", "compute floor ms", "argmax agr.", "pose agr.",
+                              "conv share", "output-layer share"], rows)
     fp32_inference = {(r["network"], r["threads"]): r["median_ms"] for r in records
                       if r["variant"] == "fp32" and r["stage"] == "inference" and r["batch"] == 1}
     all_threads = max(bandwidth)

@@ -84,6 +84,11 @@ class CodeLayout:
     def sigma_rad(self) -> float:
         return float(np.deg2rad(self.sigma_deg))
 
+    @property
+    def axis_spacing_rad(self) -> float:
+        """Typical angle between neighbouring lattice axes, ``sqrt(4 pi / n)`` (each axis holds ``4 pi / n`` sr)."""
+        return float(np.sqrt(4.0 * np.pi / self.n_axes))
+
     @cached_property
     def axes(self) -> np.ndarray:
         """Preferred axes ``(n_axes, 3)``."""

@@ -72,7 +72,7 @@ def refine_axis(layout: CodeLayout, peak_axis: int, activations: np.ndarray) -> 
     if curvature <= 0:
         return u
     offset = np.array([g1, g2]) / (2.0 * curvature)
-    spacing = np.sqrt(4.0 * np.pi / layout.n_axes)
+    spacing = layout.axis_spacing_rad
     length = np.linalg.norm(offset)
     if length > spacing:
         offset *= spacing / length

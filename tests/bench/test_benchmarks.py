@@ -23,6 +23,9 @@ def test_latency_writes_the_contract(tmp_path: Path) -> None:
         assert set(record) >= LATENCY_FIELDS
         assert record["stage"] in ("end-to-end", "inference")
         assert ("argmax_agreement" in record) == (record["variant"] in latency.QUANTISED)
+        assert ("pose_agreement" in record) == (record["variant"] in latency.QUANTISED)
+        if "pose_agreement" in record:  # the same argmax is the same pose
+            assert 0.0 <= record["argmax_agreement"] <= record["pose_agreement"] <= 1.0
     variants = {r["variant"] for r in records}
     assert variants == {"fp32", "torch-eager", *latency.QUANTISED}
     assert {r["batch"] for r in records} == set(latency.BATCHES)

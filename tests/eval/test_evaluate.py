@@ -54,7 +54,8 @@ def models(split: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path,
     })
     data = build_training_data(config)
     train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
-    onnx_path = export_checkpoint(run_dir / checkpoint.LAST, run_dir / "model.onnx", validation_crops(config))[0].path
+    crops, obj_ids = validation_crops(config)
+    onnx_path = export_checkpoint(run_dir / checkpoint.LAST, run_dir / "model.onnx", crops, obj_ids=obj_ids)[0].path
     return run_dir / checkpoint.LAST, onnx_path
 
 

@@ -15,7 +15,7 @@ from popcode_runtime import (
     symmetry_rotations,
 )
 from popcode_runtime.decoding import decode_output
-from popcode_runtime.hypotheses import find_hypotheses
+from popcode_runtime.hypotheses import argmax_tolerance_rad, find_hypotheses, same_pose
 from popcode_runtime.refine import decode_refined, lattice_neighbours
 from popcode_runtime.rotations import axis_angle_to_matrix, geodesic_angle, random_rotations
 from popcode_runtime.symmetries import continuous_axis
@@ -123,6 +123,37 @@ def test_hypotheses_of_two_different_poses_are_ranked_by_activation():
     assert np.degrees(geodesic_angle(found[0].R_m2c, R_strong)) < 0.5
     assert np.degrees(geodesic_angle(found[1].R_m2c, R_weak)) < 0.5
     assert found[0].score == pytest.approx(2 / 3, abs=0.02)
+
+
+@pytest.mark.parametrize("n_axes,n_angles", [(162, 36), (642, 36), (642, 18)])
+def test_argmax_decodes_of_equivalent_rotations_are_one_pose_within_the_grid_tolerance(n_axes, n_angles):
+    """The argmax decode of R S_k is ``same_pose`` as that of R within one grid step; half a step is too
+    tight (equivalents of a grid rotation are off the grid), and a non-symmetry rotation is another pose."""
+    rng = np.random.default_rng(27)
+    layout = CodeLayout(n_axes=n_axes, n_angles=n_angles)
+    pc, tolerance = PopulationCode(layout), argmax_tolerance_rad(layout)
+    assert np.degrees(tolerance) == pytest.approx(np.hypot(360 / n_angles, 2 * np.degrees(np.sqrt(4 * np.pi / n_axes))))
+    S = symmetry_rotations(CASES["four_fold"])
+    R = random_rotations(200, rng)
+    decoded = np.stack([pc.decode(pc.encode(R @ s)).R for s in S], axis=1)  # (N, 4, 3, 3)
+    same = [same_pose(layout, d[k], d[0], S, tolerance) for d in decoded for k in range(1, 4)]
+    assert all(same)
+    assert not all(same_pose(layout, d[k], d[0], S, tolerance / 2) for d in decoded for k in range(1, 4))
+    quarter_turn_x = axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), np.pi / 2)  # not a symmetry
+    other = pc.decode(pc.encode(R @ quarter_turn_x)).R
+    assert not any(same_pose(layout, o, d[0], S, tolerance) for o, d in zip(other, decoded, strict=True))
+
+
+def test_axis_only_argmax_decodes_compare_the_symmetry_axis():
+    rng = np.random.default_rng(28)
+    layout = CodeLayout(n_axes=642, axis_only=True, symmetry_axis=(0.0, 0.0, 1.0))
+    pc, tolerance = PopulationCode(layout), argmax_tolerance_rad(layout)
+    S = symmetry_rotations(CASES["continuous_flip"])
+    R = random_rotations(300, rng)
+    spin = axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), 1.0)  # about the symmetry axis: the same pose
+    plain, flipped = pc.decode(pc.encode(R)).R, pc.decode(pc.encode(R @ S[1] @ spin)).R
+    assert all(same_pose(layout, f, p, S, tolerance) for f, p in zip(flipped, plain, strict=True))
+    assert not any(same_pose(layout, f, p, S[:1], tolerance) for f, p in zip(flipped, plain, strict=True))
 
 
 @pytest.mark.parametrize("bad,message", [(np.zeros, "flat"), (np.ones, "flat")])

@@ -58,10 +58,19 @@ def test_export_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     ckpt, crops = trained_checkpoint(tmp_path)
     np.save(tmp_path / "crops.npy", crops)
     out = tmp_path / "model.onnx"
+    capsys.readouterr()  # the training's log
     assert main(["export", str(ckpt), "--out", str(out), "--crops", str(tmp_path / "crops.npy"),
                  "--quantize", "int8", "--split-output", "256"]) == 0
     assert out.is_file() and (tmp_path / "model.int8.onnx").is_file()
-    assert "argmax agreement" in capsys.readouterr().out
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[-4:] == ["argmax", "agreement", "pose", "agreement"]
+    for line, name in zip(lines[1:3], ("model.onnx", "model.int8.onnx"), strict=True):
+        assert line.split()[0].endswith(name) and line.split()[-1].endswith("%")  # one object: pose measured
+    assert lines[1].split()[-2:] == ["100.0%", "100.0%"]  # onnxruntime vs torch
+    np.save(tmp_path / "ids.npy", np.full(len(crops), 7))
+    assert main(["export", str(ckpt), "--out", str(out), "--crops", str(tmp_path / "crops.npy"),
+                 "--crop-obj-ids", str(tmp_path / "ids.npy")]) == 2
+    assert "object ids [7] are not in this model" in capsys.readouterr().err
     assert main(["export", str(tmp_path / "missing.pt"), "--out", str(out), "--crops",
                  str(tmp_path / "crops.npy")]) == 2
 

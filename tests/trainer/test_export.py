@@ -9,13 +9,15 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
+from symmetry_cases import CASES
 from synthetic import K, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
-from popcode_runtime.code import CodeLayout
+from popcode_runtime.code import CodeLayout, PopulationCode
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
+from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer import checkpoint
 from popcode_trainer.export import compare, export_checkpoint, export_onnx, load_checkpoint_model, quantise, run_onnx
 from popcode_trainer.network import NetworkConfig, PopcodeNet
@@ -75,9 +77,9 @@ def test_export_meets_the_contract_and_quantises(tmp_path: Path) -> None:
     results = export_checkpoint(ckpt, onnx_path, crops, quantisations=("int8", "nbits4", "nbits8"),
                                 split_output=100)
     parity, *quantised = results
-    assert parity.max_abs_diff < 1e-4 and parity.argmax_agreement == 1.0
+    assert parity.max_abs_diff < 1e-4 and parity.argmax_agreement == parity.pose_agreement == 1.0
     assert [r.path.name for r in quantised] == ["model.int8.onnx", "model.nbits4.onnx", "model.nbits8.onnx"]
-    assert all(0.0 <= r.argmax_agreement <= 1.0 for r in quantised)
+    assert all(0.0 <= r.argmax_agreement <= r.pose_agreement <= 1.0 for r in quantised)  # same argmax: same pose
 
     model = onnx.load(str(onnx_path))
     ops = {node.op_type for node in model.graph.node}
@@ -119,7 +121,55 @@ def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
     running = optimised_op_types(int8_path, tmp_path / "optimised.onnx")
     assert running.count("QLinearConv") == 4 and not {"Conv", "Gemm", "MatMul", "FusedConv"} & set(running)
     assert all(node.op_type != "QuantizeLinear" for node in graph.node if "image" in node.input)  # float normalisation
-    agreement = compare(int8_path, run_onnx(int8_path, crops), run_onnx(float_path, crops))
-    assert agreement.argmax_agreement == 1.0  # calibrated on these crops
+    agreement = compare(int8_path, run_onnx(int8_path, crops), run_onnx(float_path, crops), metadata)
+    assert agreement.argmax_agreement == agreement.pose_agreement == 1.0  # calibrated on these crops
     with pytest.raises(PopcodeError, match="calibration crops"):
         quantise(float_path, "int8", metadata)
+
+
+GRID = CodeLayout(n_axes=642, n_angles=36, sigma_deg=20.0)
+AXIS_GRID = CodeLayout(n_axes=642, axis_only=True, symmetry_axis=(0.0, 0.0, 1.0))
+HALF_TURN_X = axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), np.pi)
+
+
+def turn_z(angle_deg: float) -> np.ndarray:
+    return axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.deg2rad(angle_deg))
+
+
+def two_peak_outputs(layout: CodeLayout, turn: np.ndarray, count: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Codes with near-equal peaks at R and R @ turn: the reference's peak at R is 5 % higher, the output's at
+    R @ turn, as when quantisation noise swaps which of two peaks wins."""
+    pc = PopulationCode(layout)
+    R = random_rotations(count, np.random.default_rng(7))
+    both = pc.encode(R, np.stack([np.eye(3), turn]))
+    return both + 0.05 * pc.encode(R @ turn), both + 0.05 * pc.encode(R)
+
+
+@pytest.mark.parametrize(("layout", "case", "turn", "pose_agreement"), [
+    (GRID, "two_fold", turn_z(180), 1.0),  # the two peaks are one pose of this object
+    (GRID, "four_fold", turn_z(90), 1.0),
+    (GRID, "two_fold", turn_z(90), 0.0),  # a quarter turn is another pose of a 2-fold object
+    (GRID, "none", turn_z(180), 0.0),
+    (AXIS_GRID, "continuous_flip", HALF_TURN_X, 1.0),  # the axis flipped end to end: the same pose
+    (AXIS_GRID, "continuous", HALF_TURN_X, 0.0),
+])
+def test_pose_agreement_counts_swapped_symmetric_peaks_as_agreeing(layout: CodeLayout, case: str,
+                                                                   turn: np.ndarray, pose_agreement: float) -> None:
+    output, reference = two_peak_outputs(layout, turn)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=layout, objects={3: CASES[case]})
+    result = compare(Path("variant.onnx"), output, reference, metadata)
+    assert result.argmax_agreement == 0.0
+    assert result.pose_agreement == pose_agreement
+
+
+def test_pose_agreement_takes_each_crops_symmetries_from_its_object() -> None:
+    output, reference = two_peak_outputs(GRID, turn_z(180), count=12)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=GRID,
+                             objects={1: CASES["none"], 2: CASES["two_fold"]})
+    assert compare(Path("v.onnx"), output, reference, metadata, obj_ids=[2] * 12).pose_agreement == 1.0
+    assert compare(Path("v.onnx"), output, reference, metadata, obj_ids=[1, 2] * 6).pose_agreement == 0.5
+    assert compare(Path("v.onnx"), output, reference, metadata).pose_agreement is None  # objects unknown
+    with pytest.raises(PopcodeError, match=r"object ids \[5\] are not in this model"):
+        compare(Path("v.onnx"), output, reference, metadata, obj_ids=[5] * 12)
+    with pytest.raises(PopcodeError, match="got 3 object ids for 12 crops"):
+        compare(Path("v.onnx"), output, reference, metadata, obj_ids=[1, 2, 2])

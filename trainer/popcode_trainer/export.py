@@ -2,8 +2,8 @@
 
 The float model is checked twice: ``onnx.checker`` on the graph and a parity
 run (onnxruntime vs torch on the same crops: max absolute difference, argmax
-identical). Quantised models are written beside it, each with its argmax
-agreement against the float model; all carry the same metadata.
+identical). Quantised models are written beside it, each with its argmax and
+pose agreement against the float model; all carry the same metadata.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import tempfile
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +24,11 @@ import torch
 from onnx import helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
+from popcode_runtime.decoding import decode_output
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.hypotheses import argmax_tolerance_rad, same_pose
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+from popcode_runtime.symmetries import symmetry_rotations
 
 from . import checkpoint
 from .data.files import write_bytes_atomic
@@ -41,11 +45,19 @@ INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
 
 @dataclass(frozen=True)
 class Comparison:
-    """How closely one model's outputs follow a reference on the same crops."""
+    """How closely one model's outputs follow a reference on the same crops.
+
+    The argmax agreement undercounts for symmetric objects: their code has a
+    near-equal peak per equivalent pose, and tiny changes swap which is the
+    highest. The pose agreement (:func:`pose_agreement`) counts those crops
+    as agreeing; it is None where it cannot be measured (crops of unknown
+    objects for a model whose objects differ in symmetry).
+    """
 
     path: Path
     max_abs_diff: float
     argmax_agreement: float  # share of crops with the same argmax, in [0, 1]
+    pose_agreement: float | None  # share of crops decoded to the same pose up to symmetry, in [0, 1]
 
 
 def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
@@ -122,16 +134,64 @@ def run_onnx(path: str | Path, crops: np.ndarray) -> np.ndarray:
     return session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]
 
 
-def compare(path: Path, output: np.ndarray, reference: np.ndarray) -> Comparison:
+def crop_symmetries(metadata: ModelMetadata, count: int,
+                    obj_ids: Sequence[int] | None = None) -> list[np.ndarray] | None:
+    """The symmetry rotations ``(K, 3, 3)`` of each of ``count`` crops' objects, from the model's metadata.
+
+    Without ``obj_ids`` the crops may be of any of the model's objects: fine
+    when they all share one set of symmetries (a one-object model), else None.
+    """
+    if obj_ids is None:
+        first, *others = (symmetry_rotations(info) for info in metadata.objects.values())
+        if any(S.shape != first.shape or not np.allclose(S, first) for S in others):
+            return None
+        return [first] * count
+    ids = [int(i) for i in np.asarray(obj_ids).reshape(-1)]
+    if len(ids) != count:
+        raise PopcodeError(f"got {len(ids)} object ids for {count} crops")
+    unknown = sorted(set(ids) - set(metadata.objects))
+    if unknown:
+        raise PopcodeError(f"crop object ids {unknown} are not in this model (it knows {sorted(metadata.objects)})")
+    by_object = {obj_id: symmetry_rotations(info) for obj_id, info in metadata.objects.items()}
+    return [by_object[i] for i in ids]
+
+
+def pose_agreement(output: np.ndarray, reference: np.ndarray, metadata: ModelMetadata,
+                   obj_ids: Sequence[int] | None = None) -> float | None:
+    """Share of crops whose two outputs decode to the same pose up to the crop object's symmetries, in [0, 1].
+
+    Both go through the runtime's argmax decoder (``decode_output``); the
+    rotations are the same pose when :func:`~popcode_runtime.hypotheses.same_pose`
+    holds within :func:`~popcode_runtime.hypotheses.argmax_tolerance_rad` of
+    the model's code grid (one grid step per coordinate: what separates the
+    argmax decodes of one pose's equivalent peaks). Axis-only codes compare
+    the symmetry-axis direction. None when the crops' objects are needed but
+    unknown (see :func:`crop_symmetries`).
+    """
+    symmetries = crop_symmetries(metadata, len(output), obj_ids)
+    if symmetries is None:
+        return None
+    tolerance = argmax_tolerance_rad(metadata.code)
+    R_output, R_reference = decode_output(output, metadata).R, decode_output(reference, metadata).R
+    same = [same_pose(metadata.code, R_a, R_b, S, tolerance)
+            for R_a, R_b, S in zip(R_output, R_reference, symmetries, strict=True)]
+    return float(np.mean(same))
+
+
+def compare(path: Path, output: np.ndarray, reference: np.ndarray, metadata: ModelMetadata,
+            obj_ids: Sequence[int] | None = None) -> Comparison:
+    """``output`` against ``reference`` (both ``(N, D)``, same crops); ``obj_ids``: each crop's object."""
     return Comparison(path=path, max_abs_diff=float(np.abs(output - reference).max()),
-                      argmax_agreement=float(np.mean(output.argmax(1) == reference.argmax(1))))
+                      argmax_agreement=float(np.mean(output.argmax(1) == reference.argmax(1))),
+                      pose_agreement=pose_agreement(output, reference, metadata, obj_ids))
 
 
-def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray) -> tuple[Comparison, np.ndarray]:
+def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray, metadata: ModelMetadata,
+                 obj_ids: Sequence[int] | None = None) -> tuple[Comparison, np.ndarray]:
     """onnxruntime vs torch on ``crops``; refuses an export whose argmax differs anywhere."""
     with torch.no_grad():
         reference = model.eval()(torch.from_numpy(np.asarray(crops, np.float32))).numpy()
-    result = compare(onnx_path, run_onnx(onnx_path, crops), reference)
+    result = compare(onnx_path, run_onnx(onnx_path, crops), reference, metadata, obj_ids)
     if result.argmax_agreement < 1.0:
         raise PopcodeError(f"{onnx_path}: onnxruntime and torch disagree on the argmax of "
                            f"{100 * (1 - result.argmax_agreement):.1f}% of the crops "
@@ -220,21 +280,25 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
 
 
 def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: np.ndarray,
-                      quantisations: tuple[str, ...] = (), split_output: int = 0) -> list[Comparison]:
+                      quantisations: tuple[str, ...] = (), split_output: int = 0,
+                      obj_ids: Sequence[int] | None = None) -> list[Comparison]:
     """Export, check parity, quantise; returns the float parity and each quantised model's agreement.
 
     int8 is calibrated on ``crops`` too, so its agreement is measured on the
-    crops it was calibrated on.
+    crops it was calibrated on. ``obj_ids`` (the object of each crop) picks
+    each crop's symmetries for the pose agreement; a model of several objects
+    with different symmetries has none without them.
     """
     model, metadata = load_checkpoint_model(checkpoint_path)
     size = metadata.input_size
     crops = np.asarray(crops, dtype=np.float32)
     if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or len(crops) == 0:
         raise PopcodeError(f"parity crops must be float32 [N, 1, {size}, {size}], got {crops.shape}")
+    crop_symmetries(metadata, len(crops), obj_ids)  # bad object ids are refused before anything is written
     float_path = export_onnx(model, metadata, out_path, split_output)
-    parity, reference = check_parity(model, float_path, crops)
+    parity, reference = check_parity(model, float_path, crops, metadata, obj_ids)
     results = [parity]
     for kind in quantisations:
         path = quantise(float_path, kind, metadata, calibration=crops)
-        results.append(compare(path, run_onnx(path, crops), reference))
+        results.append(compare(path, run_onnx(path, crops), reference, metadata, obj_ids))
     return results

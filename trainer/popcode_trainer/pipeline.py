@@ -113,5 +113,6 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
         data = build_training_data(config)
         train(config, data.representation, data.train_set, data.val_set,
               resume=(folder / checkpoint.LAST).exists(), val_instances=data.val_instances)
-        export_checkpoint(folder / checkpoint.LAST, onnx_path, validation_crops(config), quantisations)
+        crops, obj_ids = validation_crops(config)
+        export_checkpoint(folder / checkpoint.LAST, onnx_path, crops, quantisations, obj_ids=obj_ids)
     return onnx_path, time.perf_counter() - started

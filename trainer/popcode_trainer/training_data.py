@@ -75,11 +75,16 @@ def build_training_data(config: Config) -> TrainingData:
     )
 
 
-def validation_crops(config: Config, count: int = 64) -> np.ndarray:
-    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)``: the export's parity check input."""
+def validation_crops(config: Config, count: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)`` and their object ids ``(N,)``.
+
+    The export's parity check input; the ids pick each crop's symmetries for
+    the pose agreement.
+    """
     instances, _ = read_instances(config)
     _, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
     chosen = (val or instances)[:count]
     crops = CropDataset(chosen, lambda _: np.zeros(1, np.float32), augmentation=None,
                         crop_size=config.data.crop_size, seed=config.train.seed)
-    return np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
+    images = np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
+    return images, np.array([inst.obj_id for inst in chosen], dtype=np.int64)

@@ -29,22 +29,45 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--crops", type=Path,
                         help="crops for the parity check and int8 calibration, a .npy float32 [N, 1, 128, 128] "
                              "in [0, 1] (default: validation crops of the checkpoint's data)")
+    parser.add_argument("--crop-obj-ids", type=Path, metavar="NPY",
+                        help="the object id of each of --crops, a .npy of N integers; picks each crop's symmetries "
+                             "for the pose agreement (needed for a model of objects with different symmetries)")
     parser.set_defaults(handler=run)
 
 
-def _crops(args: argparse.Namespace) -> np.ndarray:
+def _load_npy(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise PopcodeError(f"{what} file not found: {path}")
+    return np.load(path, allow_pickle=False)
+
+
+def _crops(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray | None]:
+    """Parity crops and their object ids (None: not given)."""
     if args.crops is not None:
-        if not args.crops.is_file():
-            raise PopcodeError(f"crops file not found: {args.crops}")
-        return np.load(args.crops, allow_pickle=False)
+        obj_ids = None if args.crop_obj_ids is None else _load_npy(args.crop_obj_ids, "crop object ids")
+        return _load_npy(args.crops, "crops"), obj_ids
+    if args.crop_obj_ids is not None:
+        raise PopcodeError("--crop-obj-ids names the objects of --crops; give --crops too")
     from ..training_data import validation_crops  # imports the data side only when needed
 
     return validation_crops(Config.from_dict(checkpoint.load(args.checkpoint)["config"]))
 
 
+def _percent(share: float | None) -> str:
+    return "n/a" if share is None else f"{100 * share:.1f}%"
+
+
 def run(args: argparse.Namespace) -> int:
-    results = export_checkpoint(args.checkpoint, args.out, _crops(args), tuple(args.quantize), args.split_output)
-    print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17}")
+    crops, obj_ids = _crops(args)
+    results = export_checkpoint(args.checkpoint, args.out, crops, tuple(args.quantize), args.split_output,
+                                obj_ids=obj_ids)
+    print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17} {'pose agreement':>15}")
     for result in results:
-        print(f"{str(result.path):<50} {result.max_abs_diff:>14.3g} {100 * result.argmax_agreement:>16.1f}%")
+        print(f"{str(result.path):<50} {result.max_abs_diff:>14.3g} {_percent(result.argmax_agreement):>17} "
+              f"{_percent(result.pose_agreement):>15}")
+    print("pose agreement: the same decoded rotation up to the object's symmetries, within one grid step "
+          "(the argmax may differ between the equivalent peaks of a symmetric object)")
+    if any(result.pose_agreement is None for result in results):
+        print("pose agreement n/a: the model's objects differ in symmetry; give the object of each crop "
+              "(--crop-obj-ids)")
     return 0
