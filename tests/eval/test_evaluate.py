@@ -6,6 +6,7 @@ import csv
 import json
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -27,7 +28,9 @@ from popcode_trainer.eval.evaluate import (  # noqa: E402
     methods_from_paths,
     read_eval_split,
 )
+from popcode_trainer.eval.report import write_report  # noqa: E402
 from popcode_trainer.eval.results import read_bop19_results  # noqa: E402
+from popcode_trainer.eval.scores import Thresholds  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS  # noqa: E402
 from popcode_trainer.export import export_checkpoint  # noqa: E402
 from popcode_trainer.train import train  # noqa: E402
@@ -75,6 +78,36 @@ def test_the_ground_truth_scores_full_marks(split: Path) -> None:
     assert list(result.groups) == list(GROUPS)
     for scores in result.groups.values():
         assert scores == {"VSD": 1.0, "MSSD": 1.0, "MSPD": 1.0, "e_VSD<0.3": 1.0, "VSS": 1.0, "ADI": 1.0}
+    assert result.tightest == {group: {"VSD": 1.0, "MSSD": 1.0, "MSPD": 1.0} for group in GROUPS}
+
+
+def test_report_has_a_table_of_the_tightest_threshold_recalls(split: Path, tmp_path: Path) -> None:
+    eval_split = read_eval_split([split], split / BUILTIN_MODELS_FOLDER)
+    R_gt = np.stack([inst.R_m2c for inst in eval_split.instances])
+    quarter_turn_x = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    metrics = SplitMetrics(eval_split)
+    try:
+        truth = evaluate_rotations("truth", R_gt, metrics)
+        # A quarter turn in the model frame is no symmetry of either object and moves vertices far beyond 5 %.
+        turned = evaluate_rotations("turned", R_gt @ quarter_turn_x, metrics)
+    finally:
+        metrics.close()
+    write_report([truth, turned], tmp_path)
+    markdown = (tmp_path / "report.md").read_text()
+    title = "## Tightest thresholds (recall): MSSD < 5 % of diameter, MSPD < 5 px, VSD < 0.05 at tau = 5 % of diameter"
+    assert title in markdown
+    section = markdown.split(title)[1].split("## Scores per object")[0]
+    assert section.count("| Method | VSD | MSSD | MSPD |") == len(GROUPS)
+    assert section.count("| truth | **100.00%** | **100.00%** | **100.00%** |") == len(GROUPS)
+    turned_rows = [line.split(" | ") for line in section.splitlines() if line.startswith("| turned |")]
+    assert len(turned_rows) == len(GROUPS) and all(row[2] == "0.00%" for row in turned_rows)  # the MSSD column
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["tightest_thresholds"] == {"mssd_fractions": 0.05, "mspd_px_at_640": 5.0, "vsd_taus": 0.05,
+                                             "vsd_thetas": 0.05}
+    assert report["methods"]["truth"]["tightest"] == {g: {"VSD": 1.0, "MSSD": 1.0, "MSPD": 1.0} for g in GROUPS}
+    assert all(scores["MSSD"] == 0.0 for scores in report["methods"]["turned"]["tightest"].values())
+    with pytest.raises(PopcodeError, match="different thresholds"):
+        write_report([truth, replace(turned, thresholds=Thresholds(mssd_fractions=(0.1,)))], tmp_path / "mixed")
 
 
 def test_checkpoint_and_onnx_side_by_side(split: Path, models: tuple[Path, Path], tmp_path: Path,

@@ -10,7 +10,15 @@ import pytest
 from symmetry_cases import CASES
 
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer.eval.scores import InstanceErrors, Thresholds, metric_scores, recall, scores_per_object
+from popcode_trainer.eval.scores import (
+    InstanceErrors,
+    Thresholds,
+    metric_scores,
+    recall,
+    scores_per_object,
+    tightest_recalls,
+    tightest_thresholds,
+)
 from popcode_trainer.eval.tables import (
     GROUPS,
     ambiguity_markdown,
@@ -76,6 +84,49 @@ def test_vsd_average_recall_over_taus_and_thetas():
     scores = metric_scores(_errors([1, 1], [0.0, 0.0], vsd=vsd), DIAMETERS, th)
     # theta 0.3: [F, T; F, T] -> 2/4; theta 0.5: [T, T; F, T] -> 3/4.
     assert scores["VSD"] == pytest.approx(5 / 8)
+
+
+def test_tightest_recalls_count_errors_strictly_below_the_first_threshold():
+    # MSSD 4.99, 5, 5.01 and 0 mm of a 100 mm object: only 4.99 and 0 are below 5 % (5 mm exactly is not).
+    # MSPD in a 1280 px wide image: 9.98, 10, 10.02 and 30 px are 4.99, 5, 5.01 and 15 px at 640: only the first.
+    # VSD: the first column is the 5 % tau; 0.04 is below theta 0.05, 0.05 is not, nor 0.9 (whatever the others).
+    vsd = np.ones((4, 10))
+    vsd[:, 0] = [0.04, 0.05, 0.9, 0.05]
+    vsd[1:, 1:] = 0.0
+    errors = InstanceErrors(
+        obj_id=np.array([1, 1, 2, 2]), image_width_px=np.full(4, 1280.0), mssd_mm=np.array([4.99, 5.0, 5.01, 0.0]),
+        mspd_px=np.array([9.98, 10.0, 10.02, 30.0]), adi_mm=np.zeros(4), vsd=vsd,
+    )
+    tightest = tightest_recalls(errors, DIAMETERS)
+    assert tightest == {"VSD": 1 / 4, "MSSD": 2 / 4, "MSPD": 1 / 4}
+    assert list(tightest) == ["VSD", "MSSD", "MSPD"]  # the column order of METRICS
+    # The BOP19 average is kinder: 5 and 5.01 mm still pass the nine thresholds from 10 % on.
+    assert metric_scores(errors, DIAMETERS)["MSSD"] == pytest.approx((10 + 9 + 9 + 10) / 40)
+    assert tightest_recalls(errors.select(np.array([True, True, False, False])), DIAMETERS)["MSSD"] == 1 / 2
+
+
+def test_tightest_is_the_smallest_threshold_and_follows_custom_thresholds():
+    th = Thresholds(mssd_fractions=(0.2, 0.1), mspd_px_at_640=(20.0, 10.0), vsd_taus=(0.3, 0.1), vsd_thetas=(0.4,))
+    assert tightest_thresholds(th) == {"mssd_fractions": 0.1, "mspd_px_at_640": 10.0, "vsd_taus": 0.1,
+                                       "vsd_thetas": 0.4}
+    assert tightest_thresholds() == {"mssd_fractions": 0.05, "mspd_px_at_640": 5.0, "vsd_taus": 0.05,
+                                     "vsd_thetas": 0.05}
+    # The second column is tau 0.1: 0.3 < 0.4 passes, the first column's 0.5 would not.
+    errors = _errors([1], [0.15], mspd_px=[9.0], vsd=np.array([[0.5, 0.3]]))
+    assert tightest_recalls(errors, DIAMETERS, th) == {"VSD": 1.0, "MSSD": 0.0, "MSPD": 1.0}
+    assert "VSD" not in tightest_recalls(_errors([1], [0.0]), DIAMETERS)
+    with pytest.raises(PopcodeError, match="one per tau"):
+        tightest_recalls(_errors([1], [0.0], vsd=np.zeros((1, 3))), DIAMETERS)
+
+
+def test_group_scores_of_tightest_recalls_by_ambiguity():
+    errors = _errors([1, 1, 2, 2, 2], [0.0, 0.05, 0.0, 0.049, 0.2], mspd_px=[0.0, 0.0, 0.0, 0.0, 5.0])
+    groups = group_scores(errors, DIAMETERS, {1: False, 2: True}, score=tightest_recalls)
+    assert groups["Without ambiguity"] == {"MSSD": 1 / 2, "MSPD": 1.0}
+    assert groups["With ambiguity"] == {"MSSD": 2 / 3, "MSPD": 2 / 3}
+    assert groups["All objects"] == {"MSSD": 3 / 5, "MSPD": 4 / 5}
+    per_object = group_scores(errors, DIAMETERS, {1: False, 2: True}, average="objects", score=tightest_recalls)
+    assert per_object["All objects"]["MSSD"] == pytest.approx((1 / 2 + 2 / 3) / 2)
 
 
 def test_vsd_errors_must_have_one_column_per_tau():

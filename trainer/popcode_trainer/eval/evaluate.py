@@ -14,7 +14,7 @@ import time
 import warnings
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -34,7 +34,7 @@ from ..data.bop import Instance, model_path, read_bop_split
 from ..export import load_checkpoint_model
 from .instance_errors import ObjectModel, compute_instance_errors
 from .pose_error import RenderDepth
-from .scores import InstanceErrors, Thresholds, scores_per_object
+from .scores import InstanceErrors, Thresholds, scores_per_object, tightest_recalls
 from .tables import ambiguous_objects, group_scores
 from .translation import object_points, translations_from_boxes
 
@@ -279,6 +279,10 @@ class SplitMetrics:
         return (scores_per_object(errors, self.diameters_mm, self.thresholds),
                 group_scores(errors, self.diameters_mm, self.ambiguous, self.thresholds))
 
+    def tightest(self, errors: InstanceErrors) -> dict[str, dict[str, float]]:
+        """Recall at each metric's tightest threshold alone, per ambiguity group."""
+        return group_scores(errors, self.diameters_mm, self.ambiguous, self.thresholds, score=tightest_recalls)
+
     def _group_errors(self, rows: np.ndarray, R_est: np.ndarray, t_est_mm: np.ndarray | None) -> InstanceErrors:
         chosen = [self.split.instances[i] for i in rows]
         depth = _DepthImages(chosen) if self.use_depth else None
@@ -364,9 +368,11 @@ class MethodResult:
     errors: InstanceErrors
     per_object: dict[int, dict[str, float]]
     groups: dict[str, dict[str, float]]
+    tightest: dict[str, dict[str, float]]  # per group, the recall at each metric's tightest threshold
     model_ms_per_crop: float  # crop + network + decoding; NaN for given rotations
     metric_s: float
     full_pose: FullPose | None = None  # when asked for: translation from the box, 6-D scores
+    thresholds: Thresholds = field(default_factory=Thresholds)  # those every score was computed with
 
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
@@ -382,8 +388,8 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
     errors = metrics.errors(R_est)
     per_object, groups = metrics.scores(errors)
     pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
-    return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups,
-                        model_ms_per_crop, time.perf_counter() - started, pose)
+    return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups, metrics.tightest(errors),
+                        model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds)
 
 
 def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True,

@@ -22,7 +22,7 @@ from popcode_runtime.errors import PopcodeError
 from .evaluate import EvalSplit, MethodResult
 from .pose_error import rotation_error_deg, translation_error_mm
 from .results import PoseEstimate, write_bop19_results
-from .scores import METRICS, InstanceErrors, Thresholds
+from .scores import METRICS, InstanceErrors, Thresholds, tightest_thresholds
 from .tables import ambiguity_markdown, ambiguous_objects, per_object_markdown, to_json
 from .translation import relative_translation_error, translation_markdown, translation_summary
 
@@ -92,7 +92,7 @@ def timing_markdown(results: Sequence[MethodResult]) -> str:
 
 
 def shared_split(results: Sequence[MethodResult]) -> EvalSplit:
-    """The split all results were scored on; results of different instances cannot share a table."""
+    """The split all results were scored on; results of other instances or thresholds cannot share a table."""
     if not results:
         raise PopcodeError("no results to report")
     split = results[0].split
@@ -100,11 +100,25 @@ def shared_split(results: Sequence[MethodResult]) -> EvalSplit:
         if [(i.scene_id, i.im_id, i.gt_index) for i in result.split.instances] != [
                 (i.scene_id, i.im_id, i.gt_index) for i in split.instances]:
             raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored on different instances")
+        if result.thresholds != results[0].thresholds:
+            raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored with different thresholds")
     return split
 
 
+def tightest_markdown(results: Sequence[MethodResult]) -> list[str]:
+    """The recall at each metric's tightest threshold alone, by pose ambiguity: title, note, tables."""
+    first = tightest_thresholds(results[0].thresholds)
+    title = (f"## Tightest thresholds (recall): MSSD < {100 * first['mssd_fractions']:g} % of diameter, "
+             f"MSPD < {first['mspd_px_at_640']:g} px")
+    if any("VSD" in scores for r in results for scores in r.tightest.values()):
+        title += f", VSD < {first['vsd_thetas']:g} at tau = {100 * first['vsd_taus']:g} % of diameter"
+    note = ("Each metric's tightest threshold alone (the scores above average over all of its thresholds); "
+            "MSPD in pixels of a 640 px wide image.")
+    return [title, note, ambiguity_markdown({r.name: r.tightest for r in results})]
+
+
 def report_markdown(results: Sequence[MethodResult]) -> str:
-    """Table IV (with / without ambiguity), one per-object table per metric (Table III) and timings."""
+    """Table IV (with / without ambiguity), its tightest-threshold recalls, per-object tables (Table III), timings."""
     split = shared_split(results)
     counts = Counter(inst.obj_id for inst in split.instances)
     ambiguity = ambiguous_objects(split.models_info)
@@ -113,6 +127,7 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
         "## Scores by pose ambiguity (paper Table IV)",
         f"Objects with ambiguity: {ambiguous or 'none'}; instances: {len(split.instances)}.",
         ambiguity_markdown({r.name: r.groups for r in results}),
+        *tightest_markdown(results),
         "## Scores per object (paper Table III)",
     ]
     present = [m for m in METRICS if any(m in s for r in results for s in r.per_object.values())]
@@ -151,19 +166,20 @@ def full_pose_markdown(results: Sequence[MethodResult]) -> list[str]:
 
 
 def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
-    """The JSON report: per method its models, per-object and grouped scores and timings."""
+    """The JSON report: per method its models, per-object and grouped scores, tightest recalls and timings."""
     split = shared_split(results)
     translation = translation_rows(results)
     methods: dict[str, Any] = {}
     for r in results:
         methods[r.name] = {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
-                           "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
+                           "tightest": r.tightest, "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
         if r.full_pose is not None:
             methods[r.name]["full_pose"] = {
                 "translation": translation[r.name], "translation_gt_rotation": translation[f"{r.name}, {GT_ROTATION}"],
                 "groups": r.full_pose.groups, "per_object": r.full_pose.per_object,
             }
-    return {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)), "methods": methods}
+    return {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
+            "tightest_thresholds": tightest_thresholds(results[0].thresholds), "methods": methods}
 
 
 def write_report(results: Sequence[MethodResult], out_dir: str | Path,

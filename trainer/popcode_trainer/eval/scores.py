@@ -4,12 +4,13 @@ A pose counts as correct only if its error is *strictly* below the threshold, as
 in the BOP toolkit. Errors are normalised before thresholding the way the
 toolkit does it: MSSD and ADI by the object diameter, MSPD by ``640 / image
 width``; VSD errors are already in [0, 1]. A metric's score is the recall averaged
-over its thresholds (and, for VSD, over the misalignment tolerances tau).
+over its thresholds (and, for VSD, over the misalignment tolerances tau);
+:func:`tightest_recalls` gives the recall at the first, tightest, threshold alone.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,6 +106,23 @@ def _diameters(obj_id: np.ndarray, diameters_mm: Mapping[int, float]) -> np.ndar
     return np.array([diameters_mm[int(i)] for i in obj_id], dtype=np.float64)
 
 
+def _normalised(
+    errors: InstanceErrors, diameters_mm: Mapping[int, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MSSD and ADI as fractions of each object's diameter, and MSPD in pixels of a 640 px wide image ``(N,)``."""
+    diameter = _diameters(errors.obj_id, diameters_mm)
+    return errors.mssd_mm / diameter, errors.mspd_px * (640.0 / errors.image_width_px), errors.adi_mm / diameter
+
+
+def _checked_vsd(errors: InstanceErrors, th: Thresholds) -> np.ndarray | None:
+    """The VSD errors ``(N, T)``, one per tau of ``th``; ``None`` without depth."""
+    if errors.vsd is not None and np.shape(errors.vsd)[1:] != (len(th.vsd_taus),):
+        raise PopcodeError(
+            f"VSD errors have shape {np.shape(errors.vsd)}; expected one per tau ({len(th.vsd_taus)})"
+        )
+    return errors.vsd
+
+
 def metric_scores(
     errors: InstanceErrors, diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None
 ) -> dict[str, float]:
@@ -113,18 +131,15 @@ def metric_scores(
     Depth-based metrics are absent from the result when their errors are ``None``.
     """
     th = thresholds or Thresholds()
-    diameter = _diameters(errors.obj_id, diameters_mm)
+    mssd_fraction, mspd_px_at_640, adi_fraction = _normalised(errors, diameters_mm)
     scores = {
-        "MSSD": float(recall(errors.mssd_mm / diameter, th.mssd_fractions).mean()),
-        "MSPD": float(recall(errors.mspd_px * (640.0 / errors.image_width_px), th.mspd_px_at_640).mean()),
-        "ADI": float(recall(errors.adi_mm / diameter, [th.adi_fraction])[0]),
+        "MSSD": float(recall(mssd_fraction, th.mssd_fractions).mean()),
+        "MSPD": float(recall(mspd_px_at_640, th.mspd_px_at_640).mean()),
+        "ADI": float(recall(adi_fraction, [th.adi_fraction])[0]),
     }
-    if errors.vsd is not None:
-        if np.shape(errors.vsd)[1:] != (len(th.vsd_taus),):
-            raise PopcodeError(
-                f"VSD errors have shape {np.shape(errors.vsd)}; expected one per tau ({len(th.vsd_taus)})"
-            )
-        scores["VSD"] = float(recall(errors.vsd, th.vsd_thetas).mean())
+    vsd = _checked_vsd(errors, th)
+    if vsd is not None:
+        scores["VSD"] = float(recall(vsd, th.vsd_thetas).mean())
     if errors.vsd_single_tau is not None:
         scores["e_VSD<0.3"] = float(recall(errors.vsd_single_tau, [th.vsd_single_theta])[0])
     if errors.vss is not None:
@@ -132,12 +147,48 @@ def metric_scores(
     return {name: scores[name] for name in METRICS if name in scores}
 
 
-def scores_per_object(
+def tightest_thresholds(thresholds: Thresholds | None = None) -> dict[str, float]:
+    """The smallest (tightest; the first in BOP19) value of each threshold list, by its :class:`Thresholds` field."""
+    th = thresholds or Thresholds()
+    names = ("mssd_fractions", "mspd_px_at_640", "vsd_taus", "vsd_thetas")
+    return {name: float(min(getattr(th, name))) for name in names}
+
+
+def tightest_recalls(
     errors: InstanceErrors, diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None
+) -> dict[str, float]:
+    """Recall in [0, 1] at each metric's tightest BOP19 threshold alone, keyed by metric name.
+
+    MSSD below the smallest of ``mssd_fractions`` (5 % of the diameter), MSPD below
+    the smallest of ``mspd_px_at_640`` (5 px at 640 px width) and, with depth, VSD
+    at the smallest tau below the smallest theta (0.05 at tau = 5 % of the
+    diameter). The normalisation and the strictly-below rule are :func:`metric_scores`'s.
+    """
+    th = thresholds or Thresholds()
+    first = tightest_thresholds(th)
+    mssd_fraction, mspd_px_at_640, _ = _normalised(errors, diameters_mm)
+    recalls = {
+        "MSSD": float(recall(mssd_fraction, [first["mssd_fractions"]])[0]),
+        "MSPD": float(recall(mspd_px_at_640, [first["mspd_px_at_640"]])[0]),
+    }
+    vsd = _checked_vsd(errors, th)
+    if vsd is not None:
+        tau_index = th.vsd_taus.index(first["vsd_taus"])
+        recalls["VSD"] = float(recall(vsd[:, tau_index], [first["vsd_thetas"]])[0])
+    return {name: recalls[name] for name in METRICS if name in recalls}
+
+
+ScoreFunction = Callable[[InstanceErrors, Mapping[int, float], Thresholds | None], dict[str, float]]
+"""``score(errors, diameters_mm, thresholds) -> {metric: value}``: :func:`metric_scores` or :func:`tightest_recalls`."""
+
+
+def scores_per_object(
+    errors: InstanceErrors, diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None,
+    score: ScoreFunction = metric_scores,
 ) -> dict[int, dict[str, float]]:
-    """:func:`metric_scores` for each object id, in increasing id order."""
+    """``score`` (by default :func:`metric_scores`) for each object id, in increasing id order."""
     obj_ids = np.asarray(errors.obj_id)
     return {
-        int(obj): metric_scores(errors.select(obj_ids == obj), diameters_mm, thresholds)
+        int(obj): score(errors.select(obj_ids == obj), diameters_mm, thresholds)
         for obj in np.unique(obj_ids)
     }

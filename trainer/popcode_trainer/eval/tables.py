@@ -17,7 +17,7 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class
 
-from .scores import METRICS, InstanceErrors, Thresholds, metric_scores, scores_per_object
+from .scores import METRICS, InstanceErrors, ScoreFunction, Thresholds, metric_scores, scores_per_object
 
 GROUPS = ("Without ambiguity", "With ambiguity", "All objects")
 
@@ -35,12 +35,13 @@ def group_scores(
     ambiguous: Mapping[int, bool],
     thresholds: Thresholds | None = None,
     average: Literal["instances", "objects"] = "instances",
+    score: ScoreFunction = metric_scores,
 ) -> dict[str, dict[str, float]]:
     """Scores for the groups of :data:`GROUPS` (the paper's Table IV).
 
     ``average="instances"`` pools the instances of a group, as the BOP toolkit's
     recall does; ``"objects"`` averages the per-object scores. A group without
-    instances has NaN scores.
+    instances has NaN scores. ``score`` computes them (e.g. :func:`.scores.tightest_recalls`).
     """
     obj_ids = np.asarray(errors.obj_id)
     unknown = sorted({int(i) for i in obj_ids} - set(ambiguous))
@@ -52,10 +53,10 @@ def group_scores(
     for group, mask in masks.items():
         chosen = errors.select(mask)
         if average == "instances":
-            result[group] = metric_scores(chosen, diameters_mm, thresholds)
+            result[group] = score(chosen, diameters_mm, thresholds)
         elif average == "objects":
-            per_object = scores_per_object(chosen, diameters_mm, thresholds).values()
-            names = metric_scores(chosen, diameters_mm, thresholds).keys()
+            per_object = scores_per_object(chosen, diameters_mm, thresholds, score).values()
+            names = score(chosen, diameters_mm, thresholds).keys()
             result[group] = {name: float(np.mean([s[name] for s in per_object])) if per_object else math.nan
                              for name in names}
         else:
