@@ -33,16 +33,11 @@ from popcode_runtime.metadata import Representation  # noqa: E402
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class  # noqa: E402
 from popcode_trainer.data.bop import load_models_info  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER  # noqa: E402
-from popcode_trainer.eval.evaluate import (  # noqa: E402
-    EvalSplit,
-    Method,
-    MethodResult,
-    OnnxModel,
-    evaluate_models,
-    read_eval_split,
-)
+from popcode_trainer.eval.evaluate import MethodResult, evaluate_models  # noqa: E402
 from popcode_trainer.eval.figures import plot_instance_code  # noqa: E402
+from popcode_trainer.eval.models import Method, OnnxModel  # noqa: E402
 from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
+from popcode_trainer.eval.split import EvalSplit, read_eval_split  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
 from popcode_trainer.pipeline import (  # noqa: E402
     SMALL_NETWORK,

@@ -33,9 +33,11 @@ from report import machine, markdown_table, write_results  # noqa: E402
 from popcode_trainer.data.bop import Instance  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, project, render_builtin_split  # noqa: E402
-from popcode_trainer.eval.evaluate import SplitMetrics, full_pose, read_eval_split  # noqa: E402
+from popcode_trainer.eval.split import read_eval_split  # noqa: E402
+from popcode_trainer.eval.split_metrics import SplitMetrics  # noqa: E402
 from popcode_trainer.eval.tables import ambiguity_markdown  # noqa: E402
 from popcode_trainer.eval.translation import (  # noqa: E402
+    full_pose,
     object_points,
     translation_markdown,
     translation_summary,

@@ -26,10 +26,12 @@ from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
 from .data.render import BUILTIN_MODELS_FOLDER
 from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
-from .eval.evaluate import EvalSplit, Method, MethodResult, OnnxModel, evaluate_models, read_eval_split
+from .eval.evaluate import MethodResult, evaluate_models
 from .eval.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
+from .eval.models import Method, OnnxModel
 from .eval.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from .eval.report import write_report
+from .eval.split import EvalSplit, read_eval_split
 from .network import NetworkConfig
 from .pipeline import SMALL_NETWORK, PipelineSize, object_groups, render_splits, run_dir, train_and_export
 

@@ -15,8 +15,9 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
 from .data.files import write_bytes_atomic
-from .eval.evaluate import EvalSplit, MethodResult
+from .eval.evaluate import MethodResult
 from .eval.report import REPORT_MD, full_pose_markdown
+from .eval.split import EvalSplit
 from .eval.tables import ambiguity_markdown, methods_markdown, to_json
 from .pipeline import PipelineSize
 

@@ -19,10 +19,11 @@ import numpy as np
 
 from popcode_runtime.errors import PopcodeError
 
-from .evaluate import EvalSplit, MethodResult
+from .evaluate import MethodResult
 from .pose_error import rotation_error_deg, translation_error_mm
 from .results import PoseEstimate, write_bop19_results
 from .scores import METRICS, InstanceErrors, Thresholds, tightest_thresholds
+from .split import EvalSplit
 from .tables import ambiguity_markdown, ambiguous_objects, per_object_markdown, to_json
 from .translation import relative_translation_error, translation_markdown, translation_summary
 

@@ -1,15 +1,17 @@
-"""Translation from the box in evaluation: the runtime's fit, and its error in mm and as a share of the distance.
+"""Translation from the box in evaluation: the runtime's fit, full 6-D poses with it, and its error.
 
 The paper scores rotations with the ground-truth translation; a robot has only
 the box. Each instance is placed as the runtime places it
 (:func:`popcode_runtime.translation.translation_from_box` with the points the
 model's metadata carries), so that full 6-D poses can be scored beside the
-paper's protocol and the translation error be reported on its own.
+paper's protocol (:func:`full_pose`) and the translation error be reported on
+its own, in mm and as a share of the distance.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,6 +21,8 @@ from popcode_runtime.translation import object_points_mm, translation_from_box
 
 from ..data.bop import Instance
 from .pose_error import translation_error_mm
+from .scores import InstanceErrors
+from .split_metrics import SplitMetrics
 
 SUMMARY_COLUMNS = {
     "median_te_mm": "median te [mm]",
@@ -53,6 +57,26 @@ def translations_from_boxes(R_m2c: np.ndarray, instances: Sequence[Instance],
         except PopcodeError as error:
             raise PopcodeError(f"scene {inst.scene_id}, image {inst.im_id}, object {inst.obj_id}: {error}") from error
     return t_mm
+
+
+@dataclass(frozen=True)
+class FullPose:
+    """Full 6-D poses of one method: its rotations with the translation fitted to each instance's box."""
+
+    t_est_mm: np.ndarray  # (N, 3) from the method's rotation, split order
+    t_gt_rotation_mm: np.ndarray  # (N, 3) from the ground-truth rotation: the error of the box fit alone
+    errors: InstanceErrors  # of (R_est, t_est_mm)
+    per_object: dict[int, dict[str, float]]
+    groups: dict[str, dict[str, float]]
+
+
+def full_pose(R_est: np.ndarray, metrics: SplitMetrics, points_mm: Mapping[int, np.ndarray]) -> FullPose:
+    """Fit each instance's translation to its box (with ``R_est`` and with the truth) and score the 6-D poses."""
+    instances = metrics.split.instances
+    t_est_mm = translations_from_boxes(R_est, instances, points_mm)
+    t_gt_rotation_mm = translations_from_boxes(np.stack([inst.R_m2c for inst in instances]), instances, points_mm)
+    errors = metrics.errors(R_est, t_est_mm)
+    return FullPose(t_est_mm, t_gt_rotation_mm, errors, *metrics.scores(errors))
 
 
 def relative_translation_error(t_est_mm: np.ndarray, t_gt_mm: np.ndarray) -> np.ndarray:

@@ -1,0 +1,60 @@
+"""The evaluation split: the ground-truth instances of one or more BOP splits that every method is scored on."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from popcode_runtime.errors import PopcodeError
+
+from ..data.bop import Instance, read_bop_split
+
+EVAL_MIN_VISIB_FRACT = 0.1  # the BOP19 test targets: at least 10 % of the object visible
+
+
+@dataclass(frozen=True)
+class EvalSplit:
+    """The ground-truth instances to evaluate and the objects they show."""
+
+    instances: list[Instance]
+    models_info: dict[int, dict[str, Any]]
+    models_dir: Path
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return sorted({inst.obj_id for inst in self.instances})
+
+
+def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, obj_ids: Iterable[int] | None = None,
+                    max_instances: int | None = None, min_visib_fract: float = EVAL_MIN_VISIB_FRACT) -> EvalSplit:
+    """Instances of one or more BOP splits; ``max_instances`` keeps the first N of each object."""
+    if not split_dirs:
+        raise PopcodeError("give at least one split folder")
+    instances: list[Instance] = []
+    models_info: dict[int, dict[str, Any]] = {}
+    for split_dir in split_dirs:
+        split = read_bop_split(split_dir, models_dir, obj_ids=obj_ids, min_visib_fract=min_visib_fract)
+        instances += split.instances
+        models_info = split.models_info
+    if max_instances is not None:
+        if max_instances < 1:
+            raise PopcodeError(f"max_instances must be at least 1, got {max_instances}")
+        taken: dict[int, int] = defaultdict(int)
+        kept = []
+        for inst in instances:
+            if taken[inst.obj_id] < max_instances:
+                taken[inst.obj_id] += 1
+                kept.append(inst)
+        instances = kept
+    used = {inst.obj_id for inst in instances}
+    return EvalSplit(instances, {k: v for k, v in models_info.items() if k in used}, Path(models_dir))
+
+
+def restrict_to_objects(split: EvalSplit, obj_ids: Iterable[int]) -> EvalSplit:
+    """The split's instances of ``obj_ids`` only."""
+    wanted = set(obj_ids)
+    kept = [inst for inst in split.instances if inst.obj_id in wanted]
+    return EvalSplit(kept, {k: v for k, v in split.models_info.items() if k in wanted}, split.models_dir)
