@@ -18,6 +18,8 @@ from .estimator import PoseEstimator, parse_camera_matrix
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 
+INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
+
 
 def _numbers(text: str, count: int | None, what: str) -> list[float]:
     try:
@@ -91,8 +93,20 @@ def _info(args: argparse.Namespace) -> int:
         size = f", diameter {diameter:.1f} mm" if isinstance(diameter, (int, float)) else ""
         print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}")
     for key, value in sorted(meta.training.items()):
-        print(f"training.{key:<8} {value}")
+        print(f"training.{key:<8} {_short(value)}")
     return 0
+
+
+def _short(value: object, width: int = INFO_VALUE_WIDTH) -> str:
+    """A training value for one line of ``info``: long settings are named only, ``--json`` prints them."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    text = str(value)
+    if len(text) <= width:
+        return text
+    if isinstance(value, dict):
+        return f"{len(value)} settings ({', '.join(map(str, value))}); --json prints them"
+    return text[: width - 25] + " ... (--json prints all)"
 
 
 def _bench(args: argparse.Namespace) -> int:

@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -54,6 +55,17 @@ def test_info(model, capsys):
     assert main(["info", str(model), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["output_dim"] == LAYOUT.size and info["popcode.training"]["dataset"] == "cli-test"
+
+
+def test_info_keeps_long_training_settings_to_json(capsys):
+    shipped = Path(__file__).parents[2] / "models" / "builtin-parts-3-6.onnx"
+    assert main(["info", str(shipped)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert all(len(line) <= 140 for line in lines), max(lines, key=len)
+    config_line = next(line for line in lines if line.startswith("training.config"))
+    assert "settings (data, " in config_line and "--json" in config_line
+    assert main(["info", str(shipped), "--json"]) == 0
+    assert "data" in json.loads(capsys.readouterr().out)["popcode.training"]["config"]
 
 
 def test_bench_json(model, capsys):
