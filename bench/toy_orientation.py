@@ -199,9 +199,9 @@ def run_repeats(repeats: int, epochs: int, train_count: int = TRAIN_COUNT, test_
                 methods: Sequence[Method] = METHODS, jobs: int = 1) -> dict[tuple[str, str], list[float]]:
     """Mean squared error [deg^2] of every (dataset, row) in every repeat, each on a new data set.
 
-    With ``jobs`` > 1 the trainings run in that many processes of one torch
-    thread each (small convolutions use cores better side by side than split);
-    the results are the same, as each training is seeded by its repeat.
+    With ``jobs`` > 1 the trainings run side by side in that many processes of
+    one torch thread each. Each training is seeded by its repeat, so the
+    results do not depend on ``jobs`` beyond floating-point summation order.
     """
     tasks = [(repeat, dataset, method.name) for repeat in range(repeats) for dataset in PERIOD_DEG
              for method in methods if dataset in method.datasets]
