@@ -29,18 +29,19 @@ Findings (2-core AMD EPYC, AVX-512 VNNI; ``results/latency.md``):
 - The paper network is compute-bound. Its three 5x5 convs are 1.27 of the
   1.31 GMAC per crop and ~78 % of fp32 node time; at the single-thread
   fp32 GEMM peak (~49 GMAC/s) they need >= 26 ms, 5.5x the 4.8 ms
-  weight-read floor. fp32 ran at 1.2x (quiet, 31 ms) to 1.7x (load 5,
-  46 ms) of that compute floor, so nothing cheap reaches the memory floor:
+  weight-read floor. fp32 ran at 1.1x (idle machine, 29 ms) to 1.7x
+  (load 5, 46 ms) of that compute floor, so nothing cheap reaches the memory floor:
   BatchNorm is already folded into the convs at export (no
   BatchNormalization node), onnxruntime's default ORT_ENABLE_ALL fuses
   Conv+Relu and runs the convs in its blocked NCHWc layout (EXTENDED, no
   NCHWc: 36 vs 32 ms), and intra-op spinning on/off changed nothing beyond
   the noise of the shared cores. Torch eager (oneDNN) is no faster.
 - Static int8 runs the convs as VNNI QLinearConv (uint8 x int8 GEMM ~4.4x
-  the fp32 peak): ~3.3x faster than fp32 at 100 % argmax agreement.
+  the fp32 peak): 3.1x (idle, 9.5 ms) to 3.3x faster than fp32 at 100 %
+  argmax agreement (random weights; ``agreement.py`` for trained models).
 - The ``light`` trunk (conv 32/64/128, the paper's MLP and code) is 142
-  MMAC: fp32 ~8 ms, 1.4x its memory floor, the output layer then ~57 % of
-  the time; int8 ~3.8 ms, the scale of the paper's 3.2 ms on an Apple M1,
+  MMAC: fp32 ~8.5 ms, 1.4-1.9x its memory floor, the output layer then
+  ~55 % of the time; int8 ~3.5 ms, the scale of the paper's 3.2 ms on an Apple M1,
   which suggests a trunk about this light there.
 """
 
