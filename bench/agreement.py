@@ -17,7 +17,6 @@ per object.
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,19 +29,16 @@ from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_trainer.data.bop import Instance
-from popcode_trainer.eval.split import read_eval_split
+from popcode_trainer.eval.split import read_eval_split, rows_by_image
 from popcode_trainer.export import compare
 
 
 def split_crops(estimator: PoseEstimator, instances: Sequence[Instance]) -> tuple[np.ndarray, np.ndarray]:
     """The runtime's crops ``(N, 1, S, S)`` of the instances, read image by image, and their object ids."""
-    by_image: dict[Path, list[Instance]] = defaultdict(list)
-    for inst in instances:
-        by_image[inst.image_path].append(inst)
     crops, obj_ids = [], []
-    for path, members in tqdm(by_image.items(), desc="crops", unit="image"):
-        crops.append(estimator.crops(read_image(path), [inst.box for inst in members]))
-        obj_ids += [inst.obj_id for inst in members]
+    for path, rows in tqdm(rows_by_image(instances).items(), desc="crops", unit="image"):
+        crops.append(estimator.crops(read_image(path), [instances[i].box for i in rows]))
+        obj_ids += [instances[i].obj_id for i in rows]
     return np.concatenate(crops), np.array(obj_ids)
 
 

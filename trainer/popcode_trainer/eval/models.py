@@ -9,7 +9,6 @@ instance is routed to the model that knows its object.
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from popcode_runtime.rotations import allocentric_to_egocentric
 
 from ..data.bop import Instance
 from ..export import load_checkpoint_model
+from .split import rows_by_image
 from .translation import object_points
 
 
@@ -127,9 +127,7 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
     if missing:
         raise PopcodeError(f"method {method.name!r} has no model for objects {missing} of the split "
                            f"(its models know {sorted(owner)}); pass --obj-ids to evaluate fewer objects")
-    by_image: dict[Path, list[int]] = defaultdict(list)
-    for index, inst in enumerate(instances):
-        by_image[inst.image_path].append(index)
+    by_image = rows_by_image(instances)
     R_est = np.empty((len(instances), 3, 3))
     model_s = 0.0
     for image_path, rows in tqdm(by_image.items(), desc=f"predict {method.name}", unit="img", disable=not progress):

@@ -53,6 +53,14 @@ def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, ob
     return EvalSplit(instances, {k: v for k, v in models_info.items() if k in used}, Path(models_dir))
 
 
+def rows_by_image(instances: Sequence[Instance]) -> dict[Path, list[int]]:
+    """The indices of the instances in each image, so that every image is read once."""
+    rows: dict[Path, list[int]] = defaultdict(list)
+    for index, inst in enumerate(instances):
+        rows[inst.image_path].append(index)
+    return rows
+
+
 def restrict_to_objects(split: EvalSplit, obj_ids: Iterable[int]) -> EvalSplit:
     """The split's instances of ``obj_ids`` only."""
     wanted = set(obj_ids)
