@@ -9,8 +9,8 @@ floor under any model's translation error. Rows compare the points the fit
 uses, the hull points the export writes against the 3-D box corners (what a
 model exported without meshes carries), on the rendered ``bbox_obj``; the hull
 points on the exact projected box (no pixel rounding) isolate the hull
-approximation, and the rendered box moved by -0.5 px tests the pixel convention
-(a mask box's edges lie half a pixel before its first pixel centre). The 6-D
+approximation (the rendered box's own error is its pixel rounding: an edge lies
+anywhere within the half pixel beyond the mask's last pixel centre). The 6-D
 scores of (ground-truth rotation, fitted translation) show what the fit costs in
 the BOP metrics. ``popcode-train evaluate --translation`` gives the same table
 for a model's own rotations.
@@ -30,6 +30,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 from report import machine, markdown_table, write_results  # noqa: E402
 
+from popcode_runtime.crop import box_from_edges  # noqa: E402
 from popcode_trainer.data.bop import Instance  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, project, render_builtin_split  # noqa: E402
@@ -46,14 +47,13 @@ from popcode_trainer.eval.translation import (  # noqa: E402
 
 HULL = f"{HULL_POINTS} hull points"
 CORNERS = "3-D box corners"
-ROWS = (f"{HULL}, rendered box", f"{CORNERS}, rendered box", f"{HULL}, exact box", f"{HULL}, rendered box -0.5 px")
+ROWS = (f"{HULL}, rendered box", f"{CORNERS}, rendered box", f"{HULL}, exact box")
 
 
 def exact_box(instance: Instance, vertices_mm: np.ndarray) -> tuple[float, float, float, float]:
-    """The unrounded box ``(x, y, w, h)`` of the projected mesh in the ground-truth pose."""
+    """The unrounded BOP box ``(x, y, w, h)`` of the projected mesh in the ground-truth pose."""
     uv = project(vertices_mm, instance.K, instance.R_m2c, instance.t_m2c_mm)
-    low, high = uv.min(axis=0), uv.max(axis=0)
-    return (float(low[0]), float(low[1]), *(float(v) for v in high - low))
+    return box_from_edges([*uv.min(axis=0), *uv.max(axis=0)])
 
 
 def per_object(t_mm: np.ndarray, instances: Sequence[Instance]) -> dict[int, dict[str, float]]:
@@ -76,9 +76,8 @@ def run_benchmark(out_dir: Path, images_per_object: int, size: int, seed: int) -
     metrics = SplitMetrics(split)
     try:
         exact = [replace(inst, box=exact_box(inst, metrics.objects[inst.obj_id].pts_mm)) for inst in instances]
-        shifted = [replace(inst, box=(inst.box[0] - 0.5, inst.box[1] - 0.5, *inst.box[2:])) for inst in instances]
         fits = dict(zip(ROWS, (translations_from_boxes(R_gt, boxes, points) for boxes, points in (
-            (instances, hull), (instances, corners), (exact, hull), (shifted, hull))), strict=True))
+            (instances, hull), (instances, corners), (exact, hull))), strict=True))
         scores = {points_name: full_pose(R_gt, metrics, points).groups
                   for points_name, points in ((HULL, hull), (CORNERS, corners))}
     finally:

@@ -3,6 +3,12 @@
 A box ``(x, y, w, h)`` in pixels becomes a square of side ``padding * max(w, h)``
 centred on the box centre; what falls outside the image is 0. The square is
 resized to ``size x size``, grey, float32 in [0, 1].
+
+Boxes follow the BOP toolkit (``calc_2d_bbox``): ``(x, y)`` is the first pixel,
+``w`` and ``h`` run from the first pixel's centre to the last one's, so with
+OpenCV's pixel centres at whole coordinates the object spans ``x - 0.5`` to
+``x + w + 0.5`` (:func:`box_edges`). Only the translation fit cares about this
+half pixel; the crop uses the centre, which both readings share.
 """
 
 from __future__ import annotations
@@ -126,6 +132,19 @@ def crop_batch(
         raise PopcodeError("no boxes given")
     crops = [crop_square(grey, box, size, padding) for box in boxes]
     return np.stack(crops)[:, None]
+
+
+def box_edges(box: Sequence[float]) -> np.ndarray:
+    """The silhouette's edges ``(x_min, y_min, x_max, y_max)`` [px, OpenCV] of a BOP box ``(x, y, w, h)``."""
+    x, y, w, h = (float(v) for v in box)
+    return np.array([x - 0.5, y - 0.5, x + w + 0.5, y + h + 0.5])
+
+
+def box_from_edges(edges: Sequence[float]) -> tuple[float, float, float, float]:
+    """The BOP box ``(x, y, w, h)`` of a silhouette with edges ``(x_min, y_min, x_max, y_max)``; inverts
+    :func:`box_edges`."""
+    x_min, y_min, x_max, y_max = (float(v) for v in edges)
+    return x_min + 0.5, y_min + 0.5, x_max - x_min - 1.0, y_max - y_min - 1.0
 
 
 def box_centre(box: Sequence[float]) -> np.ndarray:

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .crop import box_edges
 from .errors import PopcodeError
 
 
@@ -47,15 +48,15 @@ def _box_of(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
 def translation_from_box(
     R_m2c: np.ndarray, box: Sequence[float], K: np.ndarray, points_mm: np.ndarray, iterations: int = 30
 ) -> np.ndarray:
-    """Translation ``(3,)`` [mm] placing ``points_mm`` (rotated by ``R_m2c``) to fill ``box`` (x, y, w, h px)."""
-    x, y, w, h = (float(v) for v in box)
-    target = np.array([x, y, x + w, y + h])
+    """Translation ``(3,)`` [mm] placing ``points_mm`` (rotated by ``R_m2c``) to fill ``box`` (x, y, w, h px, BOP)."""
+    target = box_edges(box)
     rotated = points_mm @ np.asarray(R_m2c, dtype=np.float64).T
     # Start on the ray through the box centre, at the distance where the object's spread fits the box.
     spread_mm = np.ptp(rotated[:, :2], axis=0).max()
     focal = (K[0, 0] + K[1, 1]) / 2.0
-    distance = focal * spread_mm / max(w, h)
-    ray = np.linalg.solve(K, np.array([x + w / 2.0, y + h / 2.0, 1.0]))
+    low, high = target[:2], target[2:]
+    distance = focal * spread_mm / (high - low).max()
+    ray = np.linalg.solve(K, np.append((low + high) / 2.0, 1.0))
     t = ray / ray[2] * distance
     for _ in range(iterations):
         if np.min(rotated[:, 2] + t[2]) <= 1e-6:

@@ -14,6 +14,7 @@ from popcode_runtime import (
     Representation,
     symmetry_rotations,
 )
+from popcode_runtime.crop import box_edges, box_from_edges
 from popcode_runtime.decoding import decode_output
 from popcode_runtime.hypotheses import argmax_tolerance_rad, find_hypotheses, same_pose
 from popcode_runtime.refine import decode_refined, lattice_neighbours
@@ -176,9 +177,15 @@ def test_refined_decoder_only_for_population_codes():
 
 
 def projected_box(points_cam):
+    """The BOP box of the points' silhouette."""
     uv = (points_cam @ K.T)[:, :2] / points_cam[:, 2:3]
-    low, high = uv.min(axis=0), uv.max(axis=0)
-    return [low[0], low[1], high[0] - low[0], high[1] - low[1]]
+    return box_from_edges([*uv.min(axis=0), *uv.max(axis=0)])
+
+
+def test_a_bop_box_spans_half_a_pixel_beyond_its_first_and_last_pixel_centres():
+    # Pixels 10..29 across and 5..6 down: the BOP toolkit's box is (10, 5, 19, 1), the silhouette 9.5..29.5, 4.5..6.5.
+    assert box_edges([10, 5, 19, 1]).tolist() == [9.5, 4.5, 29.5, 6.5]
+    assert box_from_edges(box_edges([10.25, 5, 19, 1.5])) == (10.25, 5, 19, 1.5)
 
 
 def test_translation_from_the_exact_box_of_the_hull():

@@ -99,8 +99,7 @@ def _gl_pose(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
 @contextlib.contextmanager
 def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
     """pyrender always renders into 4x multisampled buffers; make them single-sampled while a
-    :class:`DepthRenderer` sets up its framebuffer, so depth is sampled at pixel centres as the
-    BOP toolkit's renderer does."""
+    renderer sets up its framebuffer."""
     module = pyrender.renderer
     original = module.glRenderbufferStorageMultisample
     module.glRenderbufferStorageMultisample = lambda target, _samples, fmt, w, h: original(target, 0, fmt, w, h)
@@ -110,6 +109,47 @@ def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
         module.glRenderbufferStorageMultisample = original
 
 
+class _CentreSampledDepth:
+    """Depth sampled at pixel centres, as the BOP toolkit's renderer samples it.
+
+    pyrender reads depth back from a 4x multisampled buffer as one sample's, off
+    the pixel centre (on Mesa by (-0.125, +0.375) px, which moved masks, boxes and
+    depth against the ground-truth pose). This renders its own ``scene`` single-
+    sampled, with its own pyrender ``Renderer`` in the OpenGL context of
+    ``offscreen``: a second context would die with the first (they share one EGL
+    display), and a mesh's buffers belong to one renderer, hence the own scene.
+    """
+
+    def __init__(self, offscreen: Any, width: int, height: int) -> None:
+        self._pyrender = _import_pyrender()
+        self._platform = offscreen._platform  # pyrender has no public handle on its OpenGL context
+        self._renderer = self._pyrender.Renderer(width, height)
+        self.scene = self._pyrender.Scene()
+        self._framebuffer_ready = False
+
+    def render(self) -> np.ndarray:
+        """Depth ``(H, W)`` float32 of ``scene`` [scene units], 0 where nothing is drawn."""
+        flags = self._pyrender.RenderFlags.DEPTH_ONLY | self._pyrender.RenderFlags.OFFSCREEN
+        self._platform.make_current()
+        try:
+            if not self._framebuffer_ready:
+                with _single_sample_framebuffers(self._pyrender):
+                    depth = self._renderer.render(self.scene, flags)
+                self._framebuffer_ready = True
+            else:
+                depth = self._renderer.render(self.scene, flags)
+        finally:
+            self._platform.make_uncurrent()
+        return depth.astype(np.float32)
+
+    def delete(self) -> None:
+        self._platform.make_current()
+        try:
+            self._renderer.delete()
+        finally:
+            self._platform.make_uncurrent()
+
+
 class DepthRenderer:
     """Depth images of one mesh without anti-aliasing, for metrics such as VSD."""
 
@@ -117,31 +157,26 @@ class DepthRenderer:
         self._pyrender = _import_pyrender()
         vertices = np.asarray(mesh_vertices_mm, dtype=np.float64)
         self._radius_mm = float(np.linalg.norm(vertices, axis=1).max())
-        self._renderer = _offscreen(width, height)
-        self._scene = self._pyrender.Scene()
+        self._offscreen = _offscreen(width, height)
+        self._depth = _CentreSampledDepth(self._offscreen, width, height)
         mesh = self._pyrender.Mesh.from_trimesh(trimesh.Trimesh(vertices, faces, process=False), smooth=False)
-        self._node = self._scene.add(mesh)
+        self._node = self._depth.scene.add(mesh)
         self._camera_node = None
-        self._framebuffer_ready = False
 
     def render(self, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
         """Depth ``(H, W)`` float32 in mm along the camera z-axis, 0 where the object is absent."""
         t = np.asarray(t_m2c_mm, dtype=np.float64).reshape(3)
+        scene = self._depth.scene
         if self._camera_node is not None:
-            self._scene.remove_node(self._camera_node)
+            scene.remove_node(self._camera_node)
         camera = _pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]))
-        self._camera_node = self._scene.add(camera, pose=np.eye(4))
-        self._scene.set_pose(self._node, _gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
-        flags = self._pyrender.RenderFlags.DEPTH_ONLY
-        if self._framebuffer_ready:
-            return self._renderer.render(self._scene, flags=flags).astype(np.float32)
-        with _single_sample_framebuffers(self._pyrender):
-            depth = self._renderer.render(self._scene, flags=flags)
-        self._framebuffer_ready = True
-        return depth.astype(np.float32)
+        self._camera_node = scene.add(camera, pose=np.eye(4))
+        scene.set_pose(self._node, _gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
+        return self._depth.render()
 
     def close(self) -> None:
-        self._renderer.delete()
+        self._depth.delete()
+        self._offscreen.delete()
 
 
 @dataclass(frozen=True)
@@ -191,42 +226,46 @@ def project(points_mm: np.ndarray, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: n
 
 
 def _mask_box(mask: np.ndarray) -> list[int]:
+    """The BOP box of a mask: first pixel and the distance to the last (the BOP toolkit's ``calc_2d_bbox``)."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
         return [-1, -1, -1, -1]
-    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())]
 
 
 class _SceneRenderer:
-    """One pyrender scene reused for every image: the object, a camera and random lights."""
+    """One pyrender scene reused for every image: the object, a camera and random lights; a second scene of
+    the object and camera alone gives depth at pixel centres."""
 
     def __init__(self, width: int, height: int) -> None:
         self._pyrender = _import_pyrender()
         self._renderer = _offscreen(width, height)
+        self._depth = _CentreSampledDepth(self._renderer, width, height)
         self._scene = self._pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0])
         self._material = self._pyrender.MetallicRoughnessMaterial()
-        self._meshes: dict[int, Any] = {}
-        self._transient: list[Any] = []
+        self._meshes: dict[int, tuple[Any, Any]] = {}  # obj_id -> (shaded mesh, depth mesh)
+        self._transient: list[tuple[Any, Any]] = []  # (scene, node) of the current view
 
     def add_object(self, obj_id: int, mesh: trimesh.Trimesh) -> None:
-        self._meshes[obj_id] = self._pyrender.Mesh.from_trimesh(mesh, material=self._material, smooth=False)
+        Mesh = self._pyrender.Mesh  # noqa: N806 (a class)
+        self._meshes[obj_id] = (Mesh.from_trimesh(mesh, material=self._material, smooth=False),
+                                Mesh.from_trimesh(mesh, smooth=False))
 
     def render(self, obj_id: int, rng: np.random.Generator, K: np.ndarray, R_m2c: np.ndarray,
                t_m2c_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """Colour ``(H, W, 3)`` uint8 and depth ``(H, W)`` float mm of one view with random light and shade."""
         pyrender = self._pyrender
-        for node in self._transient:
-            self._scene.remove_node(node)
+        for scene, node in self._transient:
+            scene.remove_node(node)
         shade = rng.uniform(0.35, 0.9)
         self._material.baseColorFactor = np.array([shade, shade, shade, 1.0])
         self._material.metallicFactor = rng.uniform(0.0, 0.4)
         self._material.roughnessFactor = rng.uniform(0.35, 0.9)
         self._scene.ambient_light = np.full(3, rng.uniform(0.05, 0.3))
         camera = _pyrender_camera(pyrender, K, radius_mm, float(t_m2c_mm[2]))
-        self._transient = [
-            self._scene.add(self._meshes[obj_id], pose=_gl_pose(R_m2c, t_m2c_mm)),
-            self._scene.add(camera, pose=np.eye(4)),
-        ]
+        self._transient = [(scene, scene.add(item, pose=pose))
+                           for scene, mesh in zip((self._scene, self._depth.scene), self._meshes[obj_id], strict=True)
+                           for item, pose in ((mesh, _gl_pose(R_m2c, t_m2c_mm)), (camera, np.eye(4)))]
         for _ in range(rng.integers(1, 4)):
             # Light travels along -z of its node: point it into the scene from the camera's side.
             direction = rng.normal(size=3)
@@ -234,11 +273,12 @@ class _SceneRenderer:
             pose = np.eye(4)
             pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
             light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(1.0, 4.0))
-            self._transient.append(self._scene.add(light, pose=pose))
-        color, depth = self._renderer.render(self._scene)
-        return color, depth
+            self._transient.append((self._scene, self._scene.add(light, pose=pose)))
+        color, _ = self._renderer.render(self._scene)  # its depth is one multisample's, off the pixel centre
+        return color, self._depth.render()
 
     def close(self) -> None:
+        self._depth.delete()
         self._renderer.delete()
 
 
