@@ -82,6 +82,27 @@ def test_toy_shapes_lie_inside_the_image_pointing_at_their_angle() -> None:
                 assert np.isclose(np.arctan2(-direction[1], direction[0]) % (2 * np.pi), angle, atol=1e-9)
 
 
+def test_square_symmetries_move_the_angle_with_the_image() -> None:
+    # One lit pixel: its direction from the image centre (y up) is its angle, before and after every symmetry.
+    size = toy_orientation.IMAGE_SIZE
+    image = np.zeros((1, 1, size, size), np.float32)
+    image[0, 0, 10, 50] = 1.0
+
+    def pixel_angle(picture: np.ndarray) -> float:
+        row, column = np.argwhere(picture[0, 0])[0]
+        centre = (size - 1) / 2.0
+        return float(np.arctan2(centre - row, column - centre) % (2 * np.pi))
+
+    angle, seen = np.array([pixel_angle(image)]), set()
+    for quarter_turns in range(4):
+        for mirror in (False, True):
+            moved, angles = toy_orientation.square_symmetry(image, angle, quarter_turns, mirror)
+            assert moved.flags.c_contiguous and moved.shape == image.shape
+            assert np.isclose(np.angle(np.exp(1j * (pixel_angle(moved) - angles[0]))), 0.0, atol=1e-12)
+            seen.add(round(float(angles[0]), 9))
+    assert len(seen) == 8  # eight different views
+
+
 def test_translation_compares_hull_points_with_box_corners(tmp_path: Path) -> None:
     translation.main(["--quick", "--out", str(tmp_path)])
     payload = json.loads((tmp_path / "translation-quick.json").read_text(encoding="utf-8"))
