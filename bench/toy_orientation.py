@@ -189,7 +189,8 @@ def train_and_predict(method: Method, images: np.ndarray, angles: np.ndarray, tr
     model.train()
     for _ in range(epochs):
         for batch in torch.randperm(train_count, generator=generator).split(BATCH_SIZE):
-            x, y = images[batch.numpy()], angles[batch.numpy()]
+            rows = batch.numpy()
+            x, y = images[rows], angles[rows]
             if augment:
                 x, y = square_symmetry(x, y, int(symmetries.integers(4)), bool(symmetries.integers(2)))
             target = torch.from_numpy(method.target(y).astype(np.float32))

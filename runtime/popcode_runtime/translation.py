@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .crop import box_edges
+from .crop import box_centre, box_edges
 from .errors import PopcodeError
 
 
@@ -54,9 +54,8 @@ def translation_from_box(
     # Start on the ray through the box centre, at the distance where the object's spread fits the box.
     spread_mm = np.ptp(rotated[:, :2], axis=0).max()
     focal = (K[0, 0] + K[1, 1]) / 2.0
-    low, high = target[:2], target[2:]
-    distance = focal * spread_mm / (high - low).max()
-    ray = np.linalg.solve(K, np.append((low + high) / 2.0, 1.0))
+    distance = focal * spread_mm / (target[2:] - target[:2]).max()
+    ray = np.linalg.solve(K, np.append(box_centre(box), 1.0))
     t = ray / ray[2] * distance
     for _ in range(iterations):
         if np.min(rotated[:, 2] + t[2]) <= 1e-6:
