@@ -73,7 +73,8 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.export import ONNX_IR_VERSION, ONNX_OPSET, compare, export_onnx, quantise, run_onnx
+from popcode_trainer.export import ONNX_OPSET, compare, export_onnx, quantise, run_onnx
+from popcode_trainer.model_io import ONNX_IR_VERSION
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 from popcode_trainer.training_data import validation_crops
 

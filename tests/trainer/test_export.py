@@ -19,7 +19,8 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer import checkpoint
-from popcode_trainer.export import compare, export_checkpoint, export_onnx, load_checkpoint_model, quantise, run_onnx
+from popcode_trainer.export import compare, export_checkpoint, export_onnx, quantise, run_onnx
+from popcode_trainer.model_io import load_checkpoint_model
 from popcode_trainer.network import NetworkConfig, PopcodeNet
 from popcode_trainer.train import train
 

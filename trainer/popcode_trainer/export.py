@@ -9,7 +9,6 @@ pose agreement against the float model; all carry the same metadata.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import logging
 import tempfile
 import warnings
@@ -21,7 +20,6 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
-from onnx import helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
 from popcode_runtime.decoding import decode_output
@@ -30,13 +28,10 @@ from popcode_runtime.hypotheses import argmax_tolerance_rad, same_pose
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 from popcode_runtime.symmetries import symmetry_rotations
 
-from . import checkpoint
-from .data.files import write_bytes_atomic
-from .data.hull import with_hull_points
-from .network import ColumnBlockOutputLayer, NetworkConfig, build_network
+from .model_io import load_checkpoint_model, save_onnx
+from .network import ColumnBlockOutputLayer
 
 ONNX_OPSET = 17
-ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
 COREML_MAX_DIM = 16384  # onnxruntime's CoreML provider rejects larger tensor dimensions
 QUANTISATIONS = ("int8", "nbits4", "nbits8")
 NBITS_BLOCK_SIZE = 32
@@ -58,42 +53,6 @@ class Comparison:
     max_abs_diff: float
     argmax_agreement: float  # share of crops with the same argmax, in [0, 1]
     pose_agreement: float | None  # share of crops decoded to the same pose up to symmetry, in [0, 1]
-
-
-def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
-    """The trained network (eval mode) and its metadata, training summary and hull points included.
-
-    Each object's ``hull_points_mm`` come from its mesh in the training config's
-    models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
-    """
-    state = checkpoint.load(path)
-    try:
-        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
-        model = build_network(NetworkConfig(**fields))
-        model.load_state_dict(state["model"])
-        metadata = ModelMetadata.from_props(state["metadata"])
-    except (KeyError, TypeError, RuntimeError) as error:
-        raise PopcodeError(f"{path} is not a popcode training checkpoint: {error}") from error
-    config = state["config"]
-    training = {
-        "dataset": {"splits": config["data"]["splits"], "obj_ids": config["data"]["obj_ids"]},
-        "epochs": int(state["epoch"]),
-        "git_revision": state.get("git_revision", "unknown"),
-        "best_val_error_deg": float(state["best_val_error_deg"]),
-        "config": config,
-    }
-    objects = with_hull_points(metadata.objects, config["data"].get("models_dir"))
-    return model.eval(), dataclasses.replace(metadata, objects=objects, training=training)
-
-
-def _finish(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:
-    """Pin the IR version onnxruntime reads, attach the metadata, check and save atomically (an interrupted
-    export leaves no half-written model that a rerun would take for finished)."""
-    model.ir_version = ONNX_IR_VERSION
-    del model.metadata_props[:]
-    helper.set_model_props(model, metadata.to_props())
-    onnx.checker.check_model(model)
-    write_bytes_atomic(path, model.SerializeToString())
 
 
 def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str | Path,
@@ -123,7 +82,7 @@ def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str |
                 opset_version=ONNX_OPSET, do_constant_folding=True, dynamo=False,
             )
         onnx_model = onnx.load(str(raw))
-    _finish(onnx_model, metadata, out_path)
+    save_onnx(onnx_model, metadata, out_path)
     return out_path
 
 
@@ -275,7 +234,7 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
                                          op_types_to_quantize=("MatMul",))
         quantiser.process()
         quantised = quantiser.model.model
-    _finish(quantised, metadata, out_path)
+    save_onnx(quantised, metadata, out_path)
     return out_path
 
 

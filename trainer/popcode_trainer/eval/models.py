@@ -26,7 +26,7 @@ from popcode_runtime.metadata import RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric
 
 from ..data.bop import Instance
-from ..export import load_checkpoint_model
+from ..model_io import load_checkpoint_model
 from .split import rows_by_image
 from .translation import object_points
 

@@ -1,0 +1,56 @@
+"""Model I/O: a training checkpoint -> network + metadata, and an ONNX graph + metadata -> a model file."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import onnx
+import torch
+from onnx import helper
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.metadata import ModelMetadata
+
+from . import checkpoint
+from .data.files import write_bytes_atomic
+from .data.hull import with_hull_points
+from .network import NetworkConfig, build_network
+
+ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
+
+
+def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
+    """The trained network (eval mode) and its metadata, training summary and hull points included.
+
+    Each object's ``hull_points_mm`` come from its mesh in the training config's
+    models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
+    """
+    state = checkpoint.load(path)
+    try:
+        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
+        model = build_network(NetworkConfig(**fields))
+        model.load_state_dict(state["model"])
+        metadata = ModelMetadata.from_props(state["metadata"])
+    except (KeyError, TypeError, RuntimeError) as error:
+        raise PopcodeError(f"{path} is not a popcode training checkpoint: {error}") from error
+    config = state["config"]
+    training = {
+        "dataset": {"splits": config["data"]["splits"], "obj_ids": config["data"]["obj_ids"]},
+        "epochs": int(state["epoch"]),
+        "git_revision": state.get("git_revision", "unknown"),
+        "best_val_error_deg": float(state["best_val_error_deg"]),
+        "config": config,
+    }
+    objects = with_hull_points(metadata.objects, config["data"].get("models_dir"))
+    return model.eval(), dataclasses.replace(metadata, objects=objects, training=training)
+
+
+def save_onnx(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:
+    """Pin the IR version onnxruntime reads, attach the metadata, check and save atomically (an interrupted
+    export leaves no half-written model that a rerun would take for finished)."""
+    model.ir_version = ONNX_IR_VERSION
+    del model.metadata_props[:]
+    helper.set_model_props(model, metadata.to_props())
+    onnx.checker.check_model(model)
+    write_bytes_atomic(path, model.SerializeToString())
