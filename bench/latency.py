@@ -17,7 +17,7 @@ crops of rendered built-in objects; with random weights they say how much
 quantisation moves the peak of an untrained code, which is a harder test than
 a trained code's clear peak, but not the same one. The model is of one object
 without symmetry, so the pose agreement (same decoded rotation within one
-grid step, see ``popcode_trainer.export.pose_agreement``) differs from the
+grid step, see ``popcode_trainer.agreement.pose_agreement``) differs from the
 argmax agreement only by peaks that moved to a grid neighbour. int8 is
 calibrated on the even crops; agreement is measured on the odd ones. The compute floor is the MACs
 over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
@@ -71,14 +71,16 @@ from popcode_runtime.code import CodeLayout
 from popcode_runtime.decoding import DECODERS, decode_output
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
+from popcode_trainer.agreement import compare
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.export import ONNX_OPSET, compare, export_onnx, quantise, run_onnx
+from popcode_trainer.export import ONNX_OPSET, export_onnx, run_onnx
 from popcode_trainer.model_io import ONNX_IR_VERSION
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
+from popcode_trainer.quantise import quantise
 from popcode_trainer.training_data import validation_crops
 
-QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> export.quantise kind
+QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
 BATCHES = (1, 8, 32)
 
 

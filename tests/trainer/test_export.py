@@ -19,9 +19,11 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer import checkpoint
-from popcode_trainer.export import compare, export_checkpoint, export_onnx, quantise, run_onnx
+from popcode_trainer.agreement import compare
+from popcode_trainer.export import export_checkpoint, export_onnx, run_onnx
 from popcode_trainer.model_io import load_checkpoint_model
 from popcode_trainer.network import NetworkConfig, PopcodeNet
+from popcode_trainer.quantise import quantise
 from popcode_trainer.train import train
 
 

@@ -11,7 +11,8 @@ from popcode_runtime.errors import PopcodeError
 
 from .. import checkpoint
 from ..config import Config
-from ..export import COREML_MAX_DIM, QUANTISATIONS, export_checkpoint
+from ..export import COREML_MAX_DIM, export_checkpoint
+from ..quantise import QUANTISATIONS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
