@@ -72,12 +72,8 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     Conv, Gemm and MatMul: per-channel int8 weights (7-bit, ``reduce_range``,
     so CPUs without VNNI cannot saturate), uint8 activations whose ranges
     come from ``calibration`` crops (required). The contrast normalisation
-    stays float. Chosen by measurement on the paper network (random weights,
-    1 thread, 2-core AMD EPYC with AVX-512 VNNI; fp32 31 ms): dynamic
-    quantisation of all ops (ConvInteger) 126 ms; dynamic restricted to
-    MatMul/Gemm 27-30 ms, since the float convolutions are 77 % of the time;
-    static QDQ of the convolutions only 13 ms; static QDQ of all 9-10 ms,
-    argmax agreement with fp32 100 % on held-out rendered crops.
+    stays float. Chosen as the fastest variant that keeps the argmax of fp32
+    (measured: bench/results/quantisation.md).
     nbits4/nbits8: weight-only ``MatMulNBits`` (blocks of 32) on the MatMul
     nodes, i.e. the large output layer; the rest stays float.
     """
