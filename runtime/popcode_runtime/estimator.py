@@ -1,4 +1,4 @@
-"""``PoseEstimator``: an ONNX popcode model behind one call, image + boxes -> rotations."""
+"""``PoseEstimator``: a popcode model behind one call, image + boxes -> rotations (the one inference pipeline)."""
 
 from __future__ import annotations
 
@@ -8,26 +8,17 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
 from .code import PopulationCode
 from .crop import box_centre, crop_batch
 from .decoding import DECODERS, decode_output
+from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
 from .hypotheses import Hypothesis, find_hypotheses
-from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata, Representation, RotationFrame
+from .metadata import ModelMetadata, Representation, RotationFrame
 from .rotations import allocentric_to_egocentric, matrix_to_axis_angle
 from .symmetries import symmetry_rotations
 from .translation import object_points_mm, translation_from_box
-
-PROVIDER_NAMES = {
-    "cpu": "CPUExecutionProvider",
-    "cuda": "CUDAExecutionProvider",
-    "tensorrt": "TensorrtExecutionProvider",
-    "coreml": "CoreMLExecutionProvider",
-    "openvino": "OpenVINOExecutionProvider",
-    "dml": "DmlExecutionProvider",
-}
 
 
 @dataclass(frozen=True)
@@ -92,85 +83,55 @@ def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
     return K
 
 
-def resolve_providers(providers: Sequence[str] | None) -> list[str]:
-    """Map short names (``cpu``, ``cuda``, ``coreml``...) to onnxruntime providers; CPU last.
-
-    Asking for one this onnxruntime build lacks is an error, not a silent fallback.
-    """
-    available = ort.get_available_providers()
-    resolved = []
-    for name in providers or ["cpu"]:
-        full = PROVIDER_NAMES.get(name.lower(), name)
-        if full not in available:
-            raise PopcodeError(
-                f"execution provider {name!r} is not available in this onnxruntime build; "
-                f"available: {', '.join(available)}"
-            )
-        resolved.append(full)
-    if "CPUExecutionProvider" not in resolved:
-        resolved.append("CPUExecutionProvider")
-    return resolved
-
-
 class PoseEstimator:
-    """Load a popcode ONNX model once; then ``predict(image, boxes)`` in one batched run.
+    """Crop -> engine -> decode -> camera frame: ``predict(image, boxes)`` in one batched run.
 
-    ``threads`` sets onnxruntime's intra-op threads (0: its default, all cores);
-    ``decoder`` is ``argmax`` (the paper's) or ``refined`` (sub-neuron estimate).
+    ``PoseEstimator(path)`` runs a popcode ONNX model with onnxruntime
+    (``providers``; ``threads``: its intra-op threads, 0: all cores);
+    :meth:`from_engine` runs any other engine with the model's metadata (the
+    trainer's torch engine for checkpoints). ``decoder`` is ``argmax`` (the
+    paper's) or ``refined`` (sub-neuron estimate).
     """
 
     def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0,
                  decoder: str = "argmax") -> None:
-        if decoder not in DECODERS:
-            raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
-        self.decoder = decoder
-        self.model_path = Path(model_path)
-        if not self.model_path.is_file():
-            raise PopcodeError(f"model file not found: {self.model_path}")
-        if threads < 0:
-            raise PopcodeError(f"threads must be >= 0, got {threads}")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
-        options.log_severity_level = 3
-        try:
-            self.session = ort.InferenceSession(str(self.model_path), options, providers=resolve_providers(providers))
-        except PopcodeError:
-            raise
-        except Exception as error:  # onnxruntime raises its own exception types
-            first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise PopcodeError(f"cannot load {self.model_path} as an ONNX model: {first_line}") from error
-        self.metadata = ModelMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
-        self._check_signature()
-        self.last_timings = Timings(0.0, 0.0, 0.0)
+        _check_decoder(decoder)
+        engine = OnnxEngine(model_path, providers, threads)
+        self._attach(engine, engine.metadata, decoder)
 
-    def _check_signature(self) -> None:
-        inputs = {i.name: i for i in self.session.get_inputs()}
-        outputs = {o.name: o for o in self.session.get_outputs()}
-        if INPUT_NAME not in inputs or len(inputs) != 1:
-            raise PopcodeError(f"model must have exactly one input named '{INPUT_NAME}', it has {sorted(inputs)}")
-        if OUTPUT_NAME not in outputs:
-            raise PopcodeError(f"model has no output named '{OUTPUT_NAME}' (outputs: {sorted(outputs)})")
-        size = self.metadata.input_size
-        shape = inputs[INPUT_NAME].shape
-        if len(shape) != 4 or [d for d in shape[1:]] != [1, size, size]:
-            raise PopcodeError(f"input '{INPUT_NAME}' must be [N, 1, {size}, {size}], the model declares {shape}")
-        if inputs[INPUT_NAME].type != "tensor(float)":
-            raise PopcodeError(f"input '{INPUT_NAME}' must be float32, the model declares {inputs[INPUT_NAME].type}")
-        self.metadata.check_output(outputs[OUTPUT_NAME].shape)
+    @classmethod
+    def from_engine(cls, engine: Engine, metadata: ModelMetadata, decoder: str = "argmax") -> PoseEstimator:
+        """An estimator over ``engine`` (crops ``(N, 1, S, S)`` float32 -> ``(N, metadata.output_dim)`` float32).
+
+        ``metadata`` is the model's, as its ONNX export would carry it: it
+        says how to crop, decode and convert the engine's outputs.
+        """
+        _check_decoder(decoder)
+        estimator = cls.__new__(cls)
+        estimator._attach(engine, metadata, decoder)
+        return estimator
+
+    def _attach(self, engine: Engine, metadata: ModelMetadata, decoder: str) -> None:
+        self.engine, self.metadata, self.decoder = engine, metadata, decoder
+        self.last_timings = Timings(0.0, 0.0, 0.0)
 
     @property
     def providers(self) -> list[str]:
-        return self.session.get_providers()
+        """onnxruntime's execution providers for an ONNX engine; empty for other engines."""
+        return self.engine.providers if isinstance(self.engine, OnnxEngine) else []
 
     def run(self, crops: np.ndarray) -> np.ndarray:
-        """Raw network output ``(N, D)`` for crops ``(N, 1, S, S)`` float32 in [0, 1]."""
+        """Raw network output ``(N, D)`` float32 for crops ``(N, 1, S, S)`` float32 in [0, 1]."""
         size = self.metadata.input_size
         if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or crops.dtype != np.float32:
             raise PopcodeError(f"crops must be float32 [N, 1, {size}, {size}], got {crops.dtype} {crops.shape}")
-        output = self.session.run([OUTPUT_NAME], {INPUT_NAME: crops})[0]
+        output = self.engine(crops)
         expected = (len(crops), self.metadata.output_dim)
-        if output.shape != expected:
-            raise PopcodeError(f"model returned shape {output.shape}, metadata implies {expected}")
+        if not isinstance(output, np.ndarray):
+            raise PopcodeError(f"the engine returned a {type(output).__name__}, not a numpy array {expected}")
+        if output.shape != expected or output.dtype != np.float32:
+            raise PopcodeError(f"the engine returned {output.dtype} {output.shape}; the model's metadata implies "
+                               f"float32 {expected}")
         return output
 
     def crops(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> np.ndarray:
@@ -257,3 +218,8 @@ class PoseEstimator:
             return lambda R, _which: R
         centres = np.stack([box_centre(box) for box in boxes])
         return lambda R, which: allocentric_to_egocentric(R, camera, centres[which])
+
+
+def _check_decoder(decoder: str) -> None:
+    if decoder not in DECODERS:
+        raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")

@@ -1,0 +1,110 @@
+"""Inference engines: any callable crops ``(N, 1, S, S)`` float32 -> network outputs ``(N, D)`` float32.
+
+onnxruntime is the runtime's engine (:class:`OnnxEngine`); the trainer passes a
+torch one to :meth:`~popcode_runtime.estimator.PoseEstimator.from_engine` for
+checkpoints. Every onnxruntime session of the project is built by
+:func:`onnx_session`, so providers, threads and options are chosen in one place.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from .errors import PopcodeError
+from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+
+Engine = Callable[[np.ndarray], np.ndarray]  # crops (N, 1, S, S) float32 in [0, 1] -> outputs (N, D) float32
+
+PROVIDER_NAMES = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "dml": "DmlExecutionProvider",
+}
+
+
+def resolve_providers(providers: Sequence[str] | None) -> list[str]:
+    """Map short names (``cpu``, ``cuda``, ``coreml``...) to onnxruntime providers; CPU last.
+
+    Asking for one this onnxruntime build lacks is an error, not a silent fallback.
+    """
+    available = ort.get_available_providers()
+    resolved = []
+    for name in providers or ["cpu"]:
+        full = PROVIDER_NAMES.get(name.lower(), name)
+        if full not in available:
+            raise PopcodeError(
+                f"execution provider {name!r} is not available in this onnxruntime build; "
+                f"available: {', '.join(available)}"
+            )
+        resolved.append(full)
+    if "CPUExecutionProvider" not in resolved:
+        resolved.append("CPUExecutionProvider")
+    return resolved
+
+
+def onnx_session(model: str | Path | bytes, providers: Sequence[str] | None = None, threads: int = 0,
+                 profile_prefix: str | None = None) -> ort.InferenceSession:
+    """An onnxruntime session for a model file (or its serialised bytes), warnings silenced.
+
+    ``threads`` sets the intra-op threads (0: onnxruntime's default, all
+    cores); ``profile_prefix`` turns on onnxruntime's profiler, whose JSON
+    ``session.end_profiling()`` writes under that prefix.
+    """
+    name = "the given model bytes" if isinstance(model, bytes) else str(model)
+    if not isinstance(model, bytes) and not Path(model).is_file():
+        raise PopcodeError(f"model file not found: {model}")
+    if threads < 0:
+        raise PopcodeError(f"threads must be >= 0, got {threads}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.log_severity_level = 3
+    if profile_prefix is not None:
+        options.enable_profiling = True
+        options.profile_file_prefix = profile_prefix
+    resolved = resolve_providers(providers)
+    try:
+        return ort.InferenceSession(model if isinstance(model, bytes) else str(model), options, providers=resolved)
+    except Exception as error:  # onnxruntime raises its own exception types
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise PopcodeError(f"cannot load {name} as an ONNX model: {first_line}") from error
+
+
+class OnnxEngine:
+    """A popcode ONNX model file run by onnxruntime; its metadata, checked against its signature, from the file."""
+
+    def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
+        self.model_path = Path(model_path)
+        self.session = onnx_session(self.model_path, providers, threads)
+        self.metadata = ModelMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+        self._check_signature()
+
+    def _check_signature(self) -> None:
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        outputs = {o.name: o for o in self.session.get_outputs()}
+        if INPUT_NAME not in inputs or len(inputs) != 1:
+            raise PopcodeError(f"model must have exactly one input named '{INPUT_NAME}', it has {sorted(inputs)}")
+        if OUTPUT_NAME not in outputs:
+            raise PopcodeError(f"model has no output named '{OUTPUT_NAME}' (outputs: {sorted(outputs)})")
+        size = self.metadata.input_size
+        shape = inputs[INPUT_NAME].shape
+        if len(shape) != 4 or [d for d in shape[1:]] != [1, size, size]:
+            raise PopcodeError(f"input '{INPUT_NAME}' must be [N, 1, {size}, {size}], the model declares {shape}")
+        if inputs[INPUT_NAME].type != "tensor(float)":
+            raise PopcodeError(f"input '{INPUT_NAME}' must be float32, the model declares {inputs[INPUT_NAME].type}")
+        self.metadata.check_output(outputs[OUTPUT_NAME].shape)
+
+    @property
+    def providers(self) -> list[str]:
+        """The execution providers onnxruntime runs this model with, in order of preference."""
+        return self.session.get_providers()
+
+    def __call__(self, crops: np.ndarray) -> np.ndarray:
+        """Outputs ``(N, D)`` for crops ``(N, 1, S, S)`` (made contiguous float32 first)."""
+        return self.session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]
