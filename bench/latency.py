@@ -5,7 +5,8 @@
 Random weights (timing does not depend on them). Per network, variant, thread
 count (1 and all cores) and batch (1, 8, 32): end-to-end (crop + inference +
 argmax decode) and inference-only percentiles, from the runtime's own
-``benchmark_estimator``; torch eager on the same weights times ``model(crops)``.
+``benchmark_estimator``; torch eager on the same weights times the trainer's
+torch engine through the same ``PoseEstimator.run``.
 
 The floor of a variant is the bytes of its weights (every initializer of its
 graph, which one forward pass must read) over the memory read bandwidth
@@ -61,7 +62,6 @@ from typing import Any
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 from onnx import TensorProto, helper, numpy_helper
 from report import machine, markdown_table, write_results
@@ -69,15 +69,17 @@ from report import machine, markdown_table, write_results
 from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
 from popcode_runtime.code import CodeLayout
 from popcode_runtime.decoding import DECODERS, decode_output
+from popcode_runtime.engine import OnnxEngine, onnx_session
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_trainer.agreement import compare
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.export import ONNX_OPSET, export_onnx, run_onnx
+from popcode_trainer.export import ONNX_OPSET, export_onnx
 from popcode_trainer.model_io import ONNX_IR_VERSION
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 from popcode_trainer.quantise import quantise
+from popcode_trainer.torch_engine import TorchEngine
 from popcode_trainer.training_data import validation_crops
 
 QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
@@ -156,9 +158,7 @@ def gemm_peak_gmac_s(threads: int, integer: bool, repeats: int) -> float:
     The compute floor of a network is its MACs over this: the 5x5 convs run
     as GEMMs (im2col) and cannot beat it, whatever the memory bandwidth.
     """
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    session = ort.InferenceSession(_gemm_model(integer), options, providers=["CPUExecutionProvider"])
+    session = onnx_session(_gemm_model(integer), threads=threads)
     x = (np.random.default_rng(1).integers(0, 256, (GEMM_SIDE, GEMM_SIDE)).astype(np.uint8) if integer
          else np.random.default_rng(1).standard_normal((GEMM_SIDE, GEMM_SIDE), dtype=np.float32))
     best = min(time_calls(partial(session.run, None, {"x": x}), 1, repeats))
@@ -174,12 +174,7 @@ def weight_bytes(path: Path) -> int:
 
 def node_shares(path: Path, crops: np.ndarray, threads: int, runs: int, work: Path) -> dict[str, float]:
     """Shares of node time in the output layer (``/head/`` nodes) and in convolutions, from onnxruntime's profiler."""
-    options = ort.SessionOptions()
-    options.enable_profiling = True
-    options.profile_file_prefix = str(work / f"profile-{path.stem}-{threads}")
-    options.intra_op_num_threads = threads
-    options.log_severity_level = 3
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    session = onnx_session(path, threads=threads, profile_prefix=str(work / f"profile-{path.stem}-{threads}"))
     for _ in range(runs):
         session.run(None, {INPUT_NAME: crops})
     events = json.loads(Path(session.end_profiling()).read_text(encoding="utf-8"))
@@ -211,17 +206,19 @@ def export_variants(name: str, network: Network, calibration: np.ndarray,
     return model, metadata, {"fp32": fp32, **variants}
 
 
-def torch_stats(model: PopcodeNet, crops: np.ndarray, threads: int, budget: Budget) -> list[dict[str, Any]]:
-    """Inference-only latency of torch eager with ``threads`` intra-op threads."""
+def torch_stats(model: PopcodeNet, metadata: ModelMetadata, crops: np.ndarray, threads: int,
+                budget: Budget) -> list[dict[str, Any]]:
+    """Inference-only latency of torch eager (the trainer's torch engine in the runtime's ``PoseEstimator.run``,
+    as the runtime rows time onnxruntime) with ``threads`` intra-op threads."""
+    estimator = PoseEstimator.from_engine(TorchEngine(model), metadata)
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        with torch.inference_mode():
-            rows = []
-            for batch in BATCHES:
-                x = torch.from_numpy(np.ascontiguousarray(crops[:1].repeat(batch, axis=0)))
-                times = time_calls(partial(model, x), budget.warmup, budget.iterations[batch])
-                rows.append(summarize(times, "inference", batch, threads).to_dict())
+        rows = []
+        for batch in BATCHES:
+            x = np.ascontiguousarray(crops[:1].repeat(batch, axis=0))
+            times = time_calls(partial(estimator.run, x), budget.warmup, budget.iterations[batch])
+            rows.append(summarize(times, "inference", batch, threads).to_dict())
     finally:
         torch.set_num_threads(previous)
     return rows
@@ -254,15 +251,15 @@ def bench_network(name: str, budget: Budget, thread_counts: Sequence[int], bandw
     calibration, held_out = crops[::2], crops[1::2]
     model, metadata, paths = export_variants(name, network, calibration, work)
     macs = count_macs(model, network.config.input_size)
-    fp32_output = run_onnx(paths["fp32"], held_out)
+    fp32_output = OnnxEngine(paths["fp32"])(held_out)
     sizes = {variant: weight_bytes(path) for variant, path in paths.items()}
     sizes["torch-eager"] = sum(t.numel() * t.element_size() for t in [*model.parameters(), *model.buffers()])
-    agreement = {v: compare(paths[v], run_onnx(paths[v], held_out), fp32_output, metadata) for v in QUANTISED}
+    agreement = {v: compare(paths[v], OnnxEngine(paths[v])(held_out), fp32_output, metadata) for v in QUANTISED}
     records = []
     for threads in thread_counts:
         for variant in [*paths, "torch-eager"]:
             if variant == "torch-eager":
-                rows, shares = torch_stats(model, crops, threads, budget), {}
+                rows, shares = torch_stats(model, metadata, crops, threads, budget), {}
             else:
                 rows = runtime_stats(paths[variant], threads, budget)
                 shares = node_shares(paths[variant], crops[:1], threads, budget.profile_runs, work)

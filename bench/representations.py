@@ -35,7 +35,7 @@ from popcode_trainer.data.bop import load_models_info  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER  # noqa: E402
 from popcode_trainer.eval.evaluate import MethodResult, evaluate_models  # noqa: E402
 from popcode_trainer.eval.figures import plot_instance_code  # noqa: E402
-from popcode_trainer.eval.models import Method, OnnxModel  # noqa: E402
+from popcode_trainer.eval.models import Method, load_model  # noqa: E402
 from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
 from popcode_trainer.eval.split import EvalSplit, read_eval_split  # noqa: E402
 from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
@@ -153,9 +153,9 @@ def run_benchmark(size: PipelineSize, out_dir: Path, size_name: str) -> dict[str
             path, seconds = train_and_export(size, representation, obj_ids, train_split, out_dir)
             paths.append(path)
             train_seconds[f"{representation} {obj_ids}"] = seconds
-        methods.append(Method(representation, tuple(OnnxModel(p) for p in paths)))
+        methods.append(Method(representation, tuple(load_model(p) for p in paths)))
         if representation == Representation.POPULATION_CODE:
-            methods.append(Method(REFINED, tuple(OnnxModel(p, decoder="refined") for p in paths)))
+            methods.append(Method(REFINED, tuple(load_model(p, decoder="refined") for p in paths)))
     split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
     results = evaluate_models(methods, split)
     write_report(results, out_dir / "eval")

@@ -14,13 +14,14 @@ from synthetic import K, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
 from popcode_runtime.code import CodeLayout, PopulationCode
+from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer import checkpoint
 from popcode_trainer.agreement import compare
-from popcode_trainer.export import export_checkpoint, export_onnx, run_onnx
+from popcode_trainer.export import export_checkpoint, export_onnx
 from popcode_trainer.model_io import load_checkpoint_model
 from popcode_trainer.network import NetworkConfig, PopcodeNet
 from popcode_trainer.quantise import quantise
@@ -124,7 +125,7 @@ def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
     running = optimised_op_types(int8_path, tmp_path / "optimised.onnx")
     assert running.count("QLinearConv") == 4 and not {"Conv", "Gemm", "MatMul", "FusedConv"} & set(running)
     assert all(node.op_type != "QuantizeLinear" for node in graph.node if "image" in node.input)  # float normalisation
-    agreement = compare(int8_path, run_onnx(int8_path, crops), run_onnx(float_path, crops), metadata)
+    agreement = compare(int8_path, OnnxEngine(int8_path)(crops), OnnxEngine(float_path)(crops), metadata)
     assert agreement.argmax_agreement == agreement.pose_agreement == 1.0  # calibrated on these crops
     with pytest.raises(PopcodeError, match="calibration crops"):
         quantise(float_path, "int8", metadata)

@@ -28,7 +28,7 @@ from .data.render import BUILTIN_MODELS_FOLDER
 from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
 from .eval.evaluate import MethodResult, evaluate_models
 from .eval.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
-from .eval.models import Method, OnnxModel
+from .eval.models import Method, load_model
 from .eval.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from .eval.report import write_report
 from .eval.split import EvalSplit, read_eval_split
@@ -139,10 +139,10 @@ def train_models(size: PipelineSize, groups: Sequence[Sequence[int]], train_spli
 def demo_methods(models: TrainedModels) -> list[Method]:
     """The table rows: the population code (argmax, refined, quantised) and the baseline."""
     popcode = models.by_representation[POPCODE]
-    methods = [Method(POPCODE, tuple(OnnxModel(p) for p in popcode)),
-               Method(f"{POPCODE} (refined)", tuple(OnnxModel(p, decoder="refined") for p in popcode)),
-               Method(f"{POPCODE} ({QUANTISATION})", tuple(OnnxModel(p) for p in models.quantised))]
-    methods += [Method(name, tuple(OnnxModel(p) for p in paths))
+    methods = [Method(POPCODE, tuple(load_model(p) for p in popcode)),
+               Method(f"{POPCODE} (refined)", tuple(load_model(p, decoder="refined") for p in popcode)),
+               Method(f"{POPCODE} ({QUANTISATION})", tuple(load_model(p) for p in models.quantised))]
+    methods += [Method(name, tuple(load_model(p) for p in paths))
                 for name, paths in models.by_representation.items() if name != POPCODE]
     return methods
 

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 
+from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
@@ -26,6 +26,7 @@ from .agreement import Comparison, compare, crop_symmetries
 from .model_io import load_checkpoint_model, save_onnx
 from .network import ColumnBlockOutputLayer
 from .quantise import quantise
+from .torch_engine import TorchEngine
 
 ONNX_OPSET = 17
 COREML_MAX_DIM = 16384  # onnxruntime's CoreML provider rejects larger tensor dimensions
@@ -62,19 +63,12 @@ def export_onnx(model: torch.nn.Module, metadata: ModelMetadata, out_path: str |
     return out_path
 
 
-def run_onnx(path: str | Path, crops: np.ndarray) -> np.ndarray:
-    options = ort.SessionOptions()
-    options.log_severity_level = 3
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    return session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]
-
-
 def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray, metadata: ModelMetadata,
                  obj_ids: Sequence[int] | None = None) -> tuple[Comparison, np.ndarray]:
-    """onnxruntime vs torch on ``crops``; refuses an export whose argmax differs anywhere."""
-    with torch.no_grad():
-        reference = model.eval()(torch.from_numpy(np.asarray(crops, np.float32))).numpy()
-    result = compare(onnx_path, run_onnx(onnx_path, crops), reference, metadata, obj_ids)
+    """onnxruntime vs torch on ``crops`` (both as the runtime's engines); refuses an export whose argmax differs
+    anywhere. Returns the comparison and torch's outputs."""
+    reference = TorchEngine(model)(crops)
+    result = compare(onnx_path, OnnxEngine(onnx_path)(crops), reference, metadata, obj_ids)
     if result.argmax_agreement < 1.0:
         raise PopcodeError(f"{onnx_path}: onnxruntime and torch disagree on the argmax of "
                            f"{100 * (1 - result.argmax_agreement):.1f}% of the crops "
@@ -103,5 +97,5 @@ def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: 
     results = [parity]
     for kind in quantisations:
         path = quantise(float_path, kind, metadata, calibration=crops)
-        results.append(compare(path, run_onnx(path, crops), reference, metadata, obj_ids))
+        results.append(compare(path, OnnxEngine(path)(crops), reference, metadata, obj_ids))
     return results

@@ -1,9 +1,10 @@
 """Trained models behind one call for evaluation: model files -> methods (table rows) -> rotations of split instances.
 
-A ``.pt`` checkpoint runs through torch with the runtime's crop and decoding, an
-``.onnx`` file through the shipped runtime. Several model files may form one
-method: a method trained per object group is a model per group, and each
-instance is routed to the model that knows its object.
+Every model runs through the runtime's ``PoseEstimator``: an ``.onnx`` file with
+onnxruntime (so the shipped runtime is what gets scored), a ``.pt`` checkpoint
+with the trainer's torch engine. Several model files may form one method: a
+method trained per object group is a model per group, and each instance is
+routed to the model that knows its object.
 """
 
 from __future__ import annotations
@@ -12,84 +13,53 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from popcode_runtime.crop import box_centre, crop_batch, read_image
-from popcode_runtime.decoding import DECODERS, decode_output
+from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import RotationFrame
-from popcode_runtime.rotations import allocentric_to_egocentric
 
 from ..data.bop import Instance
-from ..model_io import load_checkpoint_model
+from ..torch_engine import checkpoint_estimator
 from .split import rows_by_image
 from .translation import object_points
 
 
-class RotationModel(Protocol):
-    """A trained model behind one call: the boxes of one image -> model-to-camera rotations."""
+@dataclass(frozen=True)
+class RotationModel:
+    """A model file behind the runtime's ``PoseEstimator``: the boxes of one image -> model-to-camera rotations."""
 
     path: Path
-    obj_ids: frozenset[int]
-    objects: Mapping[int, Mapping[str, Any]]  # the model's metadata entries: symmetries, extents, hull points
+    estimator: PoseEstimator
+
+    @property
+    def objects(self) -> Mapping[int, Mapping[str, Any]]:
+        """The model's metadata entry of each object: symmetries, extents, hull points."""
+        return self.estimator.metadata.objects
+
+    @property
+    def obj_ids(self) -> frozenset[int]:
+        return frozenset(self.objects)
 
     def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
                 obj_ids: list[int]) -> np.ndarray:
         """Rotations ``(n, 3, 3)`` in the camera frame."""
-        ...
-
-
-class OnnxModel:
-    """An ONNX file run through the shipped runtime, so the runtime is what gets evaluated."""
-
-    def __init__(self, path: str | Path, decoder: str = "argmax") -> None:
-        self.path = Path(path)
-        self.estimator = PoseEstimator(self.path, decoder=decoder)
-        self.objects = self.estimator.metadata.objects
-        self.obj_ids = frozenset(self.objects)
-
-    def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
-                obj_ids: list[int]) -> np.ndarray:
         predictions = self.estimator.predict(image, boxes, K=K, obj_ids=obj_ids)
         return np.stack([p.R_m2c for p in predictions])
 
 
-class CheckpointModel:
-    """A training checkpoint run through torch, with the runtime's crop and decoding."""
-
-    def __init__(self, path: str | Path, decoder: str = "argmax") -> None:
-        if decoder not in DECODERS:
-            raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
-        self.path, self.decoder = Path(path), decoder
-        self.network, self.metadata = load_checkpoint_model(self.path)
-        self.objects = self.metadata.objects
-        self.obj_ids = frozenset(self.objects)
-
-    def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
-                obj_ids: list[int]) -> np.ndarray:
-        crops = crop_batch(image, boxes, self.metadata.input_size, self.metadata.crop_padding)
-        with torch.no_grad():
-            output = self.network(torch.from_numpy(crops)).numpy()
-        R = decode_output(output, self.metadata, self.decoder).R
-        if self.metadata.rotation_frame == RotationFrame.ALLOCENTRIC:
-            R = allocentric_to_egocentric(R, K, np.stack([box_centre(box) for box in boxes]))
-        return R
-
-
 def load_model(path: str | Path, decoder: str = "argmax") -> RotationModel:
-    """A ``.pt`` checkpoint or an ``.onnx`` model, by file suffix."""
+    """A ``.pt`` checkpoint (run by torch) or an ``.onnx`` model (run by onnxruntime), by file suffix."""
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"model file not found: {path}")
     if path.suffix == ".onnx":
-        return OnnxModel(path, decoder)
+        return RotationModel(path, PoseEstimator(path, decoder=decoder))
     if path.suffix == ".pt":
-        return CheckpointModel(path, decoder)
+        return RotationModel(path, checkpoint_estimator(path, decoder))
     raise PopcodeError(f"{path}: a model is a training checkpoint (.pt) or an ONNX file (.onnx)")
 
 

@@ -1,0 +1,35 @@
+"""A torch network as an inference engine of the runtime, so checkpoints run through the one pipeline.
+
+``PoseEstimator.from_engine(TorchEngine(network), metadata)`` crops, decodes
+and converts frames exactly as for the exported ONNX model; only the network
+call differs (see :mod:`popcode_runtime.engine`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from popcode_runtime.estimator import PoseEstimator
+
+from .model_io import load_checkpoint_model
+
+
+class TorchEngine:
+    """``engine(crops) -> outputs``: a network in eval mode under ``torch.no_grad()``, on the CPU, numpy out."""
+
+    def __init__(self, network: torch.nn.Module) -> None:
+        self.network = network.eval()
+
+    def __call__(self, crops: np.ndarray) -> np.ndarray:
+        """Outputs ``(N, D)`` float32 for crops ``(N, 1, S, S)`` (made contiguous float32 first)."""
+        with torch.no_grad():
+            return self.network(torch.from_numpy(np.ascontiguousarray(crops, dtype=np.float32))).numpy()
+
+
+def checkpoint_estimator(path: str | Path, decoder: str = "argmax") -> PoseEstimator:
+    """A training checkpoint as a ``PoseEstimator``: its network through torch, its metadata as export writes it."""
+    network, metadata = load_checkpoint_model(path)
+    return PoseEstimator.from_engine(TorchEngine(network), metadata, decoder)
