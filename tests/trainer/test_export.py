@@ -45,10 +45,9 @@ def optimised_op_types(path: Path, out: Path) -> list[str]:
     return [node.op_type for node in onnx.load(str(out)).graph.node]
 
 
-@pytest.mark.parametrize("name", Representation.ALL)
-def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
-    ckpt, _ = trained_checkpoint(tmp_path, representation=name, rotation_frame=RotationFrame.ALLOCENTRIC)
-    # Full frames: the drawn object pasted at several places, so the allocentric conversion matters.
+def pasted_frame() -> tuple[np.ndarray, list[tuple[float, ...]]]:
+    """A full frame with the drawn object pasted at several places (so the allocentric conversion matters)
+    and the boxes whose crops are exactly the pasted squares."""
     frame = np.zeros((480, 640), np.float32)
     boxes = []
     for i, (x, y) in enumerate([(20, 30), (300, 200), (500, 340)]):
@@ -56,6 +55,13 @@ def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
         R *= np.linalg.det(R)
         frame[y : y + 128, x : x + 128] = draw(R)
         boxes.append((x + 5.8, y + 5.8, 116.4, 116.4))  # padding 1.1 -> a 128 px square: crops are exact
+    return frame, boxes
+
+
+@pytest.mark.parametrize("name", Representation.ALL)
+def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
+    ckpt, _ = trained_checkpoint(tmp_path, representation=name, rotation_frame=RotationFrame.ALLOCENTRIC)
+    frame, boxes = pasted_frame()
     onnx_path = tmp_path / "model.onnx"
     export_checkpoint(ckpt, onnx_path, np.stack([draw(np.eye(3))[None]]))
 
