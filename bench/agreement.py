@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from report import markdown_table, write_results
+from report import write_results
 from tqdm import tqdm
 
 from popcode_runtime.crop import read_image
@@ -30,7 +30,8 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_trainer.agreement import compare
 from popcode_trainer.data.bop import Instance
-from popcode_trainer.eval.split import read_eval_split, rows_by_image
+from popcode_trainer.eval.pipeline.split import read_eval_split, rows_by_image
+from popcode_trainer.eval.reporting.markdown import markdown_table
 
 
 def split_crops(estimator: PoseEstimator, instances: Sequence[Instance]) -> tuple[np.ndarray, np.ndarray]:

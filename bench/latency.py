@@ -64,7 +64,7 @@ import numpy as np
 import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
-from report import machine, markdown_table, write_results
+from report import machine, write_results
 
 from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
 from popcode_runtime.code import CodeLayout
@@ -75,6 +75,7 @@ from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_trainer.agreement import compare
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
+from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.export import ONNX_OPSET, export_onnx
 from popcode_trainer.model_io import ONNX_IR_VERSION
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters

@@ -1,23 +1,15 @@
-"""Shared output of the benchmarks: markdown tables and a JSON file that names the machine."""
+"""Shared output of the benchmarks: a JSON file that names the machine beside the markdown findings."""
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from popcode_runtime.benchmark import machine_description
-
-
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A GitHub markdown table; floats are printed as given (format them before)."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def machine() -> dict[str, Any]:

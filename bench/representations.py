@@ -33,12 +33,14 @@ from popcode_runtime.metadata import Representation  # noqa: E402
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class  # noqa: E402
 from popcode_trainer.data.bop import load_models_info  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER  # noqa: E402
-from popcode_trainer.eval.evaluate import MethodResult, evaluate_models  # noqa: E402
-from popcode_trainer.eval.figures import plot_instance_code  # noqa: E402
-from popcode_trainer.eval.models import Method, load_model  # noqa: E402
-from popcode_trainer.eval.report import report_dict, write_report  # noqa: E402
-from popcode_trainer.eval.split import EvalSplit, read_eval_split  # noqa: E402
-from popcode_trainer.eval.tables import GROUPS, methods_markdown, to_json  # noqa: E402
+from popcode_trainer.eval.metrics.recall import GROUPS  # noqa: E402
+from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models  # noqa: E402
+from popcode_trainer.eval.pipeline.models import Method, load_model  # noqa: E402
+from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split  # noqa: E402
+from popcode_trainer.eval.reporting.figures import plot_instance_code  # noqa: E402
+from popcode_trainer.eval.reporting.markdown import markdown_table  # noqa: E402
+from popcode_trainer.eval.reporting.report import report_dict, write_report  # noqa: E402
+from popcode_trainer.eval.reporting.tables import methods_markdown, to_json  # noqa: E402
 from popcode_trainer.pipeline import (  # noqa: E402
     SMALL_NETWORK,
     PipelineSize,
@@ -109,11 +111,9 @@ def paper_mssd_by_symmetry() -> dict[str, dict[str, float]]:
 
 def symmetry_markdown(by_method: Mapping[str, Mapping[str, float]]) -> str:
     kinds = list(SYMMETRY_NAMES.values())
-    lines = ["| MSSD / symmetry | " + " | ".join(kinds) + " |", "|---|" + "---|" * len(kinds)]
-    for method, scores in by_method.items():
-        cells = [f"{100 * scores[k]:.1f}%" if k in scores else "–" for k in kinds]
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    rows = [[method, *(f"{100 * scores[k]:.1f}%" if k in scores else "–" for k in kinds)]
+            for method, scores in by_method.items()]
+    return markdown_table(["MSSD / symmetry", *kinds], rows)
 
 
 def ours_mssd_by_symmetry(results: Sequence[MethodResult], models_info: Mapping[int, Mapping[str, Any]],

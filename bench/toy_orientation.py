@@ -49,11 +49,12 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from report import markdown_table, write_results
+from report import write_results
 from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
 from popcode_runtime.code import CodeLayout
 from popcode_runtime.refine import refine_angle
+from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.network import ToyNet, ToyNetworkConfig
 
 IMAGE_SIZE = 64

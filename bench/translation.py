@@ -28,22 +28,22 @@ from typing import Any
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
-from report import machine, markdown_table, write_results  # noqa: E402
+from report import machine, write_results  # noqa: E402
 
 from popcode_runtime.crop import box_from_edges  # noqa: E402
 from popcode_trainer.data.bop import Instance  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, project, render_builtin_split  # noqa: E402
-from popcode_trainer.eval.split import read_eval_split  # noqa: E402
-from popcode_trainer.eval.split_metrics import SplitMetrics  # noqa: E402
-from popcode_trainer.eval.tables import ambiguity_markdown  # noqa: E402
-from popcode_trainer.eval.translation import (  # noqa: E402
+from popcode_trainer.eval.pipeline.split import read_eval_split  # noqa: E402
+from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics  # noqa: E402
+from popcode_trainer.eval.pipeline.translation import (  # noqa: E402
     full_pose,
     object_points,
-    translation_markdown,
     translation_summary,
     translations_from_boxes,
 )
+from popcode_trainer.eval.reporting.markdown import markdown_table  # noqa: E402
+from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown  # noqa: E402
 
 HULL = f"{HULL_POINTS} hull points"
 CORNERS = "3-D box corners"

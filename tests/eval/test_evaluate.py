@@ -22,14 +22,16 @@ from popcode_trainer.cli import main  # noqa: E402
 from popcode_trainer.config import Config  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS  # noqa: E402
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
-from popcode_trainer.eval.evaluate import evaluate_rotations  # noqa: E402
-from popcode_trainer.eval.models import methods_from_paths  # noqa: E402
-from popcode_trainer.eval.report import write_report  # noqa: E402
-from popcode_trainer.eval.results import read_bop19_results  # noqa: E402
-from popcode_trainer.eval.scores import Thresholds  # noqa: E402
-from popcode_trainer.eval.split import read_eval_split  # noqa: E402
-from popcode_trainer.eval.split_metrics import SplitMetrics  # noqa: E402
-from popcode_trainer.eval.tables import GROUPS  # noqa: E402
+from popcode_trainer.eval.metrics.recall import (
+    GROUPS,  # noqa: E402
+    Thresholds,  # noqa: E402
+)
+from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations  # noqa: E402
+from popcode_trainer.eval.pipeline.models import methods_from_paths  # noqa: E402
+from popcode_trainer.eval.pipeline.split import read_eval_split  # noqa: E402
+from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics  # noqa: E402
+from popcode_trainer.eval.reporting.bop19_csv import read_bop19_results  # noqa: E402
+from popcode_trainer.eval.reporting.report import write_report  # noqa: E402
 from popcode_trainer.export import export_checkpoint  # noqa: E402
 from popcode_trainer.train import train  # noqa: E402
 from popcode_trainer.training_data import build_training_data, validation_crops  # noqa: E402

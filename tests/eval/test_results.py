@@ -7,7 +7,7 @@ import pytest
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import random_rotations
-from popcode_trainer.eval.results import HEADER, PoseEstimate, read_bop19_results, write_bop19_results
+from popcode_trainer.eval.reporting.bop19_csv import HEADER, PoseEstimate, read_bop19_results, write_bop19_results
 
 
 def test_results_round_trip_exactly(tmp_path):

@@ -10,20 +10,20 @@ import pytest
 from symmetry_cases import CASES
 
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer.eval.scores import (
+from popcode_trainer.eval.metrics.recall import (
+    GROUPS,
     InstanceErrors,
     Thresholds,
+    ambiguous_objects,
+    group_scores,
     metric_scores,
     recall,
     scores_per_object,
     tightest_recalls,
     tightest_thresholds,
 )
-from popcode_trainer.eval.tables import (
-    GROUPS,
+from popcode_trainer.eval.reporting.tables import (
     ambiguity_markdown,
-    ambiguous_objects,
-    group_scores,
     methods_markdown,
     per_object_markdown,
     to_json,

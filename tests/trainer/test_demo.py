@@ -14,7 +14,7 @@ from popcode_runtime.cli import main as runtime_main
 from popcode_trainer.cli import main as cli_main
 from popcode_trainer.demo import StagePlan, run_demo
 from popcode_trainer.demo_report import POPCODE, SUMMARY_FILE
-from popcode_trainer.eval.overview_figures import nearest_equivalent
+from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.pipeline import PipelineSize
 
 TINY = PipelineSize(train_images_per_object=8, test_images_per_object=2, epochs=1, n_axes=42, n_angles=12,

@@ -26,12 +26,12 @@ from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
 from .data.render import BUILTIN_MODELS_FOLDER
 from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
-from .eval.evaluate import MethodResult, evaluate_models
-from .eval.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
-from .eval.models import Method, load_model
-from .eval.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
-from .eval.report import write_report
-from .eval.split import EvalSplit, read_eval_split
+from .eval.pipeline.evaluate import MethodResult, evaluate_models
+from .eval.pipeline.models import Method, load_model
+from .eval.pipeline.split import EvalSplit, read_eval_split
+from .eval.reporting.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
+from .eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
+from .eval.reporting.report import write_report
 from .network import NetworkConfig
 from .pipeline import SMALL_NETWORK, PipelineSize, object_groups, render_splits, run_dir, train_and_export
 
@@ -168,7 +168,7 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
                  out_dir: Path) -> dict[str, list[Path]]:
     """Training curves, metric sensitivity, code on the sphere and a grid of crops with their poses."""
     from .data.render import DepthRenderer, load_mesh
-    from .eval.instance_errors import ObjectModel
+    from .eval.pipeline.instance_errors import ObjectModel
 
     out_dir.mkdir(parents=True, exist_ok=True)
     figures = {"training curves": [plot_training_curves(metrics_files_of(run_dirs), out_dir / "training.png")],

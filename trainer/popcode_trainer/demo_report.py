@@ -15,10 +15,11 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
 from .data.files import write_bytes_atomic
-from .eval.evaluate import MethodResult
-from .eval.report import REPORT_MD, full_pose_markdown
-from .eval.split import EvalSplit
-from .eval.tables import ambiguity_markdown, methods_markdown, to_json
+from .eval.pipeline.evaluate import MethodResult
+from .eval.pipeline.split import EvalSplit
+from .eval.reporting.markdown import markdown_table
+from .eval.reporting.report import REPORT_MD, full_pose_markdown
+from .eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
 from .pipeline import PipelineSize
 
 POPCODE = Representation.POPULATION_CODE
@@ -62,11 +63,9 @@ class DemoRun:
 
 
 def latency_markdown(records: Sequence[dict[str, Any]]) -> str:
-    lines = ["| model | MB | batch | stage | median ms | p90 ms | crops/s |", "|---|---|---|---|---|---|---|"]
-    for r in records:
-        lines.append(f"| {r['model']} | {r['megabytes']:.1f} | {r['batch']} | {r['stage']} | {r['median_ms']:.2f} | "
-                     f"{r['p90_ms']:.2f} | {1000 * r['batch'] / r['median_ms']:.0f} |")
-    return "\n".join(lines)
+    rows = [(r["model"], f"{r['megabytes']:.1f}", r["batch"], r["stage"], f"{r['median_ms']:.2f}", f"{r['p90_ms']:.2f}",
+             f"{1000 * r['batch'] / r['median_ms']:.0f}") for r in records]
+    return markdown_table(["model", "MB", "batch", "stage", "median ms", "p90 ms", "crops/s"], rows)
 
 
 def symmetry_name(info: dict[str, Any]) -> str:

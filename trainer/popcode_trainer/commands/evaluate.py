@@ -7,10 +7,10 @@ from pathlib import Path
 
 from popcode_runtime.decoding import DECODERS
 
-from ..eval.evaluate import evaluate_models
-from ..eval.models import methods_from_paths
-from ..eval.report import report_markdown, write_report
-from ..eval.split import EVAL_MIN_VISIB_FRACT, read_eval_split
+from ..eval.pipeline.evaluate import evaluate_models
+from ..eval.pipeline.models import methods_from_paths
+from ..eval.pipeline.split import EVAL_MIN_VISIB_FRACT, read_eval_split
+from ..eval.reporting.report import report_markdown, write_report
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -18,7 +18,7 @@ from popcode_runtime import CodeLayout, symmetry_class
 from ..data.augment import Augmentation
 from ..data.bop import read_bop_split
 from ..data.samples import CropDataset
-from ..eval.figures import axis_activations, save_figure, sphere_panel
+from ..eval.reporting.figures import axis_activations, save_figure, sphere_panel
 from ..representations import PerObjectPopulationCodes
 
 _PAIRS_PER_ROW = 4

@@ -18,8 +18,8 @@ import numpy as np
 
 from popcode_runtime.errors import PopcodeError
 
+from ..metrics.recall import InstanceErrors, Thresholds
 from .models import Method, predict_rotations
-from .scores import InstanceErrors, Thresholds
 from .split import EvalSplit, restrict_to_objects
 from .split_metrics import SplitMetrics
 from .translation import FullPose, full_pose

@@ -19,9 +19,9 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.translation import object_points_mm, translation_from_box
 
-from ..data.bop import Instance
-from .pose_error import translation_error_mm
-from .scores import InstanceErrors
+from ...data.bop import Instance
+from ..metrics.pose_errors import translation_error_mm
+from ..metrics.recall import InstanceErrors
 from .split_metrics import SplitMetrics
 
 SUMMARY_COLUMNS = {
@@ -98,13 +98,3 @@ def translation_summary(t_est_mm: np.ndarray, t_gt_mm: np.ndarray) -> dict[str, 
         "within_2_percent": float(np.mean(relative < 0.02)),
         "within_5_percent": float(np.mean(relative < 0.05)),
     }
-
-
-def translation_markdown(rows: Mapping[str, Mapping[str, float]], label: str = "Method") -> str:
-    """One row per label (e.g. a method, with its or the ground-truth rotation), the summary as columns."""
-    lines = [f"| {label} | " + " | ".join(SUMMARY_COLUMNS.values()) + " |", "|" + "---|" * (len(SUMMARY_COLUMNS) + 1)]
-    for name, summary in rows.items():
-        cells = [f"{summary[key]:.2f}" if key.endswith(("_mm", "_te_percent")) else f"{100.0 * summary[key]:.1f}%"
-                 for key in SUMMARY_COLUMNS]
-        lines.append("| " + " | ".join([name, *cells]) + " |")
-    return "\n".join(lines)

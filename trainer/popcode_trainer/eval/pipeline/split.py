@@ -10,7 +10,7 @@ from typing import Any
 
 from popcode_runtime.errors import PopcodeError
 
-from ..data.bop import Instance, read_bop_split
+from ...data.bop import Instance, read_bop_split
 
 EVAL_MIN_VISIB_FRACT = 0.1  # the BOP19 test targets: at least 10 % of the object visible
 

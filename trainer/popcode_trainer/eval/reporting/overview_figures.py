@@ -14,8 +14,8 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import geodesic_angle
 from popcode_runtime.symmetries import symmetry_transforms
 
-from ..train import METRICS_FILE
-from .evaluate import MethodResult
+from ...train import METRICS_FILE
+from ..pipeline.evaluate import MethodResult
 from .figures import save_figure
 
 AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # object x, y, z

@@ -23,9 +23,9 @@ from popcode_runtime.metadata import Representation
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 
-from ..data.bop import Instance
-from ..representations import representation_from_metadata
-from .pose_error import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
+from ...data.bop import Instance
+from ...representations import representation_from_metadata
+from ..metrics.pose_errors import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,8 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
 
-from .pose_error import RenderDepth, adi, mspd, mssd, vsd_from_depths
-from .scores import InstanceErrors, Thresholds
+from ..metrics.pose_errors import RenderDepth, adi, mspd, mssd, vsd_from_depths
+from ..metrics.recall import InstanceErrors, Thresholds
 
 MakeRenderDepth = Callable[[int, np.ndarray, int, int], RenderDepth]
 """``make_render_depth(obj_id, K, width, height) -> render_depth``: a non-anti-aliased depth renderer."""

@@ -22,8 +22,8 @@ from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 
-from ..data.bop import Instance
-from ..torch_engine import checkpoint_estimator
+from ...data.bop import Instance
+from ...torch_engine import checkpoint_estimator
 from .split import rows_by_image
 from .translation import object_points
 

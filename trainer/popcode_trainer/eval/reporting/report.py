@@ -19,13 +19,14 @@ import numpy as np
 
 from popcode_runtime.errors import PopcodeError
 
-from .evaluate import MethodResult
-from .pose_error import rotation_error_deg, translation_error_mm
-from .results import PoseEstimate, write_bop19_results
-from .scores import METRICS, InstanceErrors, Thresholds, tightest_thresholds
-from .split import EvalSplit
-from .tables import ambiguity_markdown, ambiguous_objects, per_object_markdown, to_json
-from .translation import relative_translation_error, translation_markdown, translation_summary
+from ..metrics.pose_errors import rotation_error_deg, translation_error_mm
+from ..metrics.recall import METRICS, InstanceErrors, Thresholds, ambiguous_objects, tightest_thresholds
+from ..pipeline.evaluate import MethodResult
+from ..pipeline.split import EvalSplit
+from ..pipeline.translation import relative_translation_error, translation_summary
+from .bop19_csv import PoseEstimate, write_bop19_results
+from .markdown import markdown_table
+from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown
 
 ERRORS_CSV = "errors_{name}.csv"
 BOP19_CSV = "{name}_bop19.csv"
@@ -85,11 +86,9 @@ def write_instance_errors(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
 
 def timing_markdown(results: Sequence[MethodResult]) -> str:
     """Model time per crop (crop + network + decoding) beside the metric computation time."""
-    lines = ["| Method | model ms / crop | metrics s |", "|---|---|---|"]
-    for result in results:
-        model = "–" if math.isnan(result.model_ms_per_crop) else f"{result.model_ms_per_crop:.2f}"
-        lines.append(f"| {result.name} | {model} | {result.metric_s:.1f} |")
-    return "\n".join(lines)
+    rows = [(result.name, "–" if math.isnan(result.model_ms_per_crop) else f"{result.model_ms_per_crop:.2f}",
+             f"{result.metric_s:.1f}") for result in results]
+    return markdown_table(["Method", "model ms / crop", "metrics s"], rows)
 
 
 def shared_split(results: Sequence[MethodResult]) -> EvalSplit:

@@ -10,12 +10,15 @@ over its thresholds (and, for VSD, over the misalignment tolerances tau);
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.symmetries import SymmetryClass, symmetry_class
 
 
 def _bop19_steps(first: float, last: float) -> tuple[float, ...]:
@@ -192,3 +195,45 @@ def scores_per_object(
         int(obj): score(errors.select(obj_ids == obj), diameters_mm, thresholds)
         for obj in np.unique(obj_ids)
     }
+
+
+GROUPS = ("Without ambiguity", "With ambiguity", "All objects")
+
+def ambiguous_objects(models_info: Mapping[int, Mapping[str, Any]]) -> dict[int, bool]:
+    """Object id -> whether its pose is ambiguous (any declared symmetry), from ``models_info.json``."""
+    return {int(obj): symmetry_class(info) is not SymmetryClass.NONE for obj, info in models_info.items()}
+
+
+def group_scores(
+    errors: InstanceErrors,
+    diameters_mm: Mapping[int, float],
+    ambiguous: Mapping[int, bool],
+    thresholds: Thresholds | None = None,
+    average: Literal["instances", "objects"] = "instances",
+    score: ScoreFunction = metric_scores,
+) -> dict[str, dict[str, float]]:
+    """Scores for the groups of :data:`GROUPS` (the paper's Table IV).
+
+    ``average="instances"`` pools the instances of a group, as the BOP toolkit's
+    recall does; ``"objects"`` averages the per-object scores. A group without
+    instances has NaN scores. ``score`` computes them (e.g. :func:`tightest_recalls`).
+    """
+    obj_ids = np.asarray(errors.obj_id)
+    unknown = sorted({int(i) for i in obj_ids} - set(ambiguous))
+    if unknown:
+        raise PopcodeError(f"no symmetry information for object ids {unknown}")
+    is_ambiguous = np.array([ambiguous[int(i)] for i in obj_ids], dtype=bool)
+    masks = dict(zip(GROUPS, (~is_ambiguous, is_ambiguous, np.ones_like(is_ambiguous)), strict=True))
+    result = {}
+    for group, mask in masks.items():
+        chosen = errors.select(mask)
+        if average == "instances":
+            result[group] = score(chosen, diameters_mm, thresholds)
+        elif average == "objects":
+            per_object = scores_per_object(chosen, diameters_mm, thresholds, score).values()
+            names = score(chosen, diameters_mm, thresholds).keys()
+            result[group] = {name: float(np.mean([s[name] for s in per_object])) if per_object else math.nan
+                             for name in names}
+        else:
+            raise PopcodeError(f"average must be 'instances' or 'objects', not {average!r}")
+    return result

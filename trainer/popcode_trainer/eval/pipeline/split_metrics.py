@@ -18,12 +18,18 @@ import numpy as np
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 
-from ..data.bop import Instance, model_path
+from ...data.bop import Instance, model_path
+from ..metrics.pose_errors import RenderDepth
+from ..metrics.recall import (
+    InstanceErrors,
+    Thresholds,
+    ambiguous_objects,
+    group_scores,
+    scores_per_object,
+    tightest_recalls,
+)
 from .instance_errors import ObjectModel, compute_instance_errors
-from .pose_error import RenderDepth
-from .scores import InstanceErrors, Thresholds, scores_per_object, tightest_recalls
 from .split import EvalSplit
-from .tables import ambiguous_objects, group_scores
 
 
 def read_depth_mm(instance: Instance) -> np.ndarray:
@@ -44,7 +50,7 @@ class SplitMetrics:
     """
 
     def __init__(self, split: EvalSplit, thresholds: Thresholds | None = None, vsd: bool | None = None) -> None:
-        from ..data.render import load_mesh  # pyrender/EGL, loaded only when evaluating
+        from ...data.render import load_mesh  # pyrender/EGL, loaded only when evaluating
 
         self.split, self.thresholds = split, thresholds or Thresholds()
         self._meshes = {obj_id: load_mesh(model_path(split.models_dir, obj_id)) for obj_id in split.obj_ids}
@@ -72,7 +78,7 @@ class SplitMetrics:
         Only one lives at a time: pyrender's EGL contexts share one display, and
         closing any of them ends the others.
         """
-        from ..data.render import DepthRenderer
+        from ...data.render import DepthRenderer
 
         key = (obj_id, width, height)
         if self._renderer_key != key:

@@ -1,0 +1,1 @@
+"""Models + a BOP split -> per-instance errors and scores: the steps ``popcode-train evaluate`` runs."""

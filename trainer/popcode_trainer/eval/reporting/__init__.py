@@ -1,0 +1,1 @@
+"""Evaluation results -> tables (markdown, JSON), BOP19 results CSV and figures."""
