@@ -30,10 +30,11 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 from report import machine, write_results  # noqa: E402
 
+from popcode_runtime.camera import project_points  # noqa: E402
 from popcode_runtime.crop import box_from_edges  # noqa: E402
 from popcode_trainer.data.bop import Instance  # noqa: E402
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, project, render_builtin_split  # noqa: E402
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
 from popcode_trainer.eval.pipeline.split import read_eval_split  # noqa: E402
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics  # noqa: E402
 from popcode_trainer.eval.pipeline.translation import (  # noqa: E402
@@ -52,7 +53,7 @@ ROWS = (f"{HULL}, rendered box", f"{CORNERS}, rendered box", f"{HULL}, exact box
 
 def exact_box(instance: Instance, vertices_mm: np.ndarray) -> tuple[float, float, float, float]:
     """The unrounded BOP box ``(x, y, w, h)`` of the projected mesh in the ground-truth pose."""
-    uv = project(vertices_mm, instance.K, instance.R_m2c, instance.t_m2c_mm)
+    uv = project_points(vertices_mm, instance.K, instance.R_m2c, instance.t_m2c_mm)
     return box_from_edges([*uv.min(axis=0), *uv.max(axis=0)])
 
 

@@ -6,10 +6,11 @@ rotation maths, crop and decoding from here, so there is one definition of each.
 
 __version__ = "0.1.0"
 
+from .camera import parse_camera_matrix
 from .code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
 from .crop import crop_batch, crop_square, read_image, to_grey
 from .errors import PopcodeError
-from .estimator import PoseEstimator, Prediction, parse_camera_matrix
+from .estimator import PoseEstimator, Prediction
 from .metadata import ModelMetadata, Representation, RotationFrame
 from .symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
 

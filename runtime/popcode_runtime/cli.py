@@ -11,10 +11,11 @@ import numpy as np
 
 from . import __version__
 from .benchmark import benchmark_estimator, machine_description
+from .camera import parse_camera_matrix
 from .crop import read_image
 from .decoding import DECODERS
 from .errors import PopcodeError
-from .estimator import PoseEstimator, parse_camera_matrix
+from .estimator import PoseEstimator
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import parse_camera_matrix
 from .code import PopulationCode
 from .crop import box_centre, crop_batch
 from .decoding import DECODERS, decode_output
@@ -64,23 +65,6 @@ class Timings:
     crop_s: float
     inference_s: float
     decode_s: float
-
-
-def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
-    """A camera matrix from ``(fx, fy, cx, cy)``, 9 row-major numbers or a 3x3 array."""
-    K = np.asarray(values, dtype=np.float64)
-    if K.shape == (4,):
-        fx, fy, cx, cy = K
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    elif K.size == 9:
-        K = K.reshape(3, 3)
-    else:
-        raise PopcodeError(f"a camera matrix is fx,fy,cx,cy or 9 numbers; got {K.size} numbers")
-    if not np.isfinite(K).all():
-        raise PopcodeError("camera matrix contains NaN or inf")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(np.linalg.det(K)) < 1e-12:
-        raise PopcodeError(f"not a valid camera matrix (focal lengths must be positive, last row 0 0 1): {K.tolist()}")
-    return K
 
 
 class PoseEstimator:

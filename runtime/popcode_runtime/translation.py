@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .camera import project_camera_points
 from .crop import box_centre, box_edges
 from .errors import PopcodeError
 
@@ -41,7 +42,7 @@ def object_points_mm(info: Mapping[str, Any]) -> np.ndarray:
 
 def _box_of(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Box edges ``(x_min, y_min, x_max, y_max)`` [px] of camera-frame points."""
-    uv = (points_cam @ K.T)[:, :2] / points_cam[:, 2:3]
+    uv = project_camera_points(points_cam, K)
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 

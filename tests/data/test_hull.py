@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from popcode_runtime.camera import project_points
 from popcode_runtime.rotations import random_rotations
 from popcode_trainer.data.hull import HULL_POINTS, hull_points_mm, hull_vertices_mm, with_hull_points
 from popcode_trainer.data.objects import build_part, write_builtin_models
-from popcode_trainer.data.render import camera_matrix, project
+from popcode_trainer.data.render import camera_matrix
 
 BOX_TOLERANCE = 0.010  # of the box size: what the module docstring states for the built-in parts
 
@@ -41,7 +42,7 @@ def test_hull_points_keep_the_projected_box(obj_id: int) -> None:
     worst = 0.0
     for R in random_rotations(200, rng):
         t = 2.5 * diameter * np.linalg.solve(K, np.append(rng.uniform(20, 236, size=2), 1.0))
-        full, fit = _box(project(vertices, K, R, t)), _box(project(points, K, R, t))
+        full, fit = _box(project_points(vertices, K, R, t)), _box(project_points(points, K, R, t))
         worst = max(worst, np.abs(fit - full).max() / np.ptp(full.reshape(2, 2), axis=0).max())
     assert worst < BOX_TOLERANCE
 

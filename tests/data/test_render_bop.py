@@ -12,6 +12,7 @@ import pytest
 
 import popcode_trainer.data.render as render_module
 from popcode_runtime import PopcodeError
+from popcode_runtime.camera import project_points
 from popcode_trainer.data.bop import load_models_info, read_bop_split
 from popcode_trainer.data.objects import BUILTIN_PARTS, write_builtin_models
 from popcode_trainer.data.render import (
@@ -21,7 +22,6 @@ from popcode_trainer.data.render import (
     RenderSettings,
     load_mesh,
     parse_shard,
-    project,
     render_split,
 )
 
@@ -48,7 +48,7 @@ def test_ground_truth_reprojects_onto_mask_and_box(builtin_split: Path) -> None:
     split = read_bop_split(builtin_split, builtin_split / "models")
     for instance in split.instances:
         vertices = load_mesh(split.model_path(instance.obj_id)).vertices
-        pixels = project(vertices, instance.K, instance.R_m2c, instance.t_m2c_mm)
+        pixels = project_points(vertices, instance.K, instance.R_m2c, instance.t_m2c_mm)
         mask = cv2.imread(str(instance.mask_visib_path), cv2.IMREAD_UNCHANGED) > 0
         grown = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         columns, rows = np.round(pixels).astype(int).T

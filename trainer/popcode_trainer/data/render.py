@@ -29,6 +29,7 @@ import trimesh  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from popcode_runtime import PopcodeError  # noqa: E402
+from popcode_runtime.camera import project_points  # noqa: E402
 from popcode_runtime.rotations import random_rotations, rotation_between  # noqa: E402
 
 from .bop import RENDER_MARKER, load_models_info, model_path, read_json  # noqa: E402
@@ -211,18 +212,11 @@ def sample_pose(rng: np.random.Generator, vertices_mm: np.ndarray, diameter_mm: 
                       if settings.random_position else [])
     for centre_px in [*centres_px, K[:2, 2]]:  # random positions first, the image centre as the last resort
         t_m2c_mm = distance_mm * np.linalg.solve(K, np.append(centre_px, 1.0))
-        projected = project(vertices_mm, K, R_m2c, t_m2c_mm)
+        projected = project_points(vertices_mm, K, R_m2c, t_m2c_mm)
         if projected.min() >= 0 and (projected < [settings.width - 1, settings.height - 1]).all():
             return R_m2c, t_m2c_mm
     raise PopcodeError(f"the object does not fit into {settings.width}x{settings.height} pixels "
                        f"at fill {fill:.2f}; lower fill_range")
-
-
-def project(points_mm: np.ndarray, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
-    """Pixel coordinates ``(N, 2)`` of model points ``(N, 3)`` (OpenCV convention)."""
-    camera = points_mm @ R_m2c.T + t_m2c_mm
-    image = camera @ K.T
-    return image[:, :2] / image[:, 2:3]
 
 
 def _mask_box(mask: np.ndarray) -> list[int]:

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from popcode_runtime.camera import project_camera_points
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import geodesic_angle
 from popcode_runtime.symmetries import SymmetryTransforms
@@ -52,12 +53,6 @@ def _points(pts_mm: np.ndarray) -> np.ndarray:
     return pts
 
 
-def _project(points_c: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points ``(..., 3)`` [mm] -> pixel coordinates ``(..., 2)`` [px]."""
-    uvw = points_c @ K.T
-    return uvw[..., :2] / uvw[..., 2:3]
-
-
 def _max_symmetric_distance(
     R_est, t_est, R_gt, t_gt, pts_mm, syms: SymmetryTransforms | None, K: np.ndarray | None
 ) -> np.ndarray:
@@ -77,14 +72,14 @@ def _max_symmetric_distance(
         sl = slice(p0, p0 + pose_chunk)
         pts_est = np.einsum("nij,pj->npi", R_e[sl], pts) + t_e[sl, None]  # (n, P, 3)
         if K is not None:
-            pts_est = _project(pts_est, K)
+            pts_est = project_camera_points(pts_est, K)
         best = np.full(len(pts_est), np.inf)
         for k0 in range(0, len(sym_R), sym_chunk):
             R_sym = np.einsum("nij,kjl->nkil", R_g[sl], sym_R[k0 : k0 + sym_chunk])
             t_sym = np.einsum("nij,kj->nki", R_g[sl], sym_t[k0 : k0 + sym_chunk]) + t_g[sl, None]
             pts_gt = np.einsum("nkij,pj->nkpi", R_sym, pts) + t_sym[:, :, None]  # (n, k, P, 3)
             if K is not None:
-                pts_gt = _project(pts_gt, K)
+                pts_gt = project_camera_points(pts_gt, K)
             dist = np.linalg.norm(pts_est[:, None] - pts_gt, axis=-1).max(axis=-1)
             best = np.minimum(best, dist.min(axis=-1))
         errors[sl] = best

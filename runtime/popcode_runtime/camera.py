@@ -1,0 +1,41 @@
+"""The pinhole camera, in OpenCV's convention: ``K`` 3x3, x right, y down, z forward, pixel centres at integers.
+
+One definition of the camera matrix's parsing and of point projection for the
+runtime (box fitting), the renderer and the BOP metrics (MSPD).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import PopcodeError
+
+
+def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
+    """A camera matrix from ``(fx, fy, cx, cy)``, 9 row-major numbers or a 3x3 array."""
+    K = np.asarray(values, dtype=np.float64)
+    if K.shape == (4,):
+        fx, fy, cx, cy = K
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    elif K.size == 9:
+        K = K.reshape(3, 3)
+    else:
+        raise PopcodeError(f"a camera matrix is fx,fy,cx,cy or 9 numbers; got {K.size} numbers")
+    if not np.isfinite(K).all():
+        raise PopcodeError("camera matrix contains NaN or inf")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(np.linalg.det(K)) < 1e-12:
+        raise PopcodeError(f"not a valid camera matrix (focal lengths must be positive, last row 0 0 1): {K.tolist()}")
+    return K
+
+
+def project_camera_points(points_c_mm: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel coordinates ``(..., 2)`` [px] of camera-frame points ``(..., 3)`` [mm] (in front of the camera)."""
+    uvw = np.asarray(points_c_mm) @ np.asarray(K).T
+    return uvw[..., :2] / uvw[..., 2:3]
+
+
+def project_points(points_m_mm: np.ndarray, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+    """Pixel coordinates ``(N, 2)`` [px] of model points ``(N, 3)`` [mm] seen in the pose ``x_c = R x_m + t``."""
+    return project_camera_points(np.asarray(points_m_mm) @ np.asarray(R_m2c).T + np.asarray(t_m2c_mm), K)
