@@ -1,6 +1,6 @@
 """Does a quantised model decode the float model's pose? Agreement on the crops of a BOP split.
 
-    PYTHONPATH=runtime:trainer:bench python bench/agreement.py MODEL.onnx QUANTISED.onnx [...] \
+    python -m bench.agreement MODEL.onnx QUANTISED.onnx [...] \
         --split DIR [--models-dir DIR] [--out DIR]
 
 ``bench/latency.py`` measures agreement with random weights; this measures it
@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from report import write_results
 from tqdm import tqdm
 
 from popcode_runtime.crop import read_image
@@ -32,6 +31,8 @@ from popcode_trainer.agreement import compare
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.eval.pipeline.split import read_eval_split, rows_by_image
 from popcode_trainer.eval.reporting.markdown import markdown_table
+
+from .report import write_results
 
 
 def split_crops(estimator: PoseEstimator, instances: Sequence[Instance]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,6 @@
 """Runtime latency against the memory-bandwidth floor: fp32, the quantised variants and torch eager.
 
-    PYTHONPATH=runtime:trainer python bench/latency.py [--quick] [--out DIR] [--networks paper small]
+    python -m bench.latency [--quick] [--out DIR] [--networks paper small]
 
 Random weights (timing does not depend on them). Per network, variant, thread
 count (1 and all cores) and batch (1, 8, 32): end-to-end (crop + inference +
@@ -25,25 +25,7 @@ over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
 estimate, not a strict bound -- with the cores shared, the 2-thread peak is
 depressed and some 2-thread rows fall below 1x.
 
-Findings (2-core AMD EPYC, AVX-512 VNNI; ``results/latency.md``):
-
-- The paper network is compute-bound. Its three 5x5 convs are 1.27 of the
-  1.31 GMAC per crop and ~78 % of fp32 node time; at the single-thread
-  fp32 GEMM peak (~49 GMAC/s) they need >= 26 ms, 5.5x the 4.8 ms
-  weight-read floor. fp32 ran at 1.1x (idle machine, 29 ms) to 1.7x
-  (load 5, 46 ms) of that compute floor, so nothing cheap reaches the memory floor:
-  BatchNorm is already folded into the convs at export (no
-  BatchNormalization node), onnxruntime's default ORT_ENABLE_ALL fuses
-  Conv+Relu and runs the convs in its blocked NCHWc layout (EXTENDED, no
-  NCHWc: 36 vs 32 ms), and intra-op spinning on/off changed nothing beyond
-  the noise of the shared cores. Torch eager (oneDNN) is no faster.
-- Static int8 runs the convs as VNNI QLinearConv (uint8 x int8 GEMM ~4.4x
-  the fp32 peak): 3.1x (idle, 9.5 ms) to 3.3x faster than fp32 at 100 %
-  argmax agreement (random weights; ``agreement.py`` for trained models).
-- The ``light`` trunk (conv 32/64/128, the paper's MLP and code) is 142
-  MMAC: fp32 ~8.5 ms, 1.4-1.9x its memory floor, the output layer then
-  ~55 % of the time; int8 ~3.5 ms, the scale of the paper's 3.2 ms on an Apple M1,
-  which suggests a trunk about this light there.
+Findings (what the numbers say, and why the int8 recipe): [results/latency-findings.md](results/latency-findings.md).
 """
 
 from __future__ import annotations
@@ -64,7 +46,6 @@ import numpy as np
 import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
-from report import machine, write_results
 
 from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
 from popcode_runtime.code import CodeLayout
@@ -82,6 +63,8 @@ from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count
 from popcode_trainer.quantise import quantise
 from popcode_trainer.torch_engine import TorchEngine
 from popcode_trainer.training_data import validation_crops
+
+from .report import machine, write_results
 
 QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
 BATCHES = (1, 8, 32)

@@ -1,6 +1,6 @@
 """Size, MACs and training throughput of the paper-size network on this machine.
 
-    PYTHONPATH=runtime:trainer python bench/network_cost.py [--steps 5] [--batch 64]
+    python -m bench.network_cost [--steps 5] [--batch 64]
 
 Throughput is optimiser steps only (forward, MSE on the code, backward, Adam)
 on random crops, so it is the network's ceiling; data loading is not counted.

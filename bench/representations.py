@@ -1,7 +1,7 @@
 """Population code vs the baselines on the built-in objects, with the BOP metrics (paper Tables III, IV).
 
-    PYOPENGL_PLATFORM=egl PYTHONPATH=runtime:trainer python bench/representations.py --quick [--out DIR]
-    PYOPENGL_PLATFORM=egl PYTHONPATH=runtime:trainer python bench/representations.py --full  [--out DIR]
+    python -m bench.representations --quick [--out DIR]
+    python -m bench.representations --full  [--out DIR]
 
 Renders a training split and a separate test split (random positions, other
 seed), trains every representation with the same network, data, augmentation

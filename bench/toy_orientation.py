@@ -1,6 +1,6 @@
 """The paper's 1-D experiment (section IV-A, Table I): orientation of bars and arrows, every output representation.
 
-    PYTHONPATH=runtime:trainer python bench/toy_orientation.py [--quick] [--repeats 10] [--epochs 30] [--jobs 2]
+    python -m bench.toy_orientation [--quick] [--repeats 10] [--epochs 30] [--jobs 2]
         [--no-augment] [--out DIR]
 
 Generator (ours; the paper shows examples only): a 64x64 black image with one
@@ -49,13 +49,14 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from report import write_results
 from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
 from popcode_runtime.code import CodeLayout
 from popcode_runtime.refine import refine_angle
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.network import ToyNet, ToyNetworkConfig
+
+from .report import write_results
 
 IMAGE_SIZE = 64
 TRAIN_COUNT, TEST_COUNT = 800, 200

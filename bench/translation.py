@@ -1,6 +1,6 @@
 """Translation from the box on rendered data: the error of the runtime's box fit alone (no model needed).
 
-    PYOPENGL_PLATFORM=egl PYTHONPATH=runtime:trainer:bench python bench/translation.py [--quick] [--out DIR]
+    python -m bench.translation [--quick] [--out DIR]
 
 Renders the built-in parts at random positions and places every instance with
 its ground-truth rotation through the runtime's fit
@@ -28,7 +28,6 @@ from typing import Any
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np  # noqa: E402
-from report import machine, write_results  # noqa: E402
 
 from popcode_runtime.camera import project_points  # noqa: E402
 from popcode_runtime.crop import box_from_edges  # noqa: E402
@@ -45,6 +44,8 @@ from popcode_trainer.eval.pipeline.translation import (  # noqa: E402
 )
 from popcode_trainer.eval.reporting.markdown import markdown_table  # noqa: E402
 from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown  # noqa: E402
+
+from .report import machine, write_results  # noqa: E402
 
 HULL = f"{HULL_POINTS} hull points"
 CORNERS = "3-D box corners"
@@ -125,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     images, size = (3, 128) if args.quick else (args.images, args.size)
     work = args.out / f"translation-work-{images}x{size}"
     payload = run_benchmark(work, images, size, args.seed)
-    command = "PYOPENGL_PLATFORM=egl PYTHONPATH=runtime:trainer:bench python bench/translation.py" + (
+    command = "python -m bench.translation" + (
         " --quick" if args.quick else f" --images {images} --size {size} --seed {args.seed}")
     markdown = to_markdown(payload, command)
     paths = write_results(args.out, "translation-quick" if args.quick else "translation", payload, markdown)

@@ -32,7 +32,7 @@ def bash_commands(markdown: str) -> list[list[str]]:
 
 
 COMMANDS = bash_commands(README)
-INLINE_BENCH = re.findall(r"`PYTHONPATH=\S+ python (bench/\w+\.py)([^`]*)`", README)
+INLINE_BENCH = re.findall(r"`python -m (bench\.\w+)([^`]*)`", README)
 
 
 def _ids(commands: list[list[str]]) -> list[str]:
@@ -81,9 +81,9 @@ def test_links_and_images_exist() -> None:
             assert (ROOT / target).exists(), target
 
 
-@pytest.mark.parametrize("script, options", INLINE_BENCH)
-def test_bench_commands_parse(script: str, options: str) -> None:
-    result = subprocess.run([sys.executable, str(ROOT / script), *shlex.split(options), "--help"],
+@pytest.mark.parametrize("module, options", INLINE_BENCH)
+def test_bench_commands_parse(module: str, options: str) -> None:
+    result = subprocess.run([sys.executable, "-m", module, *shlex.split(options), "--help"],
                             capture_output=True, text=True, cwd=ROOT)
     assert result.returncode == 0, result.stderr
 

@@ -10,18 +10,8 @@ the network's peaks are as tall or as wide as the training targets.
 Only the peak's own neighbourhood is used: other symmetric peaks, and the
 axis/angle twin (which sits at the antipodal axis), are never mixed in.
 
-Chosen by measurement on a trained network's outputs (``bench/toy_orientation.py``
-trained without augmentation, one repeat, 200 test images, mean squared angle
-error in deg^2, arrows / bars with two peaks): argmax 11.9 / 9.4; this
-three-neuron log-parabola 2.6 / 1.6; a weighted log-quadratic over five neurons
-2.5 / 1.5; a fixed-width Gaussian template fitted over five or seven neurons
-2.5 / 1.5; an activation-weighted circular mean of three or five neurons
-9.3 / 7.0 and 5.8 / 4.0 (pulled towards the peak neuron, or by the tails). The
-fits differ by less than the network's own noise, so the smallest one that is
-exact for a Gaussian stays. With the augmented training the network is less
-noisy and the wider fits gain a little (repeats 1 and 2, arrows / bars: three
-neurons 0.83, 0.73 / 0.86, 0.73; five neurons 0.70, 0.63 / 0.73, 0.67), well
-inside the 2 deg^2 goal either way.
+The three-neuron fit was chosen by measurement against wider fits, templates
+and circular means: ``bench/results/refined-decoder.md``.
 """
 
 from __future__ import annotations

@@ -2,29 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
+from bench import representations as bench
 from popcode_trainer.pipeline import PipelineSize
-
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "representations.py"
-
-
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_representations", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.slow
-def test_tiny_run_writes_every_table(bench, tmp_path: Path) -> None:
+def test_tiny_run_writes_every_table(tmp_path: Path) -> None:
     size = PipelineSize(train_images_per_object=4, test_images_per_object=1, epochs=1, n_axes=42, n_angles=12,
                         sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2,
                                                  "hidden": [16, 16, 16]},

@@ -5,13 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import agreement
-import latency
 import numpy as np
-import toy_orientation
-import translation
 from onnx_models import linear_model, save
 
+from bench import agreement, latency, toy_orientation, translation
 from popcode_runtime.code import CodeLayout, PopulationCode
 from popcode_runtime.metadata import ModelMetadata, Representation
 from popcode_runtime.rotations import random_rotations

@@ -37,7 +37,7 @@ def _inline_identity_initializers(model: onnx.ModelProto) -> onnx.ModelProto:
     The exporter shares equal initializers through Identity (an untrained
     network's folded BatchNorm biases are all zero); a conv whose bias is no
     initializer is not fused into ``QLinearConv`` by onnxruntime and runs
-    in float on dequantised weights (on the paper network: 9.5 ms of 19).
+    in float on dequantised weights (measured: ``bench/results/quantisation.md``).
     """
     initializers = {init.name: init for init in model.graph.initializer}
     for node in list(model.graph.node):
