@@ -70,7 +70,7 @@ def test_ground_truth_reprojects_onto_mask_and_box(builtin_split: Path) -> None:
 def test_depth_renderer_matches_written_depth(builtin_split: Path) -> None:
     split = read_bop_split(builtin_split, builtin_split / "models", obj_ids=[3])
     mesh = load_mesh(split.model_path(3))
-    renderer = DepthRenderer(mesh.vertices, mesh.faces, 128, 128)
+    renderer = DepthRenderer(mesh.vertices, mesh.faces, 128, 128, opencv_pixel_centres=True)
     try:
         for instance in split.instances:
             depth_mm = renderer.render(instance.K, instance.R_m2c, instance.t_m2c_mm)

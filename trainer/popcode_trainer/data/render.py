@@ -64,8 +64,43 @@ def _offscreen(width: int, height: int) -> Any:
         raise PopcodeError(_egl_help(error)) from error
 
 
+def _ascii_ply_vertices(path: Path) -> np.ndarray | None:
+    """The x, y, z of an ASCII PLY's vertices read as float64, as the BOP toolkit reads them; None for other files.
+
+    trimesh parses ``property float`` as float32, which moves ADI and MSSD by ~1e-9 relative.
+    """
+    if path.suffix.lower() != ".ply":
+        return None
+    with path.open("rb") as handle:
+        if handle.readline().strip() != b"ply" or not handle.readline().startswith(b"format ascii"):
+            return None
+        header = []
+        for line in handle:
+            header.append(line.decode("ascii", "replace").split())
+            if header[-1][:1] == ["end_header"]:
+                break
+        element, count, properties, skip = None, 0, [], 0
+        for words in header:
+            if words[:1] == ["element"]:
+                if element == "vertex":
+                    break
+                element, count = words[1], int(words[2])
+                if element != "vertex":
+                    skip += count  # elements before the vertices (rare) are whole lines too
+            elif words[:1] == ["property"] and element == "vertex":
+                properties.append(words[-1])
+        for _ in range(skip):
+            handle.readline()
+        rows = [handle.readline().split() for _ in range(count)]
+    columns = [properties.index(axis) for axis in ("x", "y", "z")]
+    return np.array([[float(row[c]) for c in columns] for row in rows], dtype=np.float64)
+
+
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
-    """A PLY/OBJ model (mm) as one triangle mesh; a clear error if it does not load."""
+    """A PLY/OBJ model (mm) as one triangle mesh; a clear error if it does not load.
+
+    ASCII PLY vertices keep every digit of the file (float64), as in the BOP toolkit.
+    """
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"model file not found: {path}")
@@ -75,6 +110,14 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
         raise PopcodeError(f"cannot load model {path}: {error}") from error
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise PopcodeError(f"model {path} has no triangles")
+    try:
+        exact = _ascii_ply_vertices(path)
+    except (ValueError, IndexError, UnicodeDecodeError) as error:
+        raise PopcodeError(f"cannot read the vertices of {path}: {error}") from error
+    if exact is not None:
+        if exact.shape != loaded.vertices.shape or not np.allclose(exact, loaded.vertices, rtol=1e-6, atol=1e-6):
+            raise PopcodeError(f"the vertices of {path} read two ways disagree: not a well-formed ASCII PLY")
+        loaded.vertices = exact
     return loaded
 
 
@@ -84,9 +127,18 @@ def camera_matrix(width: int, height: int) -> np.ndarray:
     return np.array([[focal_px, 0.0, (width - 1) / 2.0], [0.0, focal_px, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
-def _pyrender_camera(pyrender: Any, K: np.ndarray, radius_mm: float, distance_mm: float) -> Any:
-    # OpenGL samples pixel i at i + 0.5, OpenCV puts its centre at i: shift the principal point.
-    return pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
+def _pyrender_camera(pyrender: Any, K: np.ndarray, radius_mm: float, distance_mm: float,
+                     opencv_pixel_centres: bool = True) -> Any:
+    """The camera of ``K``; OpenGL samples pixel ``i`` at ``x = i + 0.5`` of the image plane.
+
+    With ``opencv_pixel_centres`` the principal point is shifted so that pixel ``i``
+    samples ``x = i``, OpenCV's pixel centre, where ``K`` projects a point: what
+    training data needs, so that masks and boxes match the projected mesh (see
+    ``tests/data/test_render_bop.py``). Without it ``K`` is used as given, as the
+    BOP toolkit's renderer does, which its metrics (VSD) are defined with.
+    """
+    shift = 0.5 if opencv_pixel_centres else 0.0
+    return pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift,
                                      znear=max(distance_mm - radius_mm - 1.0, 1.0),
                                      zfar=distance_mm + radius_mm + 1.0)
 
@@ -152,16 +204,27 @@ class _CentreSampledDepth:
 
 
 class DepthRenderer:
-    """Depth images of one mesh without anti-aliasing, for metrics such as VSD."""
+    """Depth images of one mesh as the BOP toolkit renders them for VSD.
 
-    def __init__(self, mesh_vertices_mm: np.ndarray, faces: np.ndarray, width: int, height: int) -> None:
+    Like the toolkit's renderer: ``K`` as given (pixel ``i`` samples ``x = i + 0.5``),
+    both faces of every triangle, one sample per pixel. ``opencv_pixel_centres``
+    renders in the training renderer's convention instead (pixel ``i`` samples
+    ``x = i``), which is how the depth of popcode's rendered splits is written.
+    """
+
+    def __init__(self, mesh_vertices_mm: np.ndarray, faces: np.ndarray, width: int, height: int,
+                 opencv_pixel_centres: bool = False) -> None:
+        self._opencv_pixel_centres = opencv_pixel_centres
         self._pyrender = _import_pyrender()
         vertices = np.asarray(mesh_vertices_mm, dtype=np.float64)
         self._radius_mm = float(np.linalg.norm(vertices, axis=1).max())
         self._offscreen = _offscreen(width, height)
         self._depth = _CentreSampledDepth(self._offscreen, width, height)
-        mesh = self._pyrender.Mesh.from_trimesh(trimesh.Trimesh(vertices, faces, process=False), smooth=False)
-        self._node = self._depth.scene.add(mesh)
+        # pyrender culls back faces in depth-only passes whatever its flags say: every triangle
+        # is drawn with both windings, so faces wound the wrong way are not lost.
+        faces = np.asarray(faces)
+        both_sides = trimesh.Trimesh(vertices, np.concatenate([faces, faces[:, ::-1]]), process=False)
+        self._node = self._depth.scene.add(self._pyrender.Mesh.from_trimesh(both_sides, smooth=False))
         self._camera_node = None
 
     def render(self, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
@@ -170,7 +233,8 @@ class DepthRenderer:
         scene = self._depth.scene
         if self._camera_node is not None:
             scene.remove_node(self._camera_node)
-        camera = _pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]))
+        camera = _pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]),
+                                  self._opencv_pixel_centres)
         self._camera_node = scene.add(camera, pose=np.eye(4))
         scene.set_pose(self._node, _gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
         return self._depth.render()

@@ -147,6 +147,51 @@ def adi(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
     return errors.reshape(shape)
 
 
+def proj(R_est, t_est, R_gt, t_gt, K: np.ndarray, pts_mm: np.ndarray) -> np.ndarray:
+    """Average projection distance, PROJ [px] (Brachmann et al., CVPR 2016; the toolkit's ``proj``).
+
+    Mean over vertices of the distance between their projections with the 3x3
+    intrinsics ``K`` in the two poses; blind to symmetry.
+    """
+    shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
+    pts, K = _points(pts_mm), np.asarray(K, np.float64)
+    errors = np.empty(len(R_e))
+    chunk = max(1, _CHUNK_ELEMENTS // len(pts))
+    for n0 in range(0, len(R_e), chunk):
+        sl = slice(n0, n0 + chunk)
+        uv_est = project_camera_points(np.einsum("nij,pj->npi", R_e[sl], pts) + t_e[sl, None], K)
+        uv_gt = project_camera_points(np.einsum("nij,pj->npi", R_g[sl], pts) + t_g[sl, None], K)
+        errors[sl] = np.linalg.norm(uv_est - uv_gt, axis=-1).mean(axis=-1)
+    return errors.reshape(shape)
+
+
+def spheres_overlap(t_est_mm: np.ndarray, t_gt_mm: np.ndarray, diameter_mm: float) -> np.ndarray:
+    """Whether the object's bounding spheres in the two poses can overlap ``(...,)`` bool.
+
+    The toolkit's ``eval_calc_errors.py`` sets MSSD, ADD and ADI to infinity
+    where they cannot (centre distance ``>= diameter``), without computing them.
+    """
+    distance = np.linalg.norm(np.asarray(t_est_mm, np.float64) - np.asarray(t_gt_mm, np.float64), axis=-1)
+    return distance < diameter_mm
+
+
+def sphere_projections_overlap(t_est_mm: np.ndarray, t_gt_mm: np.ndarray, diameter_mm: float) -> np.ndarray:
+    """Whether the image silhouettes of the bounding spheres in the two poses can overlap ``(...,)`` bool.
+
+    The toolkit's approximation (``misc.overlapping_sphere_projections``): the
+    centres' normalised image points ``(x/z, y/z)`` lie closer than
+    ``r (1/z_est + 1/z_gt)`` with ``r = diameter / 2``; a centre at ``z = 0``
+    never overlaps. Where they cannot, the toolkit sets VSD to 1.
+    """
+    t_e, t_g = np.asarray(t_est_mm, np.float64), np.asarray(t_gt_mm, np.float64)
+    z_e, z_g = t_e[..., 2], t_g[..., 2]
+    valid = (z_e != 0) & (z_g != 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = np.linalg.norm(t_e[..., :2] / z_e[..., None] - t_g[..., :2] / z_g[..., None], axis=-1)
+        overlap = distance < 0.5 * diameter_mm * (1.0 / z_e + 1.0 / z_g)
+    return valid & overlap
+
+
 def rotation_error_deg(R_est, R_gt) -> np.ndarray:
     """Rotation error re [deg] (BOP): angle of ``R_est R_gt^T``, in [0, 180].
 
@@ -213,9 +258,11 @@ def vsd(
 ) -> np.ndarray:
     """VSD of one estimate (see :func:`vsd_from_depths`), rendering both poses with ``render_depth``.
 
-    ``render_depth`` must render with the intrinsics of the test image and without
-    anti-aliasing (e.g. ``popcode_trainer.data.render.DepthRenderer(...).render``
-    with ``K`` bound); multisampling moves silhouette pixels.
+    ``render_depth`` must render as the toolkit's renderer does: with the
+    intrinsics of the test image as given (pixel ``i`` samples ``x = i + 0.5``),
+    both faces of every triangle, and without anti-aliasing, which moves
+    silhouette pixels (``popcode_trainer.data.render.DepthRenderer(...).render``
+    with ``K`` bound does).
     """
     depth_est = render_depth(np.asarray(R_est, np.float64), np.asarray(t_est_mm, np.float64))
     depth_gt = render_depth(np.asarray(R_gt, np.float64), np.asarray(t_gt_mm, np.float64))
@@ -232,5 +279,8 @@ def vss(
     render_depth: RenderDepth,
     delta_mm: float,
 ) -> float:
-    """Visible Surface Similarity error: VSD with tau = inf, i.e. the mismatch of the visible silhouettes, in [0, 1]."""
+    """Visible Surface Similarity error: VSD with tau = inf, i.e. the mismatch of the visible silhouettes, in [0, 1].
+
+    The toolkit has no function of this name: it is its ``vsd`` with ``taus=[inf]``.
+    """
     return float(vsd(R_est, t_est_mm, R_gt, t_gt_mm, depth_test_mm, K, render_depth, delta_mm, [np.inf])[0])

@@ -17,7 +17,15 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
 
-from ..metrics.pose_errors import RenderDepth, adi, mspd, mssd, vsd_from_depths
+from ..metrics.pose_errors import (
+    RenderDepth,
+    adi,
+    mspd,
+    mssd,
+    sphere_projections_overlap,
+    spheres_overlap,
+    vsd_from_depths,
+)
 from ..metrics.recall import InstanceErrors, Thresholds
 
 MakeRenderDepth = Callable[[int, np.ndarray, int, int], RenderDepth]
@@ -53,10 +61,19 @@ def _vsd_errors(
     make_render_depth: MakeRenderDepth,
     th: Thresholds,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """VSD over ``th.vsd_taus`` ``(N, T)``, at ``th.vsd_single_tau_mm`` ``(N,)`` and VSS ``(N,)``."""
+    """VSD over ``th.vsd_taus`` ``(N, T)``, at ``th.vsd_single_tau_mm`` ``(N,)`` and VSS ``(N,)``.
+
+    As the toolkit's ``eval_calc_errors.py``, a pose whose bounding sphere's
+    silhouette cannot meet the ground truth's gets error 1 without rendering.
+    """
     vsd_bop, vsd_single, vss = [], [], []
     for i, depth_test in enumerate(depth_mm):
         model = models[int(obj_id[i])]
+        if not sphere_projections_overlap(t_est_mm[i], t_gt_mm[i], model.diameter_mm):
+            vsd_bop.append(np.ones(len(th.vsd_taus)))
+            vsd_single.append(1.0)
+            vss.append(1.0)
+            continue
         height, width = np.shape(depth_test)
         render = make_render_depth(int(obj_id[i]), K[i], width, height)
         depth_est, depth_gt = render(R_est[i], t_est_mm[i]), render(R_gt[i], t_gt_mm[i])
@@ -88,7 +105,9 @@ def compute_instance_errors(
     intrinsics ``K (N, 3, 3)``, ``image_width_px (N,)``; ``depth_mm`` the N test
     depth images [mm] (0 = no depth). Without depth images VSD, e_VSD<0.3 and VSS
     are skipped with a warning. ``t_est_mm (N, 3)`` replaces the ground-truth
-    translation of the estimates: the errors of full 6-D poses.
+    translation of the estimates: the errors of full 6-D poses, gated as the
+    toolkit gates them (MSSD and ADI infinite, VSD 1 where the bounding spheres,
+    or their silhouettes, cannot overlap).
     """
     th = thresholds or Thresholds()
     obj_id = np.asarray(obj_id).astype(int)
@@ -108,8 +127,13 @@ def compute_instance_errors(
     for obj in np.unique(obj_id):
         model, rows = models[int(obj)], np.flatnonzero(obj_id == obj)
         args = (R_est[rows], t_est_mm[rows], R_gt[rows], t_gt_mm[rows])
-        mssd_mm[rows] = mssd(*args, model.pts_mm, model.syms)
-        adi_mm[rows] = adi(*args, model.pts_mm)
+        # As the toolkit's eval_calc_errors.py: infinite where the bounding spheres cannot overlap.
+        near = spheres_overlap(t_est_mm[rows], t_gt_mm[rows], model.diameter_mm)
+        mssd_mm[rows], adi_mm[rows] = np.inf, np.inf
+        if near.any():
+            near_args = tuple(a[near] for a in args)
+            mssd_mm[rows[near]] = mssd(*near_args, model.pts_mm, model.syms)
+            adi_mm[rows[near]] = adi(*near_args, model.pts_mm)
         # MSPD takes one camera: batch the instances that share intrinsics.
         cameras, camera_of_row = np.unique(K[rows].reshape(len(rows), 9), axis=0, return_inverse=True)
         for c, camera in enumerate(cameras):
