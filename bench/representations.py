@@ -16,32 +16,29 @@ images, training resumes from its last checkpoint, finished exports are kept.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from popcode_runtime.benchmark import machine_description  # noqa: E402
-from popcode_runtime.metadata import Representation  # noqa: E402
-from popcode_runtime.symmetries import SymmetryClass, symmetry_class  # noqa: E402
-from popcode_trainer.data.bop import load_models_info  # noqa: E402
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER  # noqa: E402
-from popcode_trainer.eval.metrics.recall import GROUPS  # noqa: E402
-from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models  # noqa: E402
-from popcode_trainer.eval.pipeline.models import Method, load_model  # noqa: E402
-from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split  # noqa: E402
-from popcode_trainer.eval.reporting.figures import plot_instance_code  # noqa: E402
-from popcode_trainer.eval.reporting.markdown import markdown_table  # noqa: E402
-from popcode_trainer.eval.reporting.report import report_dict, write_report  # noqa: E402
-from popcode_trainer.eval.reporting.tables import methods_markdown, to_json  # noqa: E402
-from popcode_trainer.pipeline import (  # noqa: E402
+from popcode_runtime.benchmark import machine_description
+from popcode_runtime.metadata import Representation
+from popcode_runtime.symmetries import SymmetryClass, symmetry_class
+from popcode_trainer.data.bop import load_models_info
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
+from popcode_trainer.eval.metrics.recall import GROUPS
+from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
+from popcode_trainer.eval.pipeline.models import Method, load_model
+from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split
+from popcode_trainer.eval.reporting.figures import plot_instance_code
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.eval.reporting.report import report_dict, write_report
+from popcode_trainer.eval.reporting.tables import methods_markdown, to_json
+from popcode_trainer.pipeline import (
     SMALL_NETWORK,
     PipelineSize,
     object_groups,

@@ -19,33 +19,30 @@ for a model's own rotations.
 from __future__ import annotations
 
 import argparse
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from popcode_runtime.camera import project_points  # noqa: E402
-from popcode_runtime.crop import box_from_edges  # noqa: E402
-from popcode_trainer.data.bop import Instance  # noqa: E402
-from popcode_trainer.data.hull import HULL_POINTS, with_hull_points  # noqa: E402
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
-from popcode_trainer.eval.pipeline.split import read_eval_split  # noqa: E402
-from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics  # noqa: E402
-from popcode_trainer.eval.pipeline.translation import (  # noqa: E402
+from popcode_runtime.camera import project_points
+from popcode_runtime.crop import box_from_edges
+from popcode_trainer.data.bop import Instance
+from popcode_trainer.data.hull import HULL_POINTS, with_hull_points
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from popcode_trainer.eval.pipeline.split import read_eval_split
+from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
+from popcode_trainer.eval.pipeline.translation import (
     full_pose,
     object_points,
     translation_summary,
     translations_from_boxes,
 )
-from popcode_trainer.eval.reporting.markdown import markdown_table  # noqa: E402
-from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown  # noqa: E402
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown
 
-from .report import machine, write_results  # noqa: E402
+from .report import machine, write_results
 
 HULL = f"{HULL_POINTS} hull points"
 CORNERS = "3-D box corners"

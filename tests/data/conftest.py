@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import os
+from pathlib import Path
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import pytest
 
-from pathlib import Path  # noqa: E402
-
-import pytest  # noqa: E402
-
-from popcode_trainer.data.render import render_builtin_split  # noqa: E402
+from popcode_trainer.data.render import render_builtin_split
 
 
 @pytest.fixture(scope="session")

@@ -14,13 +14,13 @@ import popcode_trainer.data.render as render_module
 from popcode_runtime import PopcodeError
 from popcode_runtime.camera import project_points
 from popcode_trainer.data.bop import load_models_info, read_bop_split
+from popcode_trainer.data.gl import DepthRenderer
+from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.objects import BUILTIN_PARTS, write_builtin_models
 from popcode_trainer.data.render import (
     DEPTH_SCALE_MM,
     RECORDS_FOLDER,
-    DepthRenderer,
     RenderSettings,
-    load_mesh,
     parse_shard,
     render_split,
 )

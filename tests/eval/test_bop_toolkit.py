@@ -15,7 +15,8 @@ import pytest
 from scipy.spatial.distance import pdist
 
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
-from popcode_trainer.data.render import DepthRenderer, load_mesh
+from popcode_trainer.data.gl import DepthRenderer
+from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.eval.metrics.pose_errors import (
     add,
     adi,

@@ -4,37 +4,34 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import numpy as np
+import pytest
 
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from popcode_runtime.errors import PopcodeError  # noqa: E402
-from popcode_runtime.estimator import PoseEstimator  # noqa: E402
-from popcode_runtime.translation import object_points_mm, translation_from_box  # noqa: E402
-from popcode_trainer import checkpoint  # noqa: E402
-from popcode_trainer.cli import main  # noqa: E402
-from popcode_trainer.config import Config  # noqa: E402
-from popcode_trainer.data.hull import HULL_POINTS  # noqa: E402
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split  # noqa: E402
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_trainer.cli import main
+from popcode_trainer.config import Config
+from popcode_trainer.data.hull import HULL_POINTS
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.eval.metrics.recall import (
-    GROUPS,  # noqa: E402
-    Thresholds,  # noqa: E402
+    GROUPS,
+    Thresholds,
 )
-from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations  # noqa: E402
-from popcode_trainer.eval.pipeline.models import methods_from_paths  # noqa: E402
-from popcode_trainer.eval.pipeline.split import read_eval_split  # noqa: E402
-from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics  # noqa: E402
-from popcode_trainer.eval.reporting.bop19_csv import read_bop19_results  # noqa: E402
-from popcode_trainer.eval.reporting.report import write_report  # noqa: E402
-from popcode_trainer.export import export_checkpoint  # noqa: E402
-from popcode_trainer.train import train  # noqa: E402
-from popcode_trainer.training_data import build_training_data, validation_crops  # noqa: E402
+from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
+from popcode_trainer.eval.pipeline.models import methods_from_paths
+from popcode_trainer.eval.pipeline.split import read_eval_split
+from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
+from popcode_trainer.eval.reporting.bop19_csv import read_bop19_results
+from popcode_trainer.eval.reporting.report import write_report
+from popcode_trainer.export import export_checkpoint
+from popcode_trainer.run_files import LAST_CHECKPOINT
+from popcode_trainer.train import train
+from popcode_trainer.training_data import build_training_data, validation_crops
 
 OBJECTS = [3, 6]  # a 2-fold symmetric part and one without symmetry: both ambiguity groups
 
@@ -58,8 +55,8 @@ def models(split: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path,
     data = build_training_data(config)
     train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
     crops, obj_ids = validation_crops(config)
-    onnx_path = export_checkpoint(run_dir / checkpoint.LAST, run_dir / "model.onnx", crops, obj_ids=obj_ids)[0].path
-    return run_dir / checkpoint.LAST, onnx_path
+    onnx_path = export_checkpoint(run_dir / LAST_CHECKPOINT, run_dir / "model.onnx", crops, obj_ids=obj_ids)[0].path
+    return run_dir / LAST_CHECKPOINT, onnx_path
 
 
 def evaluate(split: Path, out: Path, *args: str) -> int:

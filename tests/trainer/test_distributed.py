@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from popcode_trainer import checkpoint
-from popcode_trainer.train import METRICS_FILE
+from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
 
 HERE = Path(__file__).parent
 ROOT = HERE.parents[1]
@@ -31,7 +31,7 @@ def test_two_process_torchrun(tmp_path: Path) -> None:
         env=ENV, capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    state = checkpoint.load(tmp_path / checkpoint.LAST)
+    state = checkpoint.load(tmp_path / LAST_CHECKPOINT)
     assert state["epoch"] == 2
     lines = (tmp_path / METRICS_FILE).read_text().splitlines()
     assert len(lines) == 3  # header + 2 epochs: one writer
@@ -48,17 +48,17 @@ def test_killed_run_resumes_to_the_uninterrupted_state(tmp_path: Path) -> None:
     process = subprocess.Popen([*script, str(killed), epochs], env=ENV, stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
-    while not (killed / checkpoint.LAST).exists() and time.monotonic() < deadline:
+    while not (killed / LAST_CHECKPOINT).exists() and time.monotonic() < deadline:
         time.sleep(0.01)
     process.send_signal(signal.SIGKILL)
     assert process.wait(timeout=60) == -signal.SIGKILL, "the run ended before it could be killed"
-    stopped_at = checkpoint.load(killed / checkpoint.LAST)["epoch"]
+    stopped_at = checkpoint.load(killed / LAST_CHECKPOINT)["epoch"]
     assert 1 <= stopped_at < 6
 
     subprocess.run([*script, str(killed), epochs, "--resume"], env=ENV, check=True, capture_output=True,
                    timeout=300)
-    a = checkpoint.load(tmp_path / "straight" / checkpoint.LAST)
-    b = checkpoint.load(killed / checkpoint.LAST)
+    a = checkpoint.load(tmp_path / "straight" / LAST_CHECKPOINT)
+    b = checkpoint.load(killed / LAST_CHECKPOINT)
     assert a["epoch"] == b["epoch"] == 6
     for key, tensor in a["model"].items():
         assert torch.equal(tensor, b["model"][key]), key

@@ -19,12 +19,12 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
-from popcode_trainer import checkpoint
 from popcode_trainer.agreement import compare
 from popcode_trainer.export import export_checkpoint, export_onnx
 from popcode_trainer.model_io import load_checkpoint_model
 from popcode_trainer.network import NetworkConfig, PopcodeNet
 from popcode_trainer.quantise import quantise
+from popcode_trainer.run_files import LAST_CHECKPOINT
 from popcode_trainer.train import train
 
 
@@ -34,7 +34,7 @@ def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarr
     train_set, val_set = tiny_data(rep)
     train(config, rep, train_set, val_set, val_instances=val_set.instances)
     crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
-    return tmp_path / "run" / checkpoint.LAST, crops
+    return tmp_path / "run" / LAST_CHECKPOINT, crops
 
 
 def optimised_op_types(path: Path, out: Path) -> list[str]:

@@ -12,7 +12,8 @@ from tiny import tiny_config, tiny_data, tiny_representation
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_trainer import checkpoint
-from popcode_trainer.train import METRICS_FILE, train
+from popcode_trainer.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train import train
 
 
 @pytest.mark.parametrize("name", Representation.ALL)
@@ -39,8 +40,8 @@ def test_resume_continues_exactly(tmp_path: Path) -> None:
     resumed = train(tiny_config(tmp_path / "interrupted", epochs=2), rep, train_set, val_set, resume=True)
     assert [row.epoch for row in resumed] == [2]
 
-    a = checkpoint.load(tmp_path / "straight" / checkpoint.LAST)
-    b = checkpoint.load(tmp_path / "interrupted" / checkpoint.LAST)
+    a = checkpoint.load(tmp_path / "straight" / LAST_CHECKPOINT)
+    b = checkpoint.load(tmp_path / "interrupted" / LAST_CHECKPOINT)
     assert a["epoch"] == b["epoch"] == 2
     for key, tensor in a["model"].items():
         assert torch.equal(tensor, b["model"][key]), key
@@ -76,7 +77,7 @@ def test_checkpoints_load_with_weights_only(tmp_path: Path) -> None:
     config = tiny_config(tmp_path, epochs=1)
     rep = tiny_representation(config)
     train(config, rep, *tiny_data(rep))
-    state = torch.load(tmp_path / checkpoint.LAST, weights_only=True)
+    state = torch.load(tmp_path / LAST_CHECKPOINT, weights_only=True)
     assert state["config"] == config.to_dict()
-    assert (tmp_path / checkpoint.BEST).is_file()
+    assert (tmp_path / BEST_CHECKPOINT).is_file()
     assert not list(tmp_path.glob(".*.tmp"))

@@ -19,8 +19,6 @@ import torch
 
 from popcode_runtime.errors import PopcodeError
 
-LAST = "last.pt"
-BEST = "best.pt"
 # Keys that may change when resuming: more epochs extend a run; the output folder may move.
 RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers")}
 

@@ -167,7 +167,8 @@ def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, An
 def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: TrainedModels, run_dirs: Sequence[Path],
                  out_dir: Path) -> dict[str, list[Path]]:
     """Training curves, metric sensitivity, code on the sphere and a grid of crops with their poses."""
-    from .data.render import DepthRenderer, load_mesh
+    from .data.gl import DepthRenderer
+    from .data.meshes import load_mesh
     from .eval.pipeline.instance_errors import ObjectModel
 
     out_dir.mkdir(parents=True, exist_ok=True)

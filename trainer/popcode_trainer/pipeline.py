@@ -21,16 +21,15 @@ import numpy as np
 from popcode_runtime.metadata import Representation
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
-from . import checkpoint
 from .config import Config
 from .data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from .export import export_checkpoint
+from .run_files import LAST_CHECKPOINT, MODEL_FILE
 from .train import train
 from .training_data import build_training_data, validation_crops
 
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
-MODEL_FILE = "model.onnx"
 
 
 @dataclass(frozen=True)
@@ -112,7 +111,7 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
     if not onnx_path.exists() or not all(path.exists() for path in quantised):
         data = build_training_data(config)
         train(config, data.representation, data.train_set, data.val_set,
-              resume=(folder / checkpoint.LAST).exists(), val_instances=data.val_instances)
+              resume=(folder / LAST_CHECKPOINT).exists(), val_instances=data.val_instances)
         crops, obj_ids = validation_crops(config)
-        export_checkpoint(folder / checkpoint.LAST, onnx_path, crops, quantisations, obj_ids=obj_ids)
+        export_checkpoint(folder / LAST_CHECKPOINT, onnx_path, crops, quantisations, obj_ids=obj_ids)
     return onnx_path, time.perf_counter() - started

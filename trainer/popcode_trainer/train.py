@@ -33,8 +33,7 @@ from . import checkpoint, distributed
 from .config import Config
 from .network import NetworkConfig, build_network
 from .representations import InstanceLike, OutputRepresentation
-
-METRICS_FILE = "metrics.csv"
+from .run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
 
 
 @dataclass(frozen=True)
@@ -180,10 +179,10 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     start_epoch, best_error = 0, math.inf
 
     if resume:
-        state = checkpoint.load(out_dir / checkpoint.LAST)
+        state = checkpoint.load(out_dir / LAST_CHECKPOINT)
         differences = checkpoint.config_differences(state["config"], config.to_dict())
         if differences:
-            raise PopcodeError(f"cannot resume {out_dir / checkpoint.LAST}: the config differs "
+            raise PopcodeError(f"cannot resume {out_dir / LAST_CHECKPOINT}: the config differs "
                                f"({'; '.join(differences)}); use the run's config or a new train.out_dir")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -192,7 +191,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         start_epoch, best_error = int(state["epoch"]), float(state["best_val_error_deg"])
         if context.is_main:
             _truncate_metrics(out_dir / METRICS_FILE, start_epoch)
-    elif (out_dir / checkpoint.LAST).exists():
+    elif (out_dir / LAST_CHECKPOINT).exists():
         raise PopcodeError(f"{out_dir} already holds a run; pass --resume to continue it or choose a new out_dir")
 
     # DDP averages gradients across ranks in backward; every rank steps the same optimizer state.
@@ -258,9 +257,9 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                 "git_revision": revision,
             }
             _append_metrics(out_dir / METRICS_FILE, row)  # before the checkpoint: resume truncates extra rows
-            checkpoint.save_atomic(state, out_dir / checkpoint.LAST)
+            checkpoint.save_atomic(state, out_dir / LAST_CHECKPOINT)
             if improved:
-                checkpoint.save_atomic(state, out_dir / checkpoint.BEST)
+                checkpoint.save_atomic(state, out_dir / BEST_CHECKPOINT)
             tensorboard.log(row)
             tqdm.write(f"epoch {row.epoch}: train loss {row.train_loss:.4g}, val loss {row.val_loss:.4g}, "
                        f"val error mean {row.val_error_mean_deg:.2f} deg, median {row.val_error_median_deg:.2f} "

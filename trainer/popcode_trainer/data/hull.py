@@ -30,7 +30,7 @@ from popcode_runtime.code import fibonacci_lattice
 from popcode_runtime.errors import PopcodeError
 
 from .bop import model_path
-from .render import load_mesh
+from .meshes import load_mesh
 
 HULL_POINTS = 64  # about 1.5 kB of metadata per object
 HULL_DECIMALS = 2  # 0.01 mm: far below a pixel, keeps the metadata short

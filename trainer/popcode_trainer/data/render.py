@@ -13,235 +13,35 @@ renders only what is missing; shard folders copied together and rerun become one
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import cv2
+import numpy as np
+import trimesh
+from tqdm import tqdm
 
-import contextlib  # noqa: E402
-from collections.abc import Iterator, Sequence  # noqa: E402
-from dataclasses import asdict, dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
+from popcode_runtime import PopcodeError
+from popcode_runtime.camera import project_points
+from popcode_runtime.rotations import random_rotations, rotation_between
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from popcode_runtime import PopcodeError  # noqa: E402
-from popcode_runtime.camera import project_points  # noqa: E402
-from popcode_runtime.rotations import random_rotations, rotation_between  # noqa: E402
-
-from .bop import RENDER_MARKER, load_models_info, model_path, read_json  # noqa: E402
-from .files import write_json_atomic, write_png_atomic  # noqa: E402
-from .objects import write_builtin_models  # noqa: E402
+from .bop import RENDER_MARKER, load_models_info, model_path, read_json
+from .files import write_json_atomic, write_png_atomic
+from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
+from .meshes import load_mesh
+from .objects import write_builtin_models
 
 RECORDS_FOLDER = ".popcode_records"
 BUILTIN_MODELS_FOLDER = "models"
 DEPTH_SCALE_MM = 0.1  # depth png value * 0.1 = mm: 0.1 mm steps up to 6.5 m
-_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward) -> OpenGL (y up, z back)
-
-
-def _import_pyrender() -> Any:
-    try:
-        import pyrender
-    except Exception as error:  # PyOpenGL raises assorted errors when no EGL library is present
-        raise PopcodeError(_egl_help(error)) from error
-    return pyrender
-
-
-def _egl_help(error: BaseException) -> str:
-    return (f"cannot start the offscreen OpenGL renderer ({type(error).__name__}: {error}). Install EGL and Mesa "
-            "(e.g. apt-get install libegl1 libgl1-mesa-dri) and set PYOPENGL_PLATFORM=egl "
-            f"(now {os.environ.get('PYOPENGL_PLATFORM')!r})")
-
-
-def _offscreen(width: int, height: int) -> Any:
-    pyrender = _import_pyrender()
-    try:
-        return pyrender.OffscreenRenderer(width, height)
-    except Exception as error:
-        raise PopcodeError(_egl_help(error)) from error
-
-
-def _ascii_ply_vertices(path: Path) -> np.ndarray | None:
-    """The x, y, z of an ASCII PLY's vertices read as float64, as the BOP toolkit reads them; None for other files.
-
-    trimesh parses ``property float`` as float32, which moves ADI and MSSD by ~1e-9 relative.
-    """
-    if path.suffix.lower() != ".ply":
-        return None
-    with path.open("rb") as handle:
-        if handle.readline().strip() != b"ply" or not handle.readline().startswith(b"format ascii"):
-            return None
-        header = []
-        for line in handle:
-            header.append(line.decode("ascii", "replace").split())
-            if header[-1][:1] == ["end_header"]:
-                break
-        element, count, properties, skip = None, 0, [], 0
-        for words in header:
-            if words[:1] == ["element"]:
-                if element == "vertex":
-                    break
-                element, count = words[1], int(words[2])
-                if element != "vertex":
-                    skip += count  # elements before the vertices (rare) are whole lines too
-            elif words[:1] == ["property"] and element == "vertex":
-                properties.append(words[-1])
-        for _ in range(skip):
-            handle.readline()
-        rows = [handle.readline().split() for _ in range(count)]
-    columns = [properties.index(axis) for axis in ("x", "y", "z")]
-    return np.array([[float(row[c]) for c in columns] for row in rows], dtype=np.float64)
-
-
-def load_mesh(path: str | Path) -> trimesh.Trimesh:
-    """A PLY/OBJ model (mm) as one triangle mesh; a clear error if it does not load.
-
-    ASCII PLY vertices keep every digit of the file (float64), as in the BOP toolkit.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise PopcodeError(f"model file not found: {path}")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as error:  # trimesh raises many types for broken files
-        raise PopcodeError(f"cannot load model {path}: {error}") from error
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise PopcodeError(f"model {path} has no triangles")
-    try:
-        exact = _ascii_ply_vertices(path)
-    except (ValueError, IndexError, UnicodeDecodeError) as error:
-        raise PopcodeError(f"cannot read the vertices of {path}: {error}") from error
-    if exact is not None:
-        if exact.shape != loaded.vertices.shape or not np.allclose(exact, loaded.vertices, rtol=1e-6, atol=1e-6):
-            raise PopcodeError(f"the vertices of {path} read two ways disagree: not a well-formed ASCII PLY")
-        loaded.vertices = exact
-    return loaded
 
 
 def camera_matrix(width: int, height: int) -> np.ndarray:
     """The renderer's pinhole camera: focal length 1.2 x width (about 45 degrees across), centred."""
     focal_px = 1.2 * width
     return np.array([[focal_px, 0.0, (width - 1) / 2.0], [0.0, focal_px, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-
-
-def _pyrender_camera(pyrender: Any, K: np.ndarray, radius_mm: float, distance_mm: float,
-                     opencv_pixel_centres: bool = True) -> Any:
-    """The camera of ``K``; OpenGL samples pixel ``i`` at ``x = i + 0.5`` of the image plane.
-
-    With ``opencv_pixel_centres`` the principal point is shifted so that pixel ``i``
-    samples ``x = i``, OpenCV's pixel centre, where ``K`` projects a point: what
-    training data needs, so that masks and boxes match the projected mesh (see
-    ``tests/data/test_render_bop.py``). Without it ``K`` is used as given, as the
-    BOP toolkit's renderer does, which its metrics (VSD) are defined with.
-    """
-    shift = 0.5 if opencv_pixel_centres else 0.0
-    return pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift,
-                                     znear=max(distance_mm - radius_mm - 1.0, 1.0),
-                                     zfar=distance_mm + radius_mm + 1.0)
-
-
-def _gl_pose(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3], pose[:3, 3] = R_m2c, t_m2c_mm
-    return _GL_FROM_CV @ pose
-
-
-@contextlib.contextmanager
-def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
-    """pyrender always renders into 4x multisampled buffers; make them single-sampled while a
-    renderer sets up its framebuffer."""
-    module = pyrender.renderer
-    original = module.glRenderbufferStorageMultisample
-    module.glRenderbufferStorageMultisample = lambda target, _samples, fmt, w, h: original(target, 0, fmt, w, h)
-    try:
-        yield
-    finally:
-        module.glRenderbufferStorageMultisample = original
-
-
-class _CentreSampledDepth:
-    """Depth sampled at pixel centres, as the BOP toolkit's renderer samples it.
-
-    pyrender reads depth back from a 4x multisampled buffer as one sample's, off
-    the pixel centre (on Mesa by (-0.125, +0.375) px, which moved masks, boxes and
-    depth against the ground-truth pose). This renders its own ``scene`` single-
-    sampled, with its own pyrender ``Renderer`` in the OpenGL context of
-    ``offscreen``: a second context would die with the first (they share one EGL
-    display), and a mesh's buffers belong to one renderer, hence the own scene.
-    """
-
-    def __init__(self, offscreen: Any, width: int, height: int) -> None:
-        self._pyrender = _import_pyrender()
-        self._platform = offscreen._platform  # pyrender has no public handle on its OpenGL context
-        self._renderer = self._pyrender.Renderer(width, height)
-        self.scene = self._pyrender.Scene()
-        self._framebuffer_ready = False
-
-    def render(self) -> np.ndarray:
-        """Depth ``(H, W)`` float32 of ``scene`` [scene units], 0 where nothing is drawn."""
-        flags = self._pyrender.RenderFlags.DEPTH_ONLY | self._pyrender.RenderFlags.OFFSCREEN
-        self._platform.make_current()
-        try:
-            if not self._framebuffer_ready:
-                with _single_sample_framebuffers(self._pyrender):
-                    depth = self._renderer.render(self.scene, flags)
-                self._framebuffer_ready = True
-            else:
-                depth = self._renderer.render(self.scene, flags)
-        finally:
-            self._platform.make_uncurrent()
-        return depth.astype(np.float32)
-
-    def delete(self) -> None:
-        self._platform.make_current()
-        try:
-            self._renderer.delete()
-        finally:
-            self._platform.make_uncurrent()
-
-
-class DepthRenderer:
-    """Depth images of one mesh as the BOP toolkit renders them for VSD.
-
-    Like the toolkit's renderer: ``K`` as given (pixel ``i`` samples ``x = i + 0.5``),
-    both faces of every triangle, one sample per pixel. ``opencv_pixel_centres``
-    renders in the training renderer's convention instead (pixel ``i`` samples
-    ``x = i``), which is how the depth of popcode's rendered splits is written.
-    """
-
-    def __init__(self, mesh_vertices_mm: np.ndarray, faces: np.ndarray, width: int, height: int,
-                 opencv_pixel_centres: bool = False) -> None:
-        self._opencv_pixel_centres = opencv_pixel_centres
-        self._pyrender = _import_pyrender()
-        vertices = np.asarray(mesh_vertices_mm, dtype=np.float64)
-        self._radius_mm = float(np.linalg.norm(vertices, axis=1).max())
-        self._offscreen = _offscreen(width, height)
-        self._depth = _CentreSampledDepth(self._offscreen, width, height)
-        # pyrender culls back faces in depth-only passes whatever its flags say: every triangle
-        # is drawn with both windings, so faces wound the wrong way are not lost.
-        faces = np.asarray(faces)
-        both_sides = trimesh.Trimesh(vertices, np.concatenate([faces, faces[:, ::-1]]), process=False)
-        self._node = self._depth.scene.add(self._pyrender.Mesh.from_trimesh(both_sides, smooth=False))
-        self._camera_node = None
-
-    def render(self, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
-        """Depth ``(H, W)`` float32 in mm along the camera z-axis, 0 where the object is absent."""
-        t = np.asarray(t_m2c_mm, dtype=np.float64).reshape(3)
-        scene = self._depth.scene
-        if self._camera_node is not None:
-            scene.remove_node(self._camera_node)
-        camera = _pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]),
-                                  self._opencv_pixel_centres)
-        self._camera_node = scene.add(camera, pose=np.eye(4))
-        scene.set_pose(self._node, _gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
-        return self._depth.render()
-
-    def close(self) -> None:
-        self._depth.delete()
-        self._offscreen.delete()
 
 
 @dataclass(frozen=True)
@@ -296,9 +96,9 @@ class _SceneRenderer:
     the object and camera alone gives depth at pixel centres."""
 
     def __init__(self, width: int, height: int) -> None:
-        self._pyrender = _import_pyrender()
-        self._renderer = _offscreen(width, height)
-        self._depth = _CentreSampledDepth(self._renderer, width, height)
+        self._pyrender = import_pyrender()
+        self._renderer = offscreen(width, height)
+        self._depth = CentreSampledDepth(self._renderer, width, height)
         self._scene = self._pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0])
         self._material = self._pyrender.MetallicRoughnessMaterial()
         self._meshes: dict[int, tuple[Any, Any]] = {}  # obj_id -> (shaded mesh, depth mesh)
@@ -320,10 +120,10 @@ class _SceneRenderer:
         self._material.metallicFactor = rng.uniform(0.0, 0.4)
         self._material.roughnessFactor = rng.uniform(0.35, 0.9)
         self._scene.ambient_light = np.full(3, rng.uniform(0.05, 0.3))
-        camera = _pyrender_camera(pyrender, K, radius_mm, float(t_m2c_mm[2]))
+        camera = pyrender_camera(pyrender, K, radius_mm, float(t_m2c_mm[2]))
         self._transient = [(scene, scene.add(item, pose=pose))
                            for scene, mesh in zip((self._scene, self._depth.scene), self._meshes[obj_id], strict=True)
-                           for item, pose in ((mesh, _gl_pose(R_m2c, t_m2c_mm)), (camera, np.eye(4)))]
+                           for item, pose in ((mesh, gl_pose(R_m2c, t_m2c_mm)), (camera, np.eye(4)))]
         for _ in range(rng.integers(1, 4)):
             # Light travels along -z of its node: point it into the scene from the camera's side.
             direction = rng.normal(size=3)

@@ -19,6 +19,8 @@ from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 
 from ...data.bop import Instance, model_path
+from ...data.gl import DepthRenderer
+from ...data.meshes import load_mesh
 from ..metrics.pose_errors import RenderDepth
 from ..metrics.recall import (
     InstanceErrors,
@@ -50,8 +52,6 @@ class SplitMetrics:
     """
 
     def __init__(self, split: EvalSplit, thresholds: Thresholds | None = None, vsd: bool | None = None) -> None:
-        from ...data.render import load_mesh  # pyrender/EGL, loaded only when evaluating
-
         self.split, self.thresholds = split, thresholds or Thresholds()
         self._meshes = {obj_id: load_mesh(model_path(split.models_dir, obj_id)) for obj_id in split.obj_ids}
         self.objects = {obj_id: ObjectModel.from_info(np.asarray(mesh.vertices), split.models_info[obj_id])
@@ -78,8 +78,6 @@ class SplitMetrics:
         Only one lives at a time: pyrender's EGL contexts share one display, and
         closing any of them ends the others.
         """
-        from ...data.render import DepthRenderer
-
         key = (obj_id, width, height)
         if self._renderer_key != key:
             self.close()

@@ -1,0 +1,162 @@
+"""OpenGL plumbing for rendering: headless EGL, pyrender's camera and pose conventions, depth at pixel centres.
+
+PyOpenGL picks its platform when it is first imported; :func:`import_pyrender`
+is the one place that imports pyrender and defaults it to EGL, so importing
+popcode never changes the environment. :class:`DepthRenderer` renders depth as
+the BOP toolkit does, for the metrics.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from popcode_runtime.errors import PopcodeError
+
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward) -> OpenGL (y up, z back)
+
+
+def import_pyrender() -> Any:
+    """pyrender, on headless EGL unless ``PYOPENGL_PLATFORM`` says otherwise (PyOpenGL reads it once, at import)."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    try:
+        import pyrender
+    except Exception as error:  # PyOpenGL raises assorted errors when no EGL library is present
+        raise PopcodeError(_egl_help(error)) from error
+    return pyrender
+
+
+def _egl_help(error: BaseException) -> str:
+    return (f"cannot start the offscreen OpenGL renderer ({type(error).__name__}: {error}). Install EGL and Mesa "
+            "(e.g. apt-get install libegl1 libgl1-mesa-dri) and set PYOPENGL_PLATFORM=egl "
+            f"(now {os.environ.get('PYOPENGL_PLATFORM')!r})")
+
+
+def offscreen(width: int, height: int) -> Any:
+    pyrender = import_pyrender()
+    try:
+        return pyrender.OffscreenRenderer(width, height)
+    except Exception as error:
+        raise PopcodeError(_egl_help(error)) from error
+
+
+def pyrender_camera(pyrender: Any, K: np.ndarray, radius_mm: float, distance_mm: float,
+                     opencv_pixel_centres: bool = True) -> Any:
+    """The camera of ``K``; OpenGL samples pixel ``i`` at ``x = i + 0.5`` of the image plane.
+
+    With ``opencv_pixel_centres`` the principal point is shifted so that pixel ``i``
+    samples ``x = i``, OpenCV's pixel centre, where ``K`` projects a point: what
+    training data needs, so that masks and boxes match the projected mesh (see
+    ``tests/data/test_render_bop.py``). Without it ``K`` is used as given, as the
+    BOP toolkit's renderer does, which its metrics (VSD) are defined with.
+    """
+    shift = 0.5 if opencv_pixel_centres else 0.0
+    return pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + shift, K[1, 2] + shift,
+                                     znear=max(distance_mm - radius_mm - 1.0, 1.0),
+                                     zfar=distance_mm + radius_mm + 1.0)
+
+
+def gl_pose(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R_m2c, t_m2c_mm
+    return GL_FROM_CV @ pose
+
+
+@contextlib.contextmanager
+def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
+    """pyrender always renders into 4x multisampled buffers; make them single-sampled while a
+    renderer sets up its framebuffer."""
+    module = pyrender.renderer
+    original = module.glRenderbufferStorageMultisample
+    module.glRenderbufferStorageMultisample = lambda target, _samples, fmt, w, h: original(target, 0, fmt, w, h)
+    try:
+        yield
+    finally:
+        module.glRenderbufferStorageMultisample = original
+
+
+class CentreSampledDepth:
+    """Depth sampled at pixel centres, as the BOP toolkit's renderer samples it.
+
+    pyrender reads depth back from a 4x multisampled buffer as one sample's, off
+    the pixel centre (on Mesa by (-0.125, +0.375) px, which moved masks, boxes and
+    depth against the ground-truth pose). This renders its own ``scene`` single-
+    sampled, with its own pyrender ``Renderer`` in the OpenGL context of
+    ``offscreen``: a second context would die with the first (they share one EGL
+    display), and a mesh's buffers belong to one renderer, hence the own scene.
+    """
+
+    def __init__(self, offscreen: Any, width: int, height: int) -> None:
+        self._pyrender = import_pyrender()
+        self._platform = offscreen._platform  # pyrender has no public handle on its OpenGL context
+        self._renderer = self._pyrender.Renderer(width, height)
+        self.scene = self._pyrender.Scene()
+        self._framebuffer_ready = False
+
+    def render(self) -> np.ndarray:
+        """Depth ``(H, W)`` float32 of ``scene`` [scene units], 0 where nothing is drawn."""
+        flags = self._pyrender.RenderFlags.DEPTH_ONLY | self._pyrender.RenderFlags.OFFSCREEN
+        self._platform.make_current()
+        try:
+            if not self._framebuffer_ready:
+                with _single_sample_framebuffers(self._pyrender):
+                    depth = self._renderer.render(self.scene, flags)
+                self._framebuffer_ready = True
+            else:
+                depth = self._renderer.render(self.scene, flags)
+        finally:
+            self._platform.make_uncurrent()
+        return depth.astype(np.float32)
+
+    def delete(self) -> None:
+        self._platform.make_current()
+        try:
+            self._renderer.delete()
+        finally:
+            self._platform.make_uncurrent()
+
+
+class DepthRenderer:
+    """Depth images of one mesh as the BOP toolkit renders them for VSD.
+
+    Like the toolkit's renderer: ``K`` as given (pixel ``i`` samples ``x = i + 0.5``),
+    both faces of every triangle, one sample per pixel. ``opencv_pixel_centres``
+    renders in the training renderer's convention instead (pixel ``i`` samples
+    ``x = i``), which is how the depth of popcode's rendered splits is written.
+    """
+
+    def __init__(self, mesh_vertices_mm: np.ndarray, faces: np.ndarray, width: int, height: int,
+                 opencv_pixel_centres: bool = False) -> None:
+        self._opencv_pixel_centres = opencv_pixel_centres
+        self._pyrender = import_pyrender()
+        vertices = np.asarray(mesh_vertices_mm, dtype=np.float64)
+        self._radius_mm = float(np.linalg.norm(vertices, axis=1).max())
+        self.offscreen = offscreen(width, height)
+        self._depth = CentreSampledDepth(self.offscreen, width, height)
+        # pyrender culls back faces in depth-only passes whatever its flags say: every triangle
+        # is drawn with both windings, so faces wound the wrong way are not lost.
+        faces = np.asarray(faces)
+        both_sides = trimesh.Trimesh(vertices, np.concatenate([faces, faces[:, ::-1]]), process=False)
+        self._node = self._depth.scene.add(self._pyrender.Mesh.from_trimesh(both_sides, smooth=False))
+        self._camera_node = None
+
+    def render(self, K: np.ndarray, R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> np.ndarray:
+        """Depth ``(H, W)`` float32 in mm along the camera z-axis, 0 where the object is absent."""
+        t = np.asarray(t_m2c_mm, dtype=np.float64).reshape(3)
+        scene = self._depth.scene
+        if self._camera_node is not None:
+            scene.remove_node(self._camera_node)
+        camera = pyrender_camera(self._pyrender, np.asarray(K, dtype=np.float64), self._radius_mm, float(t[2]),
+                                  self._opencv_pixel_centres)
+        self._camera_node = scene.add(camera, pose=np.eye(4))
+        scene.set_pose(self._node, gl_pose(np.asarray(R_m2c, dtype=np.float64), t))
+        return self._depth.render()
+
+    def close(self) -> None:
+        self._depth.delete()
+        self.offscreen.delete()
