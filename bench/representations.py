@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ import torch
 from popcode_runtime.benchmark import machine_description
 from popcode_runtime.metadata import Representation
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class
+from popcode_trainer.config import Config, DataConfig
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.eval.metrics.recall import GROUPS
@@ -39,10 +40,10 @@ from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.eval.reporting.report import report_dict, write_report
 from popcode_trainer.eval.reporting.tables import methods_markdown, to_json
 from popcode_trainer.pipeline import (
-    SMALL_NETWORK,
     PipelineSize,
     object_groups,
     render_splits,
+    small_config,
     train_and_export,
 )
 
@@ -77,11 +78,9 @@ SYMMETRY_NAMES = {"c": "continuous", "n": "none", "2": "2-fold", "4": "4-fold"}
 
 SIZES = {
     # About 25 minutes on 2 shared CPU cores: a 642 x 36 code and a network of a few per cent of the paper's width.
-    "quick": PipelineSize(train_images_per_object=400, test_images_per_object=50, epochs=12, n_axes=642, n_angles=36,
-                          network=SMALL_NETWORK),
-    # The paper's code and network; for a GPU.
-    "full": PipelineSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562,
-                         n_angles=36, network={}, batch_size=64, lr=2e-4, num_workers=8),
+    "quick": PipelineSize(400, 50, small_config(epochs=12, n_axes=642, n_angles=36)),
+    # The paper's code, network and schedule (Config()'s defaults); for a GPU.
+    "full": PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8))),
 }
 
 
@@ -178,7 +177,7 @@ def run_benchmark(size: PipelineSize, out_dir: Path, size_name: str) -> dict[str
         f"Machine: {record['machine']['cpu']}, {record['machine']['cores']} cores, {record['machine']['device']}; "
         f"wall time {record['wall_seconds'] / 60:.1f} min. Groups trained together: {groups}. "
         f"{size.train_images_per_object} training / {size.test_images_per_object} test images per object, "
-        f"{size.epochs} epochs, code {size.n_axes} x {size.n_angles}.",
+        f"{size.config.train.epochs} epochs, code {size.config.code.n_axes} x {size.config.code.n_angles}.",
         (out_dir / "eval" / "report.md").read_text().strip(),
         "## MSSD by symmetry kind: ours (built-in objects) and the paper's (T-LESS, Table III averaged)",
         symmetry_markdown(ours_by_symmetry),
@@ -203,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="output folder (default: bench/results/representations-SIZE)")
     args = parser.parse_args(argv)
     out_dir = args.out or Path(__file__).parent / "results" / f"representations-{args.size}"
-    size = SIZES[args.size] if args.epochs is None else replace(SIZES[args.size], epochs=args.epochs)
+    size = SIZES[args.size] if args.epochs is None else SIZES[args.size].with_epochs(args.epochs)
     run_benchmark(size, out_dir, args.size)
 
 

@@ -8,15 +8,15 @@ from pathlib import Path
 import pytest
 
 from bench import representations as bench
-from popcode_trainer.pipeline import PipelineSize
+from popcode_trainer.network import NetworkConfig
+from popcode_trainer.pipeline import PipelineSize, small_config
 
 
 @pytest.mark.slow
 def test_tiny_run_writes_every_table(tmp_path: Path) -> None:
-    size = PipelineSize(train_images_per_object=4, test_images_per_object=1, epochs=1, n_axes=42, n_angles=12,
-                        sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2,
-                                                 "hidden": [16, 16, 16]},
-                        batch_size=4, num_hypotheses=4)
+    network = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
+    size = PipelineSize(4, 1, small_config(epochs=1, n_axes=42, n_angles=12, network=network, sigma_deg=30.0,
+                                           batch_size=4, num_hypotheses=4))
     bench.run_benchmark(size, tmp_path, "smoke")
 
     record = json.loads((tmp_path / "representations.json").read_text())

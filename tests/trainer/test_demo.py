@@ -15,11 +15,12 @@ from popcode_trainer.cli import main as cli_main
 from popcode_trainer.demo import StagePlan, run_demo
 from popcode_trainer.demo_report import POPCODE, SUMMARY_FILE
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
-from popcode_trainer.pipeline import PipelineSize
+from popcode_trainer.network import NetworkConfig
+from popcode_trainer.pipeline import PipelineSize, small_config
 
-TINY = PipelineSize(train_images_per_object=8, test_images_per_object=2, epochs=1, n_axes=42, n_angles=12,
-                    sigma_deg=30.0, network={"conv_channels": [4, 4, 4], "squeeze_channels": 2, "hidden": [16, 16, 16]},
-                    batch_size=4, representations=("population_code", "single_variable"))
+TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
+TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
+                                       batch_size=4), ("population_code", "single_variable"))
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 

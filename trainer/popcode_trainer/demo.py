@@ -22,6 +22,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
+from .config import Config, DataConfig
 from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
 from .data.render import BUILTIN_MODELS_FOLDER
@@ -32,8 +33,15 @@ from .eval.pipeline.split import EvalSplit, read_eval_split
 from .eval.reporting.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
 from .eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from .eval.reporting.report import write_report
-from .network import NetworkConfig
-from .pipeline import SMALL_NETWORK, PipelineSize, object_groups, render_splits, run_dir, train_and_export
+from .pipeline import (
+    SMALL_NETWORK,
+    PipelineSize,
+    object_groups,
+    render_splits,
+    run_dir,
+    small_config,
+    train_and_export,
+)
 
 BASELINE = Representation.SINGLE_VARIABLE
 LATENCY_BATCHES = (1, 8)
@@ -48,15 +56,12 @@ class DemoSize:
 
 
 DEMO_SIZES = {
-    "quick": DemoSize(PipelineSize(train_images_per_object=1000, test_images_per_object=40, epochs=20, n_axes=642,
-                                   n_angles=36, network=SMALL_NETWORK, representations=(POPCODE, BASELINE)),
+    "quick": DemoSize(PipelineSize(1000, 40, small_config(epochs=20, n_axes=642, n_angles=36), (POPCODE, BASELINE)),
                       "about 15 minutes on a 2-core CPU"),
-    "medium": DemoSize(PipelineSize(train_images_per_object=4000, test_images_per_object=100, epochs=40, n_axes=642,
-                                    n_angles=36, network=SMALL_NETWORK, representations=(POPCODE, BASELINE)),
+    "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=40, n_axes=642, n_angles=36), (POPCODE, BASELINE)),
                        "a few hours on a 2-core CPU, minutes on a GPU"),
-    "paper": DemoSize(PipelineSize(train_images_per_object=8000, test_images_per_object=200, epochs=80, n_axes=2562,
-                                   n_angles=36, network={}, batch_size=64, lr=2e-4, num_workers=8,
-                                   representations=(POPCODE, BASELINE)),
+    # The paper's defaults (Config()), with data-loader workers for a GPU.
+    "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE)),
                       "the paper's code, network and schedule; for a GPU"),
 }
 
@@ -104,12 +109,11 @@ def _minutes(seconds: float) -> str:
 def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int) -> StagePlan:
     """The demo's steps with their estimated seconds on the reference CPU."""
     images = objects * (size.train_images_per_object + size.test_images_per_object)
-    conv_channels = size.network.get("conv_channels", NetworkConfig.conv_channels)
-    width = np.prod(conv_channels) / np.prod(SMALL_NETWORK["conv_channels"])
+    width = np.prod(size.config.network.conv_channels) / np.prod(SMALL_NETWORK.conv_channels)
     stages = [("render", images * SECONDS_PER_RENDERED_IMAGE)]
     for representation in size.representations:
         for obj_ids in groups:
-            samples = len(obj_ids) * size.train_images_per_object * size.epochs
+            samples = len(obj_ids) * size.train_images_per_object * size.config.train.epochs
             stages.append((_train_stage(representation, obj_ids),
                            samples * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))))
     methods = len(size.representations) + 2  # + refined decoder + quantised model

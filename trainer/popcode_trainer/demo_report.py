@@ -20,6 +20,7 @@ from .eval.pipeline.split import EvalSplit
 from .eval.reporting.markdown import markdown_table
 from .eval.reporting.report import REPORT_MD, full_pose_markdown
 from .eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
+from .network import NetworkConfig
 from .pipeline import PipelineSize
 
 POPCODE = Representation.POPULATION_CODE
@@ -75,9 +76,18 @@ def symmetry_name(info: dict[str, Any]) -> str:
     return "no symmetry" if count == 0 else f"{count + 1} symmetric poses"
 
 
+def network_summary(network: NetworkConfig) -> str:
+    """The trunk's widths in a few words; 'paper size' for the paper's."""
+    if network == NetworkConfig(output_dim=network.output_dim, input_size=network.input_size):
+        return "paper size"
+    return (f"conv {list(network.conv_channels)}, squeeze {network.squeeze_channels}, "
+            f"hidden {list(network.hidden)}")
+
+
 def write_model_card(run: DemoRun) -> Path:
     """What a user of the population-code models needs: objects, symmetry, data, accuracy, speed, how to rebuild."""
     size = run.size
+    train, network = size.config.train, size.config.network
     lines = [f"# Model card: population-code models of the built-in objects (demo size `{run.size_name}`)", ""]
     for path, quantised in zip(run.models.by_representation[POPCODE], run.models.quantised, strict=True):
         meta = PoseEstimator(path).metadata
@@ -92,7 +102,7 @@ def write_model_card(run: DemoRun) -> Path:
         "## Training",
         "Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
         f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation; "
-        f"{size.epochs} epochs, batch {size.batch_size}, Adam lr {size.lr}; network {size.network or 'paper size'}.",
+        f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}; network {network_summary(network)}.",
         "",
         f"## Accuracy (all objects; {size.test_images_per_object} rendered test images per object, other seed; "
         "rotation from the model, translation from the ground truth)",
@@ -157,7 +167,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"# popcode demo (`--size {run.size_name}`)",
         f"Rendered the six built-in parts ({size.train_images_per_object} training and "
         f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
-        f"with the same network, data and budget ({size.epochs} epochs; objects pooled as {run.groups}), "
+        f"with the same network, data and budget ({size.config.train.epochs} epochs; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores).",
         "## Models\n\n" + "\n".join(model_lines)

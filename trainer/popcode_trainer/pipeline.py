@@ -12,18 +12,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from popcode_runtime.code import PAPER_SIGMA_DEG
 from popcode_runtime.metadata import Representation
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
-from .config import Config
+from .config import CodeConfig, Config, DataConfig, TrainConfig
 from .data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from .export import export_checkpoint
+from .network import NetworkConfig
 from .run_files import LAST_CHECKPOINT, MODEL_FILE
 from .train import train
 from .training_data import build_training_data, validation_crops
@@ -34,32 +36,45 @@ ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VAR
 
 @dataclass(frozen=True)
 class PipelineSize:
-    """Data, code, network and training budget shared by every representation of one run."""
+    """Data and training budget shared by every representation of one run.
+
+    ``config`` holds the code, network and training settings every model of
+    the run starts from (its data splits, objects, representation and output
+    folder are filled in per model by :func:`training_config`); the rest is
+    what a ``Config`` does not describe: how many images to render and which
+    representations to train.
+    """
 
     train_images_per_object: int
     test_images_per_object: int
-    epochs: int
-    n_axes: int
-    n_angles: int
-    network: dict[str, Any]
-    batch_size: int = 32
-    lr: float = 1e-3
-    num_hypotheses: int = 20
-    num_workers: int = 0
+    config: Config
     representations: tuple[str, ...] = ALL_REPRESENTATIONS
-    sigma_deg: float = 20.0
-    seed: int = 0
+
+    def with_epochs(self, epochs: int) -> PipelineSize:
+        """The same run trained for ``epochs`` epochs."""
+        return replace(self, config=replace(self.config, train=replace(self.config.train, epochs=epochs)))
 
 
 # A network of a few per cent of the paper's width: trains in minutes on two CPU cores.
-SMALL_NETWORK: dict[str, Any] = {"conv_channels": [16, 32, 32], "squeeze_channels": 8, "hidden": [256, 128, 128]}
+SMALL_NETWORK = NetworkConfig(conv_channels=(16, 32, 32), squeeze_channels=8, hidden=(256, 128, 128))
+
+
+def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig = SMALL_NETWORK,
+                 sigma_deg: float = PAPER_SIGMA_DEG, **train: Any) -> Config:
+    """Settings for a CPU budget: the paper's recipe with batch 32, lr 1e-3 and no data-loader workers.
+
+    ``train`` overrides further :class:`~popcode_trainer.config.TrainConfig` fields.
+    """
+    train_config = TrainConfig(**{"epochs": epochs, "batch_size": 32, "lr": 1e-3, **train})
+    return Config(data=DataConfig(num_workers=0), code=CodeConfig(n_axes, n_angles, sigma_deg), network=network,
+                  train=train_config)
 
 
 def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True) -> tuple[Path, Path]:
     """The training split and a separate test split (other seed), both with random object positions."""
-    train_split = render_builtin_split(out_dir / "train", size.train_images_per_object, seed=size.seed,
+    train_split = render_builtin_split(out_dir / "train", size.train_images_per_object, seed=size.config.train.seed,
                                        random_position=True, progress=progress)
-    test_split = render_builtin_split(out_dir / "test", size.test_images_per_object, seed=size.seed + 1000,
+    test_split = render_builtin_split(out_dir / "test", size.test_images_per_object, seed=size.config.train.seed + 1000,
                                       random_position=True, progress=progress)
     return train_split, test_split
 
@@ -80,16 +95,12 @@ def object_groups(models_info: Mapping[int, Mapping[str, Any]]) -> list[list[int
 
 def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
                     out_dir: Path) -> Config:
-    """The training config of one model of the run."""
-    return Config.from_dict({
-        "data": {"splits": [str(split)], "models_dir": str(split / BUILTIN_MODELS_FOLDER), "obj_ids": list(obj_ids),
-                 "num_workers": size.num_workers},
-        "code": {"n_axes": size.n_axes, "n_angles": size.n_angles, "sigma_deg": size.sigma_deg},
-        "network": size.network,
-        "train": {"representation": representation, "epochs": size.epochs, "batch_size": size.batch_size,
-                  "lr": size.lr, "num_hypotheses": size.num_hypotheses, "seed": size.seed, "out_dir": str(out_dir),
-                  "device": "auto"},
-    })
+    """The training config of one model of the run: the size's settings, this model's data and output."""
+    config = replace(size.config,
+                     data=replace(size.config.data, splits=(str(split),), obj_ids=tuple(obj_ids),
+                                  models_dir=str(split / BUILTIN_MODELS_FOLDER)),
+                     train=replace(size.config.train, representation=representation, out_dir=str(out_dir)))
+    return Config.from_dict(config.to_dict())  # checked like a config file
 
 
 def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:

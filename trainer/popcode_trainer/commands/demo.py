@@ -29,10 +29,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     size = DEMO_SIZES[args.size].pipeline
-    for name, value in (("epochs", args.epochs), ("train_images_per_object", args.images)):
-        if value is not None:
-            if value < 1:
-                raise PopcodeError(f"--{name.split('_')[0]} must be at least 1, got {value}")
-            size = dataclasses.replace(size, **{name: value})
+    for option, value in (("--epochs", args.epochs), ("--images", args.images)):
+        if value is not None and value < 1:
+            raise PopcodeError(f"{option} must be at least 1, got {value}")
+    if args.epochs is not None:
+        size = size.with_epochs(args.epochs)
+    if args.images is not None:
+        size = dataclasses.replace(size, train_images_per_object=args.images)
     run_demo(args.size, args.out, size)
     return 0
