@@ -4,7 +4,7 @@
 
 Renders the built-in parts at random positions and places every instance with
 its ground-truth rotation through the runtime's fit
-(``popcode_runtime.translation``, via ``popcode_trainer.eval.translation``): the
+(``popcode_runtime.translation``, via ``popcode_trainer.eval.pipeline.translation``): the
 floor under any model's translation error. Rows compare the points the fit
 uses, the hull points the export writes against the 3-D box corners (what a
 model exported without meshes carries), on the rendered ``bbox_obj``; the hull

@@ -17,6 +17,7 @@ from .code import CodeLayout
 from .crop import CROP_PADDING, CROP_SIZE
 from .errors import PopcodeError
 from .symmetries import SymmetryClass, symmetry_class
+from .text_enum import TextEnum
 from .translation import object_points_mm
 
 FORMAT_VERSION = 1
@@ -24,22 +25,20 @@ INPUT_NAME = "image"
 OUTPUT_NAME = "code"
 
 
-class Representation:
-    """Names of the output representations; each decodes differently."""
+class Representation(TextEnum):
+    """The output representations; each decodes differently."""
 
     POPULATION_CODE = "population_code"
     ONE_HOT = "one_hot"
     SINGLE_VARIABLE = "single_variable"
     MULTI_HYPOTHESIS = "multi_hypothesis"
-    ALL = (POPULATION_CODE, ONE_HOT, SINGLE_VARIABLE, MULTI_HYPOTHESIS)
 
 
-class RotationFrame:
+class RotationFrame(TextEnum):
     """Which rotation the network predicts: in the camera frame, or as seen along the ray."""
 
     EGOCENTRIC = "egocentric"
     ALLOCENTRIC = "allocentric"
-    ALL = (EGOCENTRIC, ALLOCENTRIC)
 
 
 @dataclass(frozen=True)
@@ -52,10 +51,10 @@ class ModelMetadata:
     of the multiple-hypotheses baseline.
     """
 
-    representation: str
+    representation: Representation
     code: CodeLayout
     objects: dict[int, dict[str, Any]]
-    rotation_frame: str = RotationFrame.EGOCENTRIC
+    rotation_frame: RotationFrame = RotationFrame.EGOCENTRIC
     input_size: int = CROP_SIZE
     crop_padding: float = CROP_PADDING
     num_hypotheses: int = 0
@@ -63,14 +62,16 @@ class ModelMetadata:
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        if self.representation not in Representation.ALL:
+        if self.representation not in Representation.values():
             raise PopcodeError(
-                f"unknown representation {self.representation!r}; expected one of {Representation.ALL}"
+                f"unknown representation {self.representation!r}; expected one of {Representation.values()}"
             )
-        if self.rotation_frame not in RotationFrame.ALL:
+        if self.rotation_frame not in RotationFrame.values():
             raise PopcodeError(
-                f"unknown rotation_frame {self.rotation_frame!r}; expected one of {RotationFrame.ALL}"
+                f"unknown rotation_frame {self.rotation_frame!r}; expected one of {RotationFrame.values()}"
             )
+        object.__setattr__(self, "representation", Representation(self.representation))
+        object.__setattr__(self, "rotation_frame", RotationFrame(self.rotation_frame))
         if not self.objects:
             raise PopcodeError("metadata lists no objects")
         for obj_id, info in self.objects.items():

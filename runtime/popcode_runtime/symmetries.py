@@ -7,7 +7,6 @@ The transformations map the model onto itself: ``x -> R x + t``.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -16,9 +15,10 @@ import numpy as np
 
 from .errors import PopcodeError
 from .rotations import axis_angle_to_matrix
+from .text_enum import TextEnum
 
 
-class SymmetryClass(str, enum.Enum):
+class SymmetryClass(TextEnum):
     """How a pose of the object is ambiguous; decides which code it can use."""
 
     NONE = "none"

@@ -58,7 +58,7 @@ def pasted_frame() -> tuple[np.ndarray, list[tuple[float, ...]]]:
     return frame, boxes
 
 
-@pytest.mark.parametrize("name", Representation.ALL)
+@pytest.mark.parametrize("name", Representation.values())
 def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
     ckpt, _ = trained_checkpoint(tmp_path, representation=name, rotation_frame=RotationFrame.ALLOCENTRIC)
     frame, boxes = pasted_frame()

@@ -42,8 +42,8 @@ def perfect_output(rep, targets: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("case", ["none", "two_fold", "four_fold", "continuous", "continuous_flip"])
-@pytest.mark.parametrize("name", Representation.ALL)
-@pytest.mark.parametrize("frame", RotationFrame.ALL)
+@pytest.mark.parametrize("name", Representation.values())
+@pytest.mark.parametrize("frame", RotationFrame.values())
 def test_perfect_output_decodes_to_ground_truth(name: str, case: str, frame: str) -> None:
     grid = dict(n_axes=162, n_angles=24, sigma_deg=20.0)
     rep = build_representation(name, {1: CASES[case]}, rotation_frame=frame, num_hypotheses=4, **grid)

@@ -16,7 +16,7 @@ from popcode_trainer.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_
 from popcode_trainer.train import train
 
 
-@pytest.mark.parametrize("name", Representation.ALL)
+@pytest.mark.parametrize("name", Representation.values())
 def test_a_few_epochs_reduce_the_loss(tmp_path: Path, name: str) -> None:
     config = tiny_config(tmp_path, epochs=4, representation=name)
     rep = tiny_representation(config)

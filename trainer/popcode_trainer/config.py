@@ -9,6 +9,7 @@ so resume and export see exactly the configuration that trained the model.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import sys
 import types
 import typing
@@ -104,6 +105,8 @@ SECTIONS: dict[str, type] = {"data": DataConfig, "code": CodeConfig, "network": 
 
 
 def _plain(value: Any) -> Any:
+    if isinstance(value, enum.Enum):  # checkpoints are read with weights_only: plain types only
+        return value.value
     if isinstance(value, tuple | list):
         return [_plain(v) for v in value]
     if isinstance(value, dict):
@@ -159,8 +162,8 @@ def _choice(name: str, value: str, choices: Sequence[str]) -> None:
 
 
 def _check_choices(config: Config) -> None:
-    _choice("train.representation", config.train.representation, Representation.ALL)
-    _choice("train.rotation_frame", config.train.rotation_frame, RotationFrame.ALL)
+    _choice("train.representation", config.train.representation, Representation.values())
+    _choice("train.rotation_frame", config.train.rotation_frame, RotationFrame.values())
     _choice("train.device", config.train.device, DEVICES)
     _choice("data.box", config.data.box, BOX_KINDS)
     if not 0.0 <= config.data.val_fraction < 1.0:

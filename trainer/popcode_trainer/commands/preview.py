@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from popcode_runtime import CodeLayout, symmetry_class
+from popcode_runtime.code import CodeLayout
+from popcode_runtime.symmetries import symmetry_class
 
 from ..data.augment import Augmentation
 from ..data.bop import read_bop_split

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from popcode_runtime import PopcodeError
+from popcode_runtime.errors import PopcodeError
 
 from ..data.objects import write_builtin_models
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, parse_shard, render_split

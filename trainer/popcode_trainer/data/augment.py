@@ -13,7 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from popcode_runtime import PopcodeError, read_image
+from popcode_runtime.crop import read_image
+from popcode_runtime.errors import PopcodeError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime import PopcodeError, symmetry_transforms
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.symmetries import symmetry_transforms
 
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
 IMAGE_FOLDERS = ("rgb", "gray")

@@ -10,7 +10,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from popcode_runtime import PopcodeError
+from popcode_runtime.errors import PopcodeError
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:

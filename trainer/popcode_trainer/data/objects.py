@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.distance import pdist
 
-from popcode_runtime import PopcodeError
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import axis_angle_to_matrix
 
 from .files import write_bytes_atomic, write_json_atomic

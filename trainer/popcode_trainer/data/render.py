@@ -23,8 +23,8 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from popcode_runtime import PopcodeError
 from popcode_runtime.camera import project_points
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import random_rotations, rotation_between
 
 from .bop import RENDER_MARKER, load_models_info, model_path, read_json

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from popcode_runtime import PopcodeError, read_image
-from popcode_runtime.crop import CROP_PADDING, crop_square
+from popcode_runtime.crop import CROP_PADDING, crop_square, read_image
+from popcode_runtime.errors import PopcodeError
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds
 from .bop import Instance

@@ -86,32 +86,43 @@ def _max_symmetric_distance(
     return errors.reshape(shape)
 
 
-def mssd(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray, syms: SymmetryTransforms | None) -> np.ndarray:
+def mssd(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts_mm: np.ndarray,
+    syms: SymmetryTransforms | None,
+) -> np.ndarray:
     """Maximum Symmetry-aware Surface Distance [mm] (BOP19).
 
     Minimum over the symmetry transformations of the largest 3-D distance between a
     vertex in the estimated pose and the same vertex in the symmetric ground truth.
     ``syms=None`` means the object has no symmetry.
+    Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
+    broadcast batch shape ``(...)`` [mm].
     """
     return _max_symmetric_distance(R_est, t_est, R_gt, t_gt, pts_mm, syms, None)
 
 
 def mspd(
-    R_est, t_est, R_gt, t_gt, K: np.ndarray, pts_mm: np.ndarray, syms: SymmetryTransforms | None
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, K: np.ndarray, pts_mm: np.ndarray,
+    syms: SymmetryTransforms | None,
 ) -> np.ndarray:
     """Maximum Symmetry-aware Projection Distance [px] (BOP19).
 
     As :func:`mssd` but with the vertices projected with the 3x3 intrinsics ``K``
-    (OpenCV convention). The BOP thresholds scale with the image width / 640.
+    (:func:`popcode_runtime.camera.project_camera_points`). The BOP thresholds
+    scale with the image width / 640.
+    Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
+    broadcast batch shape ``(...)`` [px].
     """
     return _max_symmetric_distance(R_est, t_est, R_gt, t_gt, pts_mm, syms, np.asarray(K, np.float64))
 
 
-def add(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
+def add(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts_mm: np.ndarray) -> np.ndarray:
     """Average Distance of model points, ADD [mm] (Hinterstoisser et al., ACCV 2012).
 
     Mean over vertices of the distance between the vertex in the two poses;
     blind to symmetry.
+    Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
+    broadcast batch shape ``(...)`` [mm].
     """
     shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
     pts = _points(pts_mm)
@@ -124,13 +135,15 @@ def add(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
     return errors.reshape(shape)
 
 
-def adi(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
+def adi(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts_mm: np.ndarray) -> np.ndarray:
     """Average Distance for Indistinguishable views, ADI [mm] (Hinterstoisser et al., ACCV 2012).
 
     Mean over the vertices in the ground-truth pose of the distance to the nearest
     vertex in the estimated pose. Distances are invariant under a rigid motion, so
     the ground-truth vertices are mapped into the estimate's model frame and one
     k-d tree over the model serves every pose. Always ``adi <= add``.
+    Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
+    broadcast batch shape ``(...)`` [mm].
     """
     shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
     pts = _points(pts_mm)
@@ -147,11 +160,15 @@ def adi(R_est, t_est, R_gt, t_gt, pts_mm: np.ndarray) -> np.ndarray:
     return errors.reshape(shape)
 
 
-def proj(R_est, t_est, R_gt, t_gt, K: np.ndarray, pts_mm: np.ndarray) -> np.ndarray:
+def proj(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, K: np.ndarray, pts_mm: np.ndarray
+) -> np.ndarray:
     """Average projection distance, PROJ [px] (Brachmann et al., CVPR 2016; the toolkit's ``proj``).
 
     Mean over vertices of the distance between their projections with the 3x3
     intrinsics ``K`` in the two poses; blind to symmetry.
+    Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
+    broadcast batch shape ``(...)`` [px].
     """
     shape, R_e, t_e, R_g, t_g = _batch(R_est, t_est, R_gt, t_gt)
     pts, K = _points(pts_mm), np.asarray(K, np.float64)
@@ -192,8 +209,8 @@ def sphere_projections_overlap(t_est_mm: np.ndarray, t_gt_mm: np.ndarray, diamet
     return valid & overlap
 
 
-def rotation_error_deg(R_est, R_gt) -> np.ndarray:
-    """Rotation error re [deg] (BOP): angle of ``R_est R_gt^T``, in [0, 180].
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Rotation error re [deg] (BOP): angle of ``R_est R_gt^T``, in [0, 180], for rotations ``(..., 3, 3)``.
 
     Computed with the chord formula, which equals the toolkit's ``acos`` of the
     trace but stays accurate near 0.
@@ -201,8 +218,8 @@ def rotation_error_deg(R_est, R_gt) -> np.ndarray:
     return np.degrees(geodesic_angle(R_gt, R_est))
 
 
-def translation_error_mm(t_est, t_gt) -> np.ndarray:
-    """Translation error te [mm] (BOP): Euclidean distance between the translations ``(..., 3)``."""
+def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
+    """Translation error te [mm] (BOP): Euclidean distance between translations ``(..., 3)`` [mm], shape ``(...)``."""
     return np.linalg.norm(np.asarray(t_est, np.float64) - np.asarray(t_gt, np.float64), axis=-1)
 
 
@@ -261,7 +278,7 @@ def vsd(
     ``render_depth`` must render as the toolkit's renderer does: with the
     intrinsics of the test image as given (pixel ``i`` samples ``x = i + 0.5``),
     both faces of every triangle, and without anti-aliasing, which moves
-    silhouette pixels (``popcode_trainer.data.render.DepthRenderer(...).render``
+    silhouette pixels (``popcode_trainer.data.gl.DepthRenderer(...).render``
     with ``K`` bound does).
     """
     depth_est = render_depth(np.asarray(R_est, np.float64), np.asarray(t_est_mm, np.float64))

@@ -58,7 +58,7 @@ def sensitivity_curves(
     """Errors of the ground truth rotated by ``angles_deg`` about a random axis drawn from ``rng``.
 
     The translation stays the ground truth's, as in the paper's evaluation. With
-    ``render_depth`` (see :data:`popcode_trainer.eval.pose_error.RenderDepth`) the
+    ``render_depth`` (see :data:`popcode_trainer.eval.metrics.pose_errors.RenderDepth`) the
     VSD and VSS curves are added; the test image is then the object alone in its
     ground-truth pose.
     """
