@@ -4,7 +4,9 @@ Needs only numpy, onnxruntime and OpenCV. The trainer imports the code layout,
 rotation maths, crop and decoding from here, so there is one definition of each.
 """
 
-__version__ = "0.1.0"
+from pathlib import Path
+
+__version__ = (Path(__file__).parent / "VERSION").read_text(encoding="utf-8").strip()  # the one place: VERSION
 
 from .camera import parse_camera_matrix
 from .code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice

@@ -3,4 +3,6 @@
 The code layout, rotation maths, crop and decoding come from ``popcode_runtime``.
 """
 
-__version__ = "0.1.0"
+from popcode_runtime import __version__  # one version for both halves, kept in popcode_runtime/VERSION
+
+__all__ = ["__version__"]
