@@ -48,11 +48,11 @@ import torch
 from onnx import TensorProto, helper, numpy_helper
 
 from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
-from popcode_runtime.code import CodeLayout
 from popcode_runtime.decoding import DECODERS, decode_output
 from popcode_runtime.engine import OnnxEngine, onnx_session
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
+from popcode_runtime.population_code import CodeLayout
 from popcode_trainer.agreement import compare
 from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split

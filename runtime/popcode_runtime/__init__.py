@@ -9,11 +9,11 @@ from pathlib import Path
 __version__ = (Path(__file__).parent / "VERSION").read_text(encoding="utf-8").strip()  # the one place: VERSION
 
 from .camera import parse_camera_matrix
-from .code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
 from .crop import crop_batch, crop_square, read_image, to_grey
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
 from .metadata import ModelMetadata, Representation, RotationFrame
+from .population_code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
 from .symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
 
 __all__ = [

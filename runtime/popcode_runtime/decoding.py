@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .code import DecodedRotations, PopulationCode, check_code
 from .errors import PopcodeError
 from .metadata import ModelMetadata, Representation
+from .population_code import DecodedRotations, PopulationCode, check_code
 from .refine import decode_refined
 from .rotations import matrix_to_axis_angle, quaternion_to_matrix, rotation_between, sixd_to_matrix
 

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from .camera import parse_camera_matrix
-from .code import PopulationCode
 from .crop import box_centre, crop_batch
 from .decoding import DECODERS, decode_output
 from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
 from .hypotheses import Hypothesis, find_hypotheses
 from .metadata import ModelMetadata, Representation, RotationFrame
+from .population_code import PopulationCode
 from .rotations import allocentric_to_egocentric, matrix_to_axis_angle
 from .symmetries import symmetry_rotations
 from .translation import object_points_mm, translation_from_box

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .code import CodeLayout, PopulationCode, check_code
 from .errors import PopcodeError
+from .population_code import CodeLayout, PopulationCode, check_code
 from .refine import lattice_neighbours, refine_neuron
 from .rotations import geodesic_angle
 

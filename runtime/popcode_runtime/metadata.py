@@ -13,9 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from .code import CodeLayout
 from .crop import CROP_PADDING, CROP_SIZE
 from .errors import PopcodeError
+from .population_code import CodeLayout
 from .symmetries import SymmetryClass, symmetry_class
 from .text_enum import TextEnum
 from .translation import object_points_mm

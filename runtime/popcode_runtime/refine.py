@@ -20,7 +20,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .code import CodeLayout, DecodedRotations, PopulationCode, check_code, fibonacci_lattice
+from .population_code import CodeLayout, DecodedRotations, PopulationCode, check_code, fibonacci_lattice
 from .rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_between
 
 NEIGHBOURS = 8  # lattice neighbours of a peak used for the axis fit (Fibonacci cells have ~6)

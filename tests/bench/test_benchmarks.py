@@ -9,8 +9,8 @@ import numpy as np
 from onnx_models import linear_model, save
 
 from bench import agreement, latency, toy_orientation, translation
-from popcode_runtime.code import CodeLayout, PopulationCode
 from popcode_runtime.metadata import ModelMetadata, Representation
+from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.data.bop import load_models_info

@@ -6,7 +6,7 @@ import numpy as np
 from box_render import box_depth_renderer
 from symmetry_cases import CASES
 
-from popcode_runtime.code import CodeLayout, PopulationCode
+from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import symmetry_transforms
 from popcode_trainer.eval.reporting.figures import (

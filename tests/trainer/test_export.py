@@ -13,11 +13,11 @@ from symmetry_cases import CASES
 from synthetic import K, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
-from popcode_runtime.code import CodeLayout, PopulationCode
 from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
+from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer.agreement import compare
 from popcode_trainer.export import export_checkpoint, export_onnx

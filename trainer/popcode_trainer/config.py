@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from popcode_runtime.code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 from popcode_runtime.crop import CROP_SIZE
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
 from .network import NetworkConfig
 

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.code import PAPER_SIGMA_DEG
 from popcode_runtime.metadata import Representation
+from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
 from .config import CodeConfig, Config, DataConfig, TrainConfig

@@ -16,11 +16,11 @@ import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
-from popcode_runtime.code import CodeLayout, DecodedRotations, PopulationCode
 from popcode_runtime.crop import box_centre
 from popcode_runtime.decoding import decode_output
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
+from popcode_runtime.population_code import CodeLayout, DecodedRotations, PopulationCode
 from popcode_runtime.rotations import (
     egocentric_to_allocentric,
     geodesic_angle,

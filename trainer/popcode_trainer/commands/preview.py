@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from popcode_runtime.code import CodeLayout
+from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.symmetries import symmetry_class
 
 from ..data.augment import Augmentation

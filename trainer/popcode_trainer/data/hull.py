@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from popcode_runtime.code import fibonacci_lattice
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.population_code import fibonacci_lattice
 
 from .bop import model_path
 from .meshes import load_mesh

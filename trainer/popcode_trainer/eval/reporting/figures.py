@@ -15,11 +15,11 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from popcode_runtime.code import CodeLayout, check_code
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
+from popcode_runtime.population_code import CodeLayout, check_code
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 
