@@ -14,6 +14,7 @@ from popcode_runtime import (
     Representation,
     symmetry_rotations,
 )
+from popcode_runtime.camera import project_camera_points
 from popcode_runtime.crop import box_edges, box_from_edges
 from popcode_runtime.decoding import decode_output
 from popcode_runtime.hypotheses import argmax_tolerance_rad, find_hypotheses, same_pose
@@ -178,7 +179,7 @@ def test_refined_decoder_only_for_population_codes():
 
 def projected_box(points_cam):
     """The BOP box of the points' silhouette."""
-    uv = (points_cam @ K.T)[:, :2] / points_cam[:, 2:3]
+    uv = project_camera_points(points_cam, K)
     return box_from_edges([*uv.min(axis=0), *uv.max(axis=0)])
 
 
