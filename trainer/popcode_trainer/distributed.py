@@ -54,8 +54,14 @@ def setup(requested_device: str) -> Context:
     return Context(rank=rank, world_size=world_size, device=device)
 
 
-def teardown(context: Context) -> None:
+def teardown(context: Context, finished: bool = False) -> None:
+    """Leave the process group. A ``finished`` run first waits for every rank: a rank that destroyed its
+    group while a peer was still writing its last checkpoint sometimes aborted at exit ("terminate called
+    without an active exception", SIGABRT; seen with gloo on CPU). A failed run does not wait, since its
+    peers may never arrive."""
     if context.distributed and dist.is_initialized():
+        if finished:
+            dist.barrier()
         dist.destroy_process_group()
 
 

@@ -154,9 +154,12 @@ def train(config: Config, representation: OutputRepresentation, train_set: Datas
     cfg = config.train
     context = distributed.setup(cfg.device)
     try:
-        return _run(config, representation, train_set, val_set, resume, val_instances, context)
-    finally:
+        history = _run(config, representation, train_set, val_set, resume, val_instances, context)
+    except BaseException:
         distributed.teardown(context)
+        raise
+    distributed.teardown(context, finished=True)
+    return history
 
 
 def _run(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None,
