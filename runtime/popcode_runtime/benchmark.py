@@ -98,19 +98,27 @@ def benchmark_estimator(
     return results
 
 
+# CPU features that change how fast the convolutions and int8 kernels run.
+CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "amx_tile", "neon", "asimd")
+
+
 def machine_description() -> dict:
-    """What the numbers were measured on."""
-    cpu = platform.processor() or platform.machine()
+    """What the numbers were measured on: CPU model and its relevant flags (Linux), cores, versions."""
+    cpu, flags = None, []
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as handle:
             for line in handle:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and cpu is None:
+                    cpu = value.strip()
+                elif key.strip() in ("flags", "Features") and not flags:
+                    present = set(value.split())
+                    flags = [flag for flag in CPU_FLAGS if flag in present]
     except OSError:
         pass
     return {
-        "cpu": cpu,
+        "cpu": cpu or platform.processor() or platform.machine(),
+        "cpu_flags": flags,
         "cores": os.cpu_count(),
         "system": f"{platform.system()} {platform.release()}",
         "python": platform.python_version(),

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from onnx_models import linear_model, save
 
-from bench import agreement, latency, toy_orientation, translation
+from bench import agreement, latency, toy_orientation, training, translation
 from popcode_runtime.metadata import ModelMetadata, Representation
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import random_rotations
@@ -136,3 +136,17 @@ def test_agreement_counts_symmetric_swaps_as_the_same_pose_per_object(tmp_path: 
     assert by_row["swapped.onnx", 3]["argmax_agreement"] == 0.0 and by_row["swapped.onnx", 3]["pose_agreement"] == 1.0
     assert by_row["swapped.onnx", 6]["pose_agreement"] == 0.0 and by_row["swapped.onnx", "all"]["pose_agreement"] == 0.5
     assert (tmp_path / "agreement.md").read_text(encoding="utf-8").count("| swapped.onnx |") == 3
+
+
+def test_training_throughput_smoke(tmp_path: Path) -> None:
+    payload = training.main(["--quick", "--networks", "tiny", "--threads", "1", "--workers", "0", "1",
+                             "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["rows"]
+    assert rows == payload["rows"]
+    parts = [(r["part"], r["workers"]) for r in rows]
+    assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None), ("step", 0),
+                     ("step", 1)]
+    assert all(r["network"] == "tiny" and r["threads"] == 1 and r["crops_per_s"] > 0 for r in rows)
+    table = (tmp_path / "training.md").read_text(encoding="utf-8")
+    assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(rows)
+    assert "cpu_flags" in json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["machine"]

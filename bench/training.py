@@ -1,0 +1,162 @@
+"""Training throughput per trunk: where a step's time goes (data preparation, forward + backward, optimizer).
+
+    python -m bench.training [--quick] [--out DIR] [--networks small paper] [--threads 1 2] [--workers 0 2]
+
+Renders a small split of the built-in parts into a temporary folder and builds
+the population-code training data exactly as ``popcode-train train`` does
+(``pipeline.small_config``: 642 x 36 code, batch 32, the paper's augmentation).
+For each network and torch thread count it times, in crops per second:
+
+- ``data``: batches from the DataLoader alone (read PNG, crop, augment, build
+  the target), with each number of DataLoader workers;
+- ``forward_backward``: network, loss and backward on one fixed batch;
+- ``optimizer``: Adam's step alone;
+- ``step``: the real loop (loader -> forward -> loss -> backward -> step) per
+  worker count, which is what a training run gets.
+
+Numbers, not assertions; results in ``bench/results/training.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader
+
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.network import NetworkConfig, build_network
+from popcode_trainer.pipeline import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
+from popcode_trainer.train import network_config
+from popcode_trainer.training_data import build_training_data
+
+from .report import machine, write_results
+
+NETWORKS = {
+    "tiny": NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16)),  # smoke tests only
+    "small": SMALL_NETWORK,
+    "paper": NetworkConfig(),
+}
+BATCH = 32
+IMAGES_PER_OBJECT = 80  # 4 objects x 80 x 0.9 = 288 training crops: 9 batches
+
+
+def _rate(crops: int, seconds: float) -> float:
+    return crops / seconds if seconds > 0 else float("nan")
+
+
+def _timed_batches(loader: DataLoader, batches: int, work: Callable[[dict[str, Any]], None]) -> float:
+    """Seconds for ``batches`` batches after one warm-up batch (worker start-up, first allocations)."""
+    iterator = iter(loader)
+    work(next(iterator))
+    started = time.perf_counter()
+    for _ in range(batches):
+        work(next(iterator))
+    return time.perf_counter() - started
+
+
+def measure(network_name: str, threads: int, workers: Sequence[int], batches: int, split: Path,
+            out_dir: Path) -> list[dict[str, Any]]:
+    """One network at one torch thread count: the rows of every part and worker count."""
+    torch.set_num_threads(threads)
+    size = PipelineSize(IMAGES_PER_OBJECT, 0, small_config(epochs=1, n_axes=642, n_angles=36,
+                                                           network=NETWORKS[network_name]))
+    config = training_config(size, "population_code", [3, 4, 5, 6], split, out_dir)
+    data = build_training_data(config)
+    model = build_network(network_config(config, data.representation)).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
+    loss_of = data.representation.loss
+    rows = []
+
+    def row(part: str, seconds: float, crops: int, workers_used: int | None = None) -> None:
+        rows.append({"network": network_name, "threads": threads, "part": part, "workers": workers_used,
+                     "crops_per_s": _rate(crops, seconds), "ms_per_batch": 1000 * seconds / (crops / BATCH)})
+
+    def loader(num_workers: int) -> DataLoader:
+        return DataLoader(data.train_set, batch_size=BATCH, shuffle=True, drop_last=True, num_workers=num_workers,
+                          generator=torch.Generator().manual_seed(0))
+
+    needed = (batches + 1) * BATCH
+    if len(data.train_set) < needed:
+        raise SystemExit(f"the split has {len(data.train_set)} training crops, {needed} are needed")
+    for count in workers:
+        row("data", _timed_batches(loader(count), batches, lambda _batch: None), batches * BATCH, count)
+    fixed = next(iter(loader(0)))
+
+    def forward_backward(batch: dict[str, Any]) -> torch.Tensor:
+        optimizer.zero_grad(set_to_none=True)
+        loss = loss_of(model(batch["image"]).float(), batch["target"], 0.5)
+        loss.backward()
+        return loss
+
+    forward_backward(fixed)  # warm-up
+    started = time.perf_counter()
+    for _ in range(batches):
+        forward_backward(fixed)
+    row("forward_backward", time.perf_counter() - started, batches * BATCH)
+    started = time.perf_counter()
+    for _ in range(batches):
+        optimizer.step()
+    row("optimizer", time.perf_counter() - started, batches * BATCH)
+    for count in workers:
+        def step(batch: dict[str, Any]) -> None:
+            forward_backward(batch)
+            optimizer.step()
+        row("step", _timed_batches(loader(count), batches, step), batches * BATCH, count)
+    return rows
+
+
+def to_markdown(payload: dict[str, Any]) -> str:
+    description = payload["machine"]
+    header = ["network", "threads", "part", "workers", "crops/s", "ms / batch of 32"]
+    rows = [(r["network"], r["threads"], r["part"], "–" if r["workers"] is None else r["workers"],
+             f"{r['crops_per_s']:.1f}", f"{r['ms_per_batch']:.1f}") for r in payload["rows"]]
+    return "\n\n".join([
+        "# Training throughput",
+        f"Machine: {description['cpu']} ({', '.join(description.get('cpu_flags', [])) or 'no flags read'}), "
+        f"{description['cores']} cores, load {description['load_average_1m']:.2f}; torch {description['torch']}. "
+        f"Command: `python -m bench.training {payload['arguments']}`. Population code 642 x 36, batch {BATCH}, "
+        "the paper's augmentation on rendered 128 px images of built-in parts 3-6.",
+        "`data`: DataLoader batches alone; `forward_backward`: network + loss + backward on a fixed batch; "
+        "`optimizer`: Adam's step; `step`: the real training loop.",
+        markdown_table(header, rows),
+    ])
+
+
+def run(networks: Sequence[str], threads: Sequence[int], workers: Sequence[int], batches: int, out_dir: Path,
+        arguments: str) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as folder:
+        size = PipelineSize(IMAGES_PER_OBJECT, 1, small_config(epochs=1, n_axes=642, n_angles=36))
+        split, _ = render_splits(size, Path(folder), progress=False)
+        rows = [row for name in networks for count in threads
+                for row in measure(name, count, workers, batches, split, Path(folder) / "run")]
+    payload = {"arguments": arguments, "batch": BATCH, "rows": rows}
+    payload["machine"] = machine()
+    write_results(out_dir, "training", payload, to_markdown(payload))
+    return payload
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="two batches per measurement: a smoke run")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for training.json/.md")
+    parser.add_argument("--networks", nargs="+", choices=list(NETWORKS), default=["small", "paper"])
+    parser.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch intra-op threads to try")
+    parser.add_argument("--workers", nargs="+", type=int, default=[0, 2], help="DataLoader worker counts to try")
+    parser.add_argument("--batches", type=int, default=6, help="timed batches per measurement (after a warm-up)")
+    args = parser.parse_args(argv)
+    if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1:
+        parser.error("--threads and --batches must be at least 1, --workers at least 0")
+    batches = 2 if args.quick else args.batches
+    arguments = " ".join(sys.argv[1:] if argv is None else argv)
+    return run(args.networks, args.threads, args.workers, batches, args.out, arguments)
+
+
+if __name__ == "__main__":
+    main()
