@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import cv2
@@ -16,6 +17,7 @@ from popcode_runtime.crop import crop_square
 from popcode_trainer.cli import main
 from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture
 from popcode_trainer.data.bop import read_bop_split
+from popcode_trainer.data.crop_cache import CACHE_SUFFIX, crop_with_margin
 from popcode_trainer.data.samples import CropDataset
 from popcode_trainer.representations import PerObjectPopulationCodes
 
@@ -57,7 +59,11 @@ def _codes(split) -> PerObjectPopulationCodes:
 
 
 def _dataset(split, **kwargs) -> CropDataset:
-    return CropDataset(split.instances, _codes(split).target, **kwargs)
+    return CropDataset(split.instances, _codes(split).targets, **kwargs)
+
+
+def _dataset_of(instances, **kwargs) -> CropDataset:
+    return CropDataset(instances, lambda batch: np.zeros((len(batch), 1)), **kwargs)
 
 
 def test_sample_contents_and_targets(split) -> None:
@@ -67,7 +73,8 @@ def test_sample_contents_and_targets(split) -> None:
         instance = split.instances[index]
         assert sample["image"].shape == (1, 128, 128) and sample["image"].dtype == torch.float32
         expected = crop_square(read_image(instance.image_path), instance.box)
-        np.testing.assert_array_equal(sample["image"][0].numpy(), expected)
+        # The runtime's crop, stored to 8 bits like the PNG it comes from.
+        np.testing.assert_allclose(sample["image"][0].numpy(), expected, atol=0.5 / 255 + 1e-6)
         np.testing.assert_array_equal(sample["R_m2c"].numpy(), instance.R_m2c.astype(np.float32))
         assert sample["obj_id"] == instance.obj_id and sample["index"] == index
     sizes = {instance.obj_id: dataset[index]["target"].numel() for index, instance in enumerate(split.instances)}
@@ -93,16 +100,17 @@ def test_augmented_samples_are_deterministic_per_seed_epoch_and_index(split) -> 
 
 def test_background_replaces_only_pixels_off_the_object(split) -> None:
     only_background = Augmentation(brightness_p=0.0, background_p=1.0, noise_p=0.0, shift_p=0.0)
-    plain, augmented = _dataset(split, augmentation=None), _dataset(split, augmentation=only_background)
+    nothing = dataclasses.replace(only_background, background_p=0.0)
+    plain, augmented = _dataset(split, augmentation=nothing), _dataset(split, augmentation=only_background)
+    inner = slice(augmented.margin, augmented.margin + augmented.crop_size)
     for index in range(0, len(split.instances), 4):
-        instance = split.instances[index]
-        alpha = crop_square(read_image(instance.mask_visib_path), instance.box)
+        alpha = augmented.stored_crop(index)[1, inner, inner] / 255.0
         before, after = plain.crop(index), augmented.crop(index)
         np.testing.assert_allclose(after[alpha == 1.0], before[alpha == 1.0], atol=1e-6)
         assert np.abs(after[alpha == 0.0] - before[alpha == 0.0]).mean() > 0.05
     real = [dataclasses.replace(instance, rendered=False) for instance in split.instances[:3]]
-    real_plain = CropDataset(real, lambda _: np.zeros(1), augmentation=None)
-    real_augmented = CropDataset(real, lambda _: np.zeros(1), augmentation=only_background)
+    real_plain = CropDataset(real, lambda batch: np.zeros((len(batch), 1)), augmentation=nothing)
+    real_augmented = CropDataset(real, lambda batch: np.zeros((len(batch), 1)), augmentation=only_background)
     for index in range(3):  # real images never get a background
         np.testing.assert_array_equal(real_plain.crop(index), real_augmented.crop(index))
 
@@ -129,3 +137,58 @@ def test_render_and_preview_commands(tmp_path: Path) -> None:
     assert cv2.imread(str(tmp_path / "grid.png")).shape[2] == 3
     assert main(["render", "--objects", str(tmp_path / "nowhere"), "--out", str(out), "--images", "1"]) == 2
     assert main(["render", "--objects", "builtin", "--out", str(out), "--images", "2", "--shard", "2/2"]) == 2
+
+
+def test_stored_crops_centre_on_the_runtime_crop(split) -> None:
+    """The stored crop's inner square is the runtime crop: no window one pixel off matches it better."""
+    margin, size = 5, 128
+    offsets = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)]
+    error = dict.fromkeys(offsets, 0.0)
+    for instance in split.instances:
+        stored = crop_with_margin(instance, size, margin)[0] / 255.0
+        runtime = crop_square(read_image(instance.image_path), instance.box, size)
+        for dy, dx in offsets:
+            window = stored[margin + dy: margin + dy + size, margin + dx: margin + dx + size]
+            error[dy, dx] += np.abs(window - runtime).mean() / len(split.instances)
+    assert min(error, key=error.get) == (0, 0), error
+    assert error[0, 0] < 0.02  # resampling differs by under half a source pixel
+
+
+def test_cached_crops_equal_decoded_ones_and_follow_the_images(split, tmp_path: Path) -> None:
+    instances = [dataclasses.replace(inst, image_path=tmp_path / inst.image_path.name) for inst in split.instances[:4]]
+    for original, copy in zip(split.instances, instances, strict=False):
+        copy.image_path.write_bytes(original.image_path.read_bytes())
+    cache_dir = tmp_path / "cache"
+    cached = _dataset_of(instances, cache_dir=cache_dir)
+    decoded = _dataset_of(instances)
+    for index in range(len(instances)):
+        assert torch.equal(cached[index]["image"], decoded[index]["image"])
+    first = sorted(cache_dir.iterdir())
+    assert len(first) == 1 and first[0].name.endswith(CACHE_SUFFIX)
+    built = first[0].stat().st_mtime_ns
+    _dataset_of(instances, cache_dir=cache_dir)  # the same data: reused, not rebuilt
+    assert sorted(cache_dir.iterdir()) == first and first[0].stat().st_mtime_ns == built
+    # A changed image makes a new cache with the new pixels.
+    flipped = cv2.imread(str(instances[0].image_path), cv2.IMREAD_UNCHANGED)[::-1]
+    cv2.imwrite(str(instances[0].image_path), flipped)
+    os.utime(instances[0].image_path, ns=(built + 10**9, built + 10**9))
+    changed = _dataset_of(instances, cache_dir=cache_dir)
+    assert len(list(cache_dir.iterdir())) == 2
+    assert torch.equal(changed[0]["image"], _dataset_of(instances)[0]["image"])
+    assert not torch.equal(changed[0]["image"], cached[0]["image"])
+    loader = DataLoader(changed, batch_size=2, num_workers=2, shuffle=False)
+    assert torch.equal(torch.cat([batch["image"] for batch in loader]),
+                       torch.stack([changed[index]["image"] for index in range(len(instances))]))
+
+
+def test_an_interrupted_cache_build_leaves_no_file(split, tmp_path: Path) -> None:
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(PopcodeError, match="cannot read image"):
+        _dataset_of([split.instances[0], dataclasses.replace(split.instances[1], image_path=broken)],
+                    cache_dir=tmp_path / "cache")
+    assert list((tmp_path / "cache").iterdir()) == []
+    with pytest.raises(PopcodeError, match="image file not found"):
+        _dataset_of([dataclasses.replace(split.instances[1], image_path=tmp_path / "gone.png")],
+                    cache_dir=tmp_path / "cache")
+

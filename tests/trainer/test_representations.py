@@ -133,3 +133,17 @@ def test_per_object_codes_give_each_kind_its_own_layout_and_training_target() ->
             np.testing.assert_array_equal(codes.target(instance), alone.target(instance))
     with pytest.raises(PopcodeError, match="not one of the objects"):
         codes.target(instances(R, 7)[0])
+
+
+@pytest.mark.parametrize("name", Representation.values())
+def test_batched_targets_equal_one_at_a_time(name: str) -> None:
+    """A data-loader batch mixes objects; its targets are built per object in one call, in batch order."""
+    rep = build_representation(name, {1: CASES["four_fold"], 2: CASES["none"]}, n_axes=162, n_angles=24,
+                               sigma_deg=20.0, num_hypotheses=4)
+    rng = np.random.default_rng(3)
+    batch = [*instances(random_rotations(5, rng), 2), *instances(random_rotations(4, rng), 1)]
+    batch = [batch[i] for i in rng.permutation(len(batch))]
+    batched = rep.targets(batch)
+    assert batched.dtype == np.float32 and len(batched) == len(batch)
+    for row, inst in zip(batched, batch, strict=True):
+        np.testing.assert_allclose(row, rep.target_from_rotation(inst.R_m2c, inst.obj_id), rtol=1e-6, atol=1e-7)

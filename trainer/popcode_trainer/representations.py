@@ -9,7 +9,7 @@ so a trained model decodes in training exactly as it will in the runtime.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -108,9 +108,26 @@ class OutputRepresentation:
         return self._symmetries[obj_id]
 
     def target(self, instance: InstanceLike) -> np.ndarray:
-        """float32 target of one instance (the data set's ``target_fn``)."""
-        R = self.frame_rotation(instance.R_m2c, instance.K, instance.box)
-        return self.target_from_rotation(R, int(instance.obj_id)).astype(np.float32)
+        """float32 target of one instance."""
+        return self.targets([instance])[0]
+
+    def targets(self, instances: Sequence[InstanceLike]) -> np.ndarray:
+        """float32 targets ``(B, D)`` of a batch (the data set's ``targets_fn``): one call per object."""
+        R = np.stack([self.frame_rotation(inst.R_m2c, inst.K, inst.box) for inst in instances])
+        obj_ids = np.array([int(inst.obj_id) for inst in instances])
+        targets: np.ndarray | None = None
+        for obj_id in np.unique(obj_ids):
+            rows = np.flatnonzero(obj_ids == obj_id)
+            part = self.targets_from_rotations(R[rows], int(obj_id))
+            if targets is None:
+                targets = np.empty((len(instances), part.shape[1]), dtype=np.float32)
+            targets[rows] = part
+        assert targets is not None  # instances is not empty
+        return targets
+
+    def targets_from_rotations(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        """Targets ``(n, D)`` of rotations ``(n, 3, 3)`` of one object; vectorised where it pays."""
+        return np.stack([self.target_from_rotation(r, obj_id) for r in R])
 
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
         raise NotImplementedError
@@ -156,6 +173,9 @@ class PopulationCodeRepresentation(OutputRepresentation):
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
         return self.code.encode(R, self.symmetries(obj_id))
 
+    def targets_from_rotations(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        return self.code.encode(R, self.symmetries(obj_id))
+
     def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
         return F.mse_loss(output, target)
 
@@ -175,8 +195,11 @@ class OneHotRepresentation(OutputRepresentation):
         self.code = PopulationCode(self.layout)
 
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
+        return self.targets_from_rotations(R[None], obj_id)[0]
+
+    def targets_from_rotations(self, R: np.ndarray, obj_id: int) -> np.ndarray:
         self.symmetries(obj_id)  # refuses an unknown object
-        return np.array([np.argmax(self.code.encode(R))], dtype=np.float64)
+        return np.argmax(self.code.encode(R), axis=1)[:, None].astype(np.float64)
 
     def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
         return F.cross_entropy(output, target[:, 0].long())
@@ -289,8 +312,12 @@ class PerObjectPopulationCodes:
         return self._representation(obj_id).layout
 
     def target(self, instance: InstanceLike) -> np.ndarray:
-        """float32 target of one instance in its object's layout (the data set's ``target_fn``)."""
+        """float32 target of one instance in its object's layout."""
         return self._representation(instance.obj_id).target(instance)
+
+    def targets(self, instances: Sequence[InstanceLike]) -> np.ndarray:
+        """Targets ``(B, D)`` of instances whose objects share one layout size (the data set's ``targets_fn``)."""
+        return np.stack([self.target(instance) for instance in instances])
 
 
 def representation_from_metadata(metadata: ModelMetadata) -> OutputRepresentation:

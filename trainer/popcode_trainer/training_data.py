@@ -7,6 +7,7 @@ sit on both sides.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,13 +19,14 @@ from .data.augment import Augmentation
 from .data.bop import Instance, read_bop_split
 from .data.samples import CropDataset
 from .representations import OutputRepresentation, build_representation
+from .run_files import CROP_CACHE_FOLDER
 
 
 @dataclass
 class TrainingData:
     representation: OutputRepresentation
     train_set: CropDataset
-    val_set: CropDataset
+    val_set: CropDataset | None  # None when data.val_fraction is 0
     val_instances: list[Instance]
 
 
@@ -59,7 +61,8 @@ def split_by_image(instances: list[Instance], val_fraction: float, seed: int) ->
     return train, val
 
 
-def build_training_data(config: Config) -> TrainingData:
+def build_training_data(config: Config, progress: bool = True) -> TrainingData:
+    """Instances, representation and data sets of ``config``; training crops are cached in the run folder."""
     instances, objects = read_instances(config)
     code, cfg = config.code, config.train
     representation = build_representation(cfg.representation, objects, code.n_axes, code.n_angles, code.sigma_deg,
@@ -67,10 +70,13 @@ def build_training_data(config: Config) -> TrainingData:
     train, val = split_by_image(instances, config.data.val_fraction, cfg.seed)
     augmentation = Augmentation() if config.data.augment else None
     size = config.data.crop_size
+    cache = Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(
         representation=representation,
-        train_set=CropDataset(train, representation.target, augmentation=augmentation, crop_size=size, seed=cfg.seed),
-        val_set=CropDataset(val, representation.target, augmentation=None, crop_size=size, seed=cfg.seed),
+        train_set=CropDataset(train, representation.targets, augmentation=augmentation, crop_size=size, seed=cfg.seed,
+                              cache_dir=cache, progress=progress),
+        val_set=CropDataset(val, representation.targets, augmentation=None, crop_size=size, seed=cfg.seed,
+                            cache_dir=cache, progress=progress) if val else None,
         val_instances=val,
     )
 
@@ -84,7 +90,7 @@ def validation_crops(config: Config, count: int = 64) -> tuple[np.ndarray, np.nd
     instances, _ = read_instances(config)
     _, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
     chosen = (val or instances)[:count]
-    crops = CropDataset(chosen, lambda _: np.zeros(1, np.float32), augmentation=None,
+    crops = CropDataset(chosen, lambda batch: np.zeros((len(batch), 1), np.float32), augmentation=None,
                         crop_size=config.data.crop_size, seed=config.train.seed)
     images = np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
     return images, np.array([inst.obj_id for inst in chosen], dtype=np.int64)

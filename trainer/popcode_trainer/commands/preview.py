@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     split = read_bop_split(args.split, models_dir, obj_ids=args.obj_ids)
     paper = CodeLayout()
     codes = PerObjectPopulationCodes(split.models_info, paper.n_axes, paper.n_angles, paper.sigma_deg)
-    dataset = CropDataset(split.instances, codes.target,
+    dataset = CropDataset(split.instances, codes.targets,
                           augmentation=None if args.no_augmentation else Augmentation(),
                           backgrounds=args.backgrounds, seed=args.seed)
     rng = np.random.default_rng(args.seed)

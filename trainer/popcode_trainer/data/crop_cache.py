@@ -1,0 +1,111 @@
+"""Crops of every instance decoded once into a memory-mapped uint8 file, so epochs skip PNG decoding.
+
+A training step spent about a third of its time decoding PNGs and masks and cropping them, one
+sample at a time (``bench/results/training.md``). Crops and visible masks are stored at
+``crop_size + 2 * margin`` pixels around the runtime's crop, so the shift augmentation is a slice
+of the stored crop instead of a new crop of the image. The file is named by a hash of what makes
+it (image and mask paths with their sizes and modification times, boxes, crop geometry), so a
+changed split or crop setting builds a new one; it is written under a temporary name and renamed,
+so an interrupted build leaves nothing that a later run would trust.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from popcode_runtime.crop import CROP_PADDING, crop_square, read_image
+from popcode_runtime.errors import PopcodeError
+
+from .bop import Instance
+
+CACHE_FORMAT = 1  # bump when what is stored changes
+CACHE_SUFFIX = ".crops.npy"
+
+
+def margin_for_shift(max_shift_crop_px: float) -> int:
+    """Pixels of context kept on each side of a crop so that a shift of up to ``max_shift_crop_px`` is a slice."""
+    return int(math.ceil(max(0.0, max_shift_crop_px)))
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """[0, 1] float -> uint8, rounded (the precision of the PNGs the crops come from)."""
+    return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> np.ndarray:
+    """Image and visible mask ``(2, C, C)`` uint8 with ``C = crop_size + 2 * margin``, centred like the runtime crop.
+
+    The inner ``crop_size`` square is the runtime's crop of the box; the mask
+    is zero for instances without one (real images: no background pasting).
+    """
+    outer = crop_size + 2 * margin
+    padding = CROP_PADDING * outer / crop_size
+    image = crop_square(read_image(instance.image_path), instance.box, outer, padding)
+    mask = (crop_square(read_image(instance.mask_visib_path), instance.box, outer, padding)
+            if instance.mask_visib_path is not None else np.zeros_like(image))
+    return np.stack([to_uint8(image), to_uint8(mask)])
+
+
+def _fingerprint(instances: Sequence[Instance], crop_size: int, margin: int) -> str:
+    digest = hashlib.sha256(f"{CACHE_FORMAT} {crop_size} {margin} {CROP_PADDING}".encode())
+    stats: dict[Path, str] = {}
+    for instance in instances:
+        for path in (instance.image_path, instance.mask_visib_path):
+            if path is not None and path not in stats:
+                if not Path(path).is_file():
+                    raise PopcodeError(f"image file not found: {path}")
+                stat = Path(path).stat()
+                stats[path] = f"{stat.st_size}:{stat.st_mtime_ns}"
+            digest.update(f"{path}={stats.get(path, '-')};".encode())
+        digest.update(np.asarray(instance.box, dtype=np.float64).tobytes())
+    return digest.hexdigest()[:20]
+
+
+class CropCache:
+    """The ``(N, 2, C, C)`` uint8 crops of ``instances`` in a file under ``folder``; built on first use.
+
+    Opened read-only as a memory map in each process that reads it (workers
+    included), so paper-size data does not have to fit in memory.
+    """
+
+    def __init__(self, instances: Sequence[Instance], crop_size: int, margin: int, folder: str | Path,
+                 progress: bool = True) -> None:
+        self.path = Path(folder) / f"{_fingerprint(instances, crop_size, margin)}{CACHE_SUFFIX}"
+        self._array: np.ndarray | None = None
+        if not self.path.exists():
+            self._build(instances, crop_size, margin, progress)
+
+    def _build(self, instances: Sequence[Instance], crop_size: int, margin: int, progress: bool) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        outer = crop_size + 2 * margin
+        temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        array = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8, shape=(len(instances), 2, outer, outer))
+        try:
+            for index, instance in enumerate(tqdm(instances, desc="caching crops", unit="crop", disable=not progress,
+                                                  leave=False)):
+                array[index] = crop_with_margin(instance, crop_size, margin)
+            array.flush()
+            del array
+            os.replace(temporary, self.path)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+
+    @property
+    def array(self) -> np.ndarray:
+        if self._array is None:
+            self._array = np.load(self.path, mmap_mode="r")
+        return self._array
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        return np.asarray(self.array[index])
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_array": None}  # each worker maps the file itself
