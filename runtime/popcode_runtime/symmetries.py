@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .errors import PopcodeError
-from .rotations import axis_angle_to_matrix
+from .rotations import axis_angle_to_matrix, geodesic_angle
 from .text_enum import TextEnum
 
 
@@ -125,3 +125,19 @@ def continuous_axis(info: Mapping[str, Any]) -> np.ndarray:
                 "its rotation cannot be encoded"
             )
     return continuous[0][0]
+
+
+def rotation_error_up_to_symmetry(R_pred: np.ndarray, R_true: np.ndarray, symmetries: np.ndarray,
+                                  symmetry_axis: np.ndarray | None = None) -> np.ndarray:
+    """Rotation error ``(N,)`` [rad] of ``R_pred`` against every equivalent ``R_true S_k``.
+
+    ``symmetries`` ``(K, 3, 3)`` are the discrete ones (identity included). With
+    a continuous symmetry about ``symmetry_axis`` only that axis is defined, so
+    the error is the angle between the predicted and the true axis.
+    """
+    equivalent = np.asarray(R_true)[:, None] @ np.asarray(symmetries)[None]  # (N, K, 3, 3)
+    if symmetry_axis is None:
+        return geodesic_angle(np.asarray(R_pred)[:, None], equivalent).min(axis=1)
+    a = np.asarray(symmetry_axis, dtype=np.float64)
+    cos = np.einsum("ni,nki->nk", np.asarray(R_pred) @ a, equivalent @ a)
+    return np.arccos(np.clip(cos, -1.0, 1.0)).min(axis=1)

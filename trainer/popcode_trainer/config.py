@@ -58,6 +58,7 @@ class CodeConfig:
     n_axes: int = PAPER_N_AXES
     n_angles: int = PAPER_N_ANGLES
     sigma_deg: float = PAPER_SIGMA_DEG
+    sigma_from_symmetries: bool = False  # narrow sigma_deg until symmetric peaks stay apart (code_sigma)
 
 
 @dataclass(frozen=True)

@@ -23,16 +23,18 @@ from popcode_runtime.metadata import ModelMetadata, Representation, RotationFram
 from popcode_runtime.population_code import CodeLayout, DecodedRotations, PopulationCode
 from popcode_runtime.rotations import (
     egocentric_to_allocentric,
-    geodesic_angle,
     matrix_to_quaternion,
     matrix_to_sixd,
 )
 from popcode_runtime.symmetries import (
     SymmetryClass,
     continuous_axis,
+    rotation_error_up_to_symmetry,
     symmetry_class,
     symmetry_rotations,
 )
+
+from .code_sigma import checked_sigma
 
 EPSILON_START = 0.05  # eq. 3: weight of the average loss, annealed linearly over training
 EPSILON_END = 0.01
@@ -149,15 +151,11 @@ class OutputRepresentation:
         discrete symmetries, which may flip it).
         """
         errors = np.empty(len(R_pred))
+        axis = np.asarray(self.layout.symmetry_axis) if self.layout.axis_only else None
         for obj_id in np.unique(obj_ids):
             rows = np.flatnonzero(obj_ids == obj_id)
-            equivalent = R_true[rows, None] @ self.symmetries(int(obj_id))[None]  # (n, K, 3, 3)
-            if self.layout.axis_only:
-                a = np.asarray(self.layout.symmetry_axis)
-                cos = np.einsum("ni,nki->nk", R_pred[rows] @ a, equivalent @ a)
-                errors[rows] = np.arccos(np.clip(cos, -1.0, 1.0)).min(axis=1)
-            else:
-                errors[rows] = geodesic_angle(R_pred[rows, None], equivalent).min(axis=1)
+            errors[rows] = rotation_error_up_to_symmetry(R_pred[rows], R_true[rows], self.symmetries(int(obj_id)),
+                                                         axis)
         return errors
 
 
@@ -277,11 +275,18 @@ REPRESENTATIONS: dict[str, type[OutputRepresentation]] = {
 
 def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int,
                          sigma_deg: float, rotation_frame: str = RotationFrame.EGOCENTRIC,
-                         num_hypotheses: int = 0) -> OutputRepresentation:
-    """The representation called ``name`` for the pooled ``objects``; names the valid choices."""
+                         num_hypotheses: int = 0, sigma_from_symmetries: bool = False) -> OutputRepresentation:
+    """The representation called ``name`` for the pooled ``objects``; names the valid choices.
+
+    The population code's width is checked against the objects' symmetries
+    (:func:`code_sigma.checked_sigma`): narrowed with ``sigma_from_symmetries``,
+    otherwise kept with a warning where symmetric peaks merge.
+    """
     if name not in REPRESENTATIONS:
         raise PopcodeError(f"unknown representation {name!r}; choose one of {sorted(REPRESENTATIONS)}")
     layout = code_layout(objects, n_axes, n_angles, sigma_deg)
+    if name == Representation.POPULATION_CODE:
+        layout = checked_sigma(layout, objects, sigma_from_symmetries)
     hypotheses = num_hypotheses if name == Representation.MULTI_HYPOTHESIS else 0
     return REPRESENTATIONS[name](objects, layout, rotation_frame, hypotheses)
 
