@@ -137,6 +137,25 @@ def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
         quantise(float_path, "int8", metadata)
 
 
+
+def test_residual_trunk_exports_and_quantises_statically(tmp_path: Path) -> None:
+    """The residual trunk's graph: onnxruntime matches torch, and int8 runs every conv as QLinearConv."""
+    config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 16), squeeze_channels=4, hidden=(32, 32, 32),
+                           trunk="residual")
+    torch.manual_seed(0)
+    model = PopcodeNet(config).eval()
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE,
+                             code=CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0), objects={1: {"diameter": 100.0}})
+    float_path = export_onnx(model, metadata, tmp_path / "model.onnx")
+    crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])
+    with torch.no_grad():
+        expected = model(torch.from_numpy(crops)).numpy()
+    np.testing.assert_allclose(OnnxEngine(float_path)(crops), expected, atol=1e-4)
+    int8_path = quantise(float_path, "int8", metadata, calibration=crops)
+    running = optimised_op_types(int8_path, tmp_path / "optimised.onnx")
+    convs = 1 + 3 * 3 + 1  # stem, two body convs and a shortcut per block, squeeze
+    assert running.count("QLinearConv") == convs and not {"Conv", "FusedConv", "ConvInteger"} & set(running)
+
 GRID = CodeLayout(n_axes=642, n_angles=36, sigma_deg=20.0)
 AXIS_GRID = CodeLayout(n_axes=642, axis_only=True, symmetry_axis=(0.0, 0.0, 1.0))
 HALF_TURN_X = axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), np.pi)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import pytest
 import torch
 
 from popcode_trainer.network import (
@@ -10,16 +13,20 @@ from popcode_trainer.network import (
     PopcodeNet,
     ToyNet,
     ToyNetworkConfig,
+    build_network,
     count_macs,
     count_parameters,
 )
 
 TINY = NetworkConfig(output_dim=504, conv_channels=(8, 8, 8), squeeze_channels=4, hidden=(32, 32, 32))
+TINY_RESIDUAL = replace(TINY, trunk="residual", conv_channels=(8, 8, 16))
 
 
 def test_shapes() -> None:
     torch.manual_seed(0)
     assert PopcodeNet(TINY)(torch.rand(3, 1, 128, 128)).shape == (3, 504)
+    assert PopcodeNet(TINY_RESIDUAL)(torch.rand(3, 1, 128, 128)).shape == (3, 504)
+    assert PopcodeNet(replace(TINY_RESIDUAL, input_size=64))(torch.rand(2, 1, 64, 64)).shape == (2, 504)
     assert ToyNet(ToyNetworkConfig())(torch.rand(2, 1, 64, 64)).shape == (2, 36)
 
 
@@ -44,3 +51,29 @@ def test_macs_match_the_analytic_count() -> None:
     linear = 1024 * 32 + 32 * 32 + 32 * 32 + 32 * 504
     assert count_macs(model, 128) == convs + linear
     assert count_parameters(model) == sum(p.numel() for p in model.parameters())
+
+
+def test_residual_trunk_macs_match_the_analytic_count() -> None:
+    model = PopcodeNet(TINY_RESIDUAL)
+    stem = 64 * 64 * 8 * 9
+    blocks = [(8, 8, 32), (8, 8, 16), (8, 16, 8)]  # fan in, fan out, output side
+    convs = sum(side * side * out * (9 * fan_in + 9 * out + fan_in) for fan_in, out, side in blocks)
+    squeeze = 8 * 8 * 4 * 16
+    linear = 256 * 32 + 32 * 32 + 32 * 32 + 32 * 504
+    assert count_macs(model, 128) == stem + convs + squeeze + linear
+
+
+def test_residual_blocks_pass_the_shortcut() -> None:
+    """With the body silenced, a block is ReLU(BN(1x1 strided conv)): the shortcut alone carries the signal."""
+    torch.manual_seed(0)
+    block = PopcodeNet(TINY_RESIDUAL).features[3]  # stem conv, BN, ReLU, then the first block
+    torch.nn.init.zeros_(block.body[-1].weight)  # the last BatchNorm's scale: the body adds nothing
+    block.eval()
+    x = torch.rand(2, 8, 16, 16)
+    with torch.no_grad():
+        assert torch.allclose(block(x), torch.relu(block.shortcut(x)))
+
+
+def test_unknown_trunk_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown trunk 'vit'"):
+        build_network(replace(TINY, trunk="vit"))

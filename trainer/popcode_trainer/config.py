@@ -23,7 +23,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
-from .network import NetworkConfig
+from .network import TRUNKS, NetworkConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -167,6 +167,7 @@ def _check_choices(config: Config) -> None:
     _choice("train.rotation_frame", config.train.rotation_frame, RotationFrame.values())
     _choice("train.device", config.train.device, DEVICES)
     _choice("data.box", config.data.box, BOX_KINDS)
+    _choice("network.trunk", config.network.trunk, TRUNKS)
     if not 0.0 <= config.data.val_fraction < 1.0:
         raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
     for key in ("epochs", "batch_size"):

@@ -39,6 +39,7 @@ class NetworkConfig:
     squeeze_channels: int = 32  # the 1x1 fourth convolution
     hidden: tuple[int, int, int] = (1024, 512, 256)
     leaky_slope: float = 0.01
+    trunk: str = "paper"  # "paper": one strided conv per stage; "residual": a 3x3 stem and ResNet basic blocks
 
 
 @dataclass(frozen=True)
@@ -114,24 +115,69 @@ class _CropNet(nn.Module):
         return self.forward_head(self.forward_features(image))
 
 
+TRUNKS = ("paper", "residual")
+
+
+def _conv_bn(fan_in: int, fan_out: int, kernel: int, stride: int) -> list[nn.Module]:
+    return [nn.Conv2d(fan_in, fan_out, kernel, stride=stride, padding=kernel // 2, bias=False),
+            nn.BatchNorm2d(fan_out)]
+
+
+class ResidualBlock(nn.Module):
+    """ResNet's basic block, downsampling by 2: two 3x3 convs beside a strided 1x1 shortcut."""
+
+    def __init__(self, fan_in: int, fan_out: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(*_conv_bn(fan_in, fan_out, 3, 2), nn.ReLU(inplace=True),
+                                  *_conv_bn(fan_out, fan_out, 3, 1))
+        self.shortcut = nn.Sequential(*_conv_bn(fan_in, fan_out, 1, 2))
+        self.activation = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.activation(self.body(x) + self.shortcut(x))
+
+
+def _paper_stages(config: NetworkConfig) -> list[nn.Module]:
+    """One ``conv_kernel`` conv of stride 2 + BatchNorm + ReLU per width (the AAE encoder's shape)."""
+    layers: list[nn.Module] = []
+    channels = 1
+    for width in config.conv_channels:
+        layers += [*_conv_bn(channels, width, config.conv_kernel, 2), nn.ReLU(inplace=True)]
+        channels = width
+    return layers
+
+
+def _residual_stages(config: NetworkConfig) -> list[nn.Module]:
+    """A 3x3 stride-2 stem of the first width, then a downsampling basic block per width.
+
+    One more halving than the paper trunk (stem + blocks): the features end at 1/16 of the crop.
+    """
+    first = config.conv_channels[0]
+    layers: list[nn.Module] = [*_conv_bn(1, first, 3, 2), nn.ReLU(inplace=True)]
+    channels = first
+    for width in config.conv_channels:
+        layers.append(ResidualBlock(channels, width))
+        channels = width
+    return layers
+
+
+def trunk_stride(config: NetworkConfig) -> int:
+    """How much the trunk shrinks the crop's side."""
+    return 2 ** (len(config.conv_channels) + (config.trunk == "residual"))
+
+
 class PopcodeNet(_CropNet):
     """Grey crop ``(N, 1, S, S)`` in [0, 1] -> output ``(N, output_dim)`` (paper section III-B)."""
 
     def __init__(self, config: NetworkConfig) -> None:
         super().__init__()
+        if config.trunk not in TRUNKS:
+            raise ValueError(f"unknown trunk {config.trunk!r}; choose one of {list(TRUNKS)}")
         self.config = config
-        convs: list[nn.Module] = []
-        channels = 1
-        for width in config.conv_channels:
-            convs += [
-                nn.Conv2d(channels, width, config.conv_kernel, stride=2, padding=config.conv_kernel // 2, bias=False),
-                nn.BatchNorm2d(width),
-                nn.ReLU(inplace=True),
-            ]
-            channels = width
-        convs += [nn.Conv2d(channels, config.squeeze_channels, 1), nn.GELU()]
-        self.features = nn.Sequential(*convs)
-        side = config.input_size // 2 ** len(config.conv_channels)
+        stages = _residual_stages(config) if config.trunk == "residual" else _paper_stages(config)
+        squeeze = [nn.Conv2d(config.conv_channels[-1], config.squeeze_channels, 1), nn.GELU()]
+        self.features = nn.Sequential(*stages, *squeeze)
+        side = config.input_size // trunk_stride(config)
         flat = config.squeeze_channels * side * side
         self.hidden = _mlp([flat, *config.hidden], nn.LeakyReLU(config.leaky_slope))
         self.head = OutputLayer(config.hidden[-1], config.output_dim)
