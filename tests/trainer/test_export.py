@@ -13,6 +13,7 @@ from symmetry_cases import CASES
 from synthetic import K, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
+from popcode_runtime.decoding import decode_output
 from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
@@ -22,10 +23,10 @@ from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer.agreement import compare
 from popcode_trainer.export import export_checkpoint, export_onnx
 from popcode_trainer.model_io import load_checkpoint_model
-from popcode_trainer.network import NetworkConfig, PopcodeNet
+from popcode_trainer.network import NetworkConfig, PopcodeNet, build_network
 from popcode_trainer.quantise import quantise
 from popcode_trainer.run_files import LAST_CHECKPOINT
-from popcode_trainer.train import train
+from popcode_trainer.train import network_config, train
 
 
 def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarray]:
@@ -80,6 +81,25 @@ def test_runtime_gives_the_torch_rotations(tmp_path: Path, name: str) -> None:
         assert np.allclose(prediction.R_m2c, expected, atol=1e-4), centre
     assert metadata.training["epochs"] == 1
 
+
+
+def test_cross_entropy_model_exports_its_code(tmp_path: Path) -> None:
+    """Trained on logits, exported as softmax * code mass: the runtime reads a code, argmax unchanged."""
+    ckpt, crops = trained_checkpoint(tmp_path, loss="cross_entropy")
+    onnx_path = tmp_path / "model.onnx"
+    export_checkpoint(ckpt, onnx_path, crops)
+    code = OnnxEngine(onnx_path)(crops)
+    state = torch.load(ckpt, weights_only=True)
+    rep = tiny_representation(tiny_config(tmp_path, loss="cross_entropy"))
+    logits_model = build_network(network_config(tiny_config(tmp_path, loss="cross_entropy"), rep))
+    logits_model.load_state_dict(state["model"])
+    with torch.no_grad():
+        logits = logits_model.eval()(torch.from_numpy(crops)).numpy()
+    mass = float(PopulationCode(rep.layout).encode(np.eye(3)).sum())
+    np.testing.assert_allclose(code.sum(axis=1), mass, rtol=1e-4)
+    np.testing.assert_array_equal(code.argmax(axis=1), logits.argmax(axis=1))
+    metadata = PoseEstimator(onnx_path).metadata
+    np.testing.assert_allclose(decode_output(code, metadata).R, rep.decode(logits).R, atol=1e-6)
 
 def test_export_meets_the_contract_and_quantises(tmp_path: Path) -> None:
     ckpt, crops = trained_checkpoint(tmp_path)

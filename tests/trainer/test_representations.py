@@ -147,3 +147,28 @@ def test_batched_targets_equal_one_at_a_time(name: str) -> None:
     assert batched.dtype == np.float32 and len(batched) == len(batch)
     for row, inst in zip(batched, batch, strict=True):
         np.testing.assert_allclose(row, rep.target_from_rotation(inst.R_m2c, inst.obj_id), rtol=1e-6, atol=1e-7)
+
+
+def test_cross_entropy_loss_is_least_at_the_normalised_code() -> None:
+    """The logits log(code) are optimal: the loss is then the code's entropy, and anything else costs more."""
+    rep = build_representation(Representation.POPULATION_CODE, {1: CASES["four_fold"]}, loss="cross_entropy",
+                               **SMALL)
+    R = random_rotations(6, np.random.default_rng(4))
+    target = torch.from_numpy(rep.targets(instances(R)))
+    best = torch.log(target).requires_grad_()
+    loss = rep.loss(best, target, 0.5)
+    loss.backward()
+    assert float(best.grad.abs().max()) < 1e-6
+    for scale in (0.5, 2.0):
+        assert float(rep.loss(scale * torch.log(target), target, 0.5)) > float(loss)
+    assert float(rep.loss(best + 3.0, target, 0.5)) == pytest.approx(float(loss), abs=1e-5)  # softmax: shift-free
+    decoded = rep.decode(best.detach().numpy())
+    assert np.degrees(rep.errors_rad(decoded.R, R, np.ones(len(R), int))).max() < 20.0  # the grid's resolution
+    assert np.all(decoded.activation > 0)
+
+
+def test_cross_entropy_is_only_for_the_population_code() -> None:
+    with pytest.raises(PopcodeError, match="applies to the population code"):
+        build_representation(Representation.SINGLE_VARIABLE, {1: CASES["none"]}, loss="cross_entropy", **SMALL)
+    with pytest.raises(PopcodeError, match="unknown population-code loss 'l1'"):
+        build_representation(Representation.POPULATION_CODE, {1: CASES["none"]}, loss="l1", **SMALL)

@@ -24,6 +24,7 @@ from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
 from .network import TRUNKS, NetworkConfig
+from .representations import LOSSES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -66,6 +67,7 @@ class TrainConfig:
     """Optimisation and the output representation."""
 
     representation: str = Representation.POPULATION_CODE
+    loss: str = "mse"  # population code: "mse" (the paper's) or "cross_entropy" (representations.LOSSES)
     rotation_frame: str = RotationFrame.EGOCENTRIC
     num_hypotheses: int = 20  # M of the multi_hypothesis baseline
     epochs: int = 80
@@ -168,6 +170,10 @@ def _check_choices(config: Config) -> None:
     _choice("train.device", config.train.device, DEVICES)
     _choice("data.box", config.data.box, BOX_KINDS)
     _choice("network.trunk", config.network.trunk, TRUNKS)
+    _choice("train.loss", config.train.loss, LOSSES)
+    if config.train.loss != "mse" and config.train.representation != Representation.POPULATION_CODE:
+        raise PopcodeError(f"train.loss = {config.train.loss!r} applies to the population code; "
+                           f"{config.train.representation} has its own loss")
     if not 0.0 <= config.data.val_fraction < 1.0:
         raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
     for key in ("epochs", "batch_size"):

@@ -16,12 +16,16 @@ from . import checkpoint
 from .data.files import write_bytes_atomic
 from .data.hull import with_hull_points
 from .network import NetworkConfig, build_network
+from .representations import CodeSoftmax, code_mass
 
 ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
 
 
 def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
     """The trained network (eval mode) and its metadata, training summary and hull points included.
+
+    The network outputs what the runtime reads: a model trained with the
+    cross-entropy loss gets its :class:`CodeSoftmax` appended.
 
     Each object's ``hull_points_mm`` come from its mesh in the training config's
     models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
@@ -42,6 +46,8 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
         "best_val_error_deg": float(state["best_val_error_deg"]),
         "config": config,
     }
+    if config["train"].get("loss", "mse") == "cross_entropy":  # trained on logits: deployed as a code
+        model.output_activation = CodeSoftmax(code_mass(metadata.code))
     objects = with_hull_points(metadata.objects, config["data"].get("models_dir"))
     return model.eval(), dataclasses.replace(metadata, objects=objects, training=training)
 

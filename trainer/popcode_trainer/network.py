@@ -108,8 +108,13 @@ class _CropNet(nn.Module):
     def forward_features(self, image: torch.Tensor) -> torch.Tensor:
         return self.features(contrast_normalise(image)).flatten(1)
 
+    def __init__(self) -> None:
+        super().__init__()
+        self.output_activation: nn.Module | None = None  # set when loaded for export (model_io), never in training
+
     def forward_head(self, features: torch.Tensor) -> torch.Tensor:
-        return self.head(self.hidden(features))
+        output = self.head(self.hidden(features))
+        return output if self.output_activation is None else self.output_activation(output)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         return self.forward_head(self.forward_features(image))

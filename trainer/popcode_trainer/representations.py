@@ -159,13 +159,44 @@ class OutputRepresentation:
         return errors
 
 
+LOSSES = ("mse", "cross_entropy")
+
+
+def code_mass(layout: CodeLayout) -> float:
+    """Sum of the code of one rotation of a part without symmetry (both twin peaks)."""
+    return float(PopulationCode(layout).encode(np.eye(3)).sum())
+
+
+class CodeSoftmax(torch.nn.Module):
+    """Logits -> code: ``softmax * code_mass``, so a part without symmetry peaks near 1 as its target does.
+
+    Appended to networks trained with the cross-entropy loss when they are
+    loaded for export and evaluation; the runtime's decoders then read a code.
+    """
+
+    def __init__(self, mass: float) -> None:
+        super().__init__()
+        self.mass = mass
+
+    def forward(self, logits: torch.Tensor) -> torch.Tensor:
+        return torch.softmax(logits, dim=1) * self.mass
+
+
 class PopulationCodeRepresentation(OutputRepresentation):
-    """The paper's method: MSE on the whole code, every symmetric pose a peak."""
+    """The paper's method: every symmetric pose a peak of the code.
+
+    ``loss``: ``mse`` (the paper's) on the code, or ``cross_entropy`` between the
+    output's softmax and the code normalised to sum 1 (each crop weighs the
+    same, whatever its number of peaks; see bench/results/recipe.md).
+    """
 
     name = Representation.POPULATION_CODE
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, loss: str = "mse", **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        if loss not in LOSSES:
+            raise PopcodeError(f"unknown population-code loss {loss!r}; choose one of {list(LOSSES)}")
+        self.loss_kind = loss
         self.code = PopulationCode(self.layout)
 
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
@@ -175,7 +206,16 @@ class PopulationCodeRepresentation(OutputRepresentation):
         return self.code.encode(R, self.symmetries(obj_id))
 
     def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
+        if self.loss_kind == "cross_entropy":
+            share = target / target.sum(dim=1, keepdim=True).clamp_min(1e-12)
+            return -(share * F.log_softmax(output, dim=1)).sum(dim=1).mean()
         return F.mse_loss(output, target)
+
+    def decode(self, output: np.ndarray) -> DecodedRotations:
+        """Logits decode as their code would: the argmax is the same, the activations are the code's."""
+        if self.loss_kind == "cross_entropy":
+            output = CodeSoftmax(code_mass(self.layout))(torch.as_tensor(output)).numpy()
+        return super().decode(output)
 
 
 class OneHotRepresentation(OutputRepresentation):
@@ -275,7 +315,8 @@ REPRESENTATIONS: dict[str, type[OutputRepresentation]] = {
 
 def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int,
                          sigma_deg: float, rotation_frame: str = RotationFrame.EGOCENTRIC,
-                         num_hypotheses: int = 0, sigma_from_symmetries: bool = False) -> OutputRepresentation:
+                         num_hypotheses: int = 0, sigma_from_symmetries: bool = False,
+                         loss: str = "mse") -> OutputRepresentation:
     """The representation called ``name`` for the pooled ``objects``; names the valid choices.
 
     The population code's width is checked against the objects' symmetries
@@ -288,6 +329,10 @@ def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_
     if name == Representation.POPULATION_CODE:
         layout = checked_sigma(layout, objects, sigma_from_symmetries)
     hypotheses = num_hypotheses if name == Representation.MULTI_HYPOTHESIS else 0
+    if name == Representation.POPULATION_CODE:
+        return PopulationCodeRepresentation(objects, layout, rotation_frame, hypotheses, loss=loss)
+    if loss != "mse":
+        raise PopcodeError(f"train.loss = {loss!r} applies to the population code; {name} has its own loss")
     return REPRESENTATIONS[name](objects, layout, rotation_frame, hypotheses)
 
 

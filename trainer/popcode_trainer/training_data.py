@@ -66,7 +66,8 @@ def build_training_data(config: Config, progress: bool = True) -> TrainingData:
     instances, objects = read_instances(config)
     code, cfg = config.code, config.train
     representation = build_representation(cfg.representation, objects, code.n_axes, code.n_angles, code.sigma_deg,
-                                          cfg.rotation_frame, cfg.num_hypotheses, code.sigma_from_symmetries)
+                                          cfg.rotation_frame, cfg.num_hypotheses, code.sigma_from_symmetries,
+                                          cfg.loss)
     train, val = split_by_image(instances, config.data.val_fraction, cfg.seed)
     augmentation = Augmentation() if config.data.augment else None
     size = config.data.crop_size
