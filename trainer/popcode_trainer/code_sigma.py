@@ -70,13 +70,14 @@ def fit_sigma(layout: CodeLayout, objects: Mapping[int, Mapping[str, Any]]) -> C
     Steps down by :data:`SIGMA_STEP_DEG` to :func:`sigma_floor_deg`; if peaks
     still merge there, warns and suggests a finer grid.
     """
-    floor = sigma_floor_deg(layout)
-    candidates = np.arange(layout.sigma_deg, floor - 1e-9, -SIGMA_STEP_DEG)
-    for sigma in candidates if len(candidates) else [layout.sigma_deg]:
+    candidates = np.arange(layout.sigma_deg, sigma_floor_deg(layout) - 1e-9, -SIGMA_STEP_DEG)
+    if len(candidates) == 0:  # already narrower than the floor: check that width alone
+        candidates = np.array([layout.sigma_deg])
+    for sigma in candidates:
         candidate = replace(layout, sigma_deg=float(sigma))
         if all(merged_peaks(candidate, info) is None for info in objects.values()):
             return candidate
-    narrowest = replace(layout, sigma_deg=float(candidates[-1]) if len(candidates) else layout.sigma_deg)
+    narrowest = replace(layout, sigma_deg=float(candidates[-1]))
     warn_merged_peaks(narrowest, objects, hint="a finer grid (more code.n_axes / code.n_angles) resolves them")
     return narrowest
 

@@ -105,12 +105,12 @@ class _CropNet(nn.Module):
     hidden: nn.Module
     head: nn.Module
 
-    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
-        return self.features(contrast_normalise(image)).flatten(1)
-
     def __init__(self) -> None:
         super().__init__()
         self.output_activation: nn.Module | None = None  # set when loaded for export (model_io), never in training
+
+    def forward_features(self, image: torch.Tensor) -> torch.Tensor:
+        return self.features(contrast_normalise(image)).flatten(1)
 
     def forward_head(self, features: torch.Tensor) -> torch.Tensor:
         output = self.head(self.hidden(features))

@@ -198,9 +198,10 @@ class PopulationCodeRepresentation(OutputRepresentation):
             raise PopcodeError(f"unknown population-code loss {loss!r}; choose one of {list(LOSSES)}")
         self.loss_kind = loss
         self.code = PopulationCode(self.layout)
+        self._logits_to_code = CodeSoftmax(code_mass(self.layout)) if loss == "cross_entropy" else None
 
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
-        return self.code.encode(R, self.symmetries(obj_id))
+        return self.targets_from_rotations(R[None], obj_id)[0]
 
     def targets_from_rotations(self, R: np.ndarray, obj_id: int) -> np.ndarray:
         return self.code.encode(R, self.symmetries(obj_id))
@@ -213,8 +214,8 @@ class PopulationCodeRepresentation(OutputRepresentation):
 
     def decode(self, output: np.ndarray) -> DecodedRotations:
         """Logits decode as their code would: the argmax is the same, the activations are the code's."""
-        if self.loss_kind == "cross_entropy":
-            output = CodeSoftmax(code_mass(self.layout))(torch.as_tensor(output)).numpy()
+        if self._logits_to_code is not None:
+            output = self._logits_to_code(torch.as_tensor(output)).numpy()
         return super().decode(output)
 
 
@@ -326,10 +327,9 @@ def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_
     if name not in REPRESENTATIONS:
         raise PopcodeError(f"unknown representation {name!r}; choose one of {sorted(REPRESENTATIONS)}")
     layout = code_layout(objects, n_axes, n_angles, sigma_deg)
-    if name == Representation.POPULATION_CODE:
-        layout = checked_sigma(layout, objects, sigma_from_symmetries)
     hypotheses = num_hypotheses if name == Representation.MULTI_HYPOTHESIS else 0
     if name == Representation.POPULATION_CODE:
+        layout = checked_sigma(layout, objects, sigma_from_symmetries)
         return PopulationCodeRepresentation(objects, layout, rotation_frame, hypotheses, loss=loss)
     if loss != "mse":
         raise PopcodeError(f"train.loss = {loss!r} applies to the population code; {name} has its own loss")
