@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from onnx_models import linear_model, save
 
-from bench import agreement, latency, toy_orientation, training, translation
+from bench import agreement, budget_curve, latency, toy_orientation, training, translation
 from popcode_runtime.metadata import ModelMetadata, Representation
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import random_rotations
@@ -150,3 +150,31 @@ def test_training_throughput_smoke(tmp_path: Path) -> None:
     table = (tmp_path / "training.md").read_text(encoding="utf-8")
     assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(rows)
     assert "cpu_flags" in json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["machine"]
+
+
+TINY_RECIPE = ["--set", "network.conv_channels=[4, 4, 4]", "--set", "network.squeeze_channels=2",
+               "--set", "network.hidden=[16, 16, 16]", "--set", "code.n_axes=42", "--set", "code.n_angles=12",
+               "--set", "code.sigma_from_symmetries=false", "--set", "train.batch_size=8"]
+
+
+def test_budget_curve_extends_one_run_and_resumes_from_its_scored_points(tmp_path: Path) -> None:
+    args = ["--config", "trainer/configs/quick.toml", *TINY_RECIPE, "--images", "10", "--obj-ids", "3", "6",
+            "--work", str(tmp_path / "work"), "--out", str(tmp_path), "--name", "tiny"]
+    first = budget_curve.main([*args, "--epochs", "1", "2"])
+    assert [p["epochs"] for p in first] == [1, 2]
+    # The second point continued the first run: twice the crops, more seconds.
+    assert first[1]["crop_updates"] == 2 * first[0]["crop_updates"] > 0
+    assert first[1]["training_s"] > first[0]["training_s"]
+    for point in first:
+        assert set(point["mssd_per_object"]) == {"3", "6"}
+        assert 0.0 <= point["mssd"] <= 1.0
+        assert point["mssd_without_ambiguity"] == point["mssd_per_object"]["6"]  # part 6 has no symmetry
+    again = budget_curve.main([*args, "--epochs", "1", "2", "3"])
+    assert again[:2] == first  # scored points are kept, not retrained
+    assert again[2]["crop_updates"] == 3 * first[0]["crop_updates"]
+    payload = json.loads((tmp_path / "budget-tiny.json").read_text(encoding="utf-8"))
+    assert payload["points"] == again and "cpu_flags" in payload["machine"]
+    table = (tmp_path / "budget-tiny.md").read_text(encoding="utf-8").splitlines()
+    assert [line.split("|")[1].strip() for line in table if line.startswith("| ") and line[2].isdigit()] == \
+        ["1", "2", "3"]
+    assert budget_curve.main([*args, "--epochs", "2"]) == [first[1]]  # a scored budget alone: no training

@@ -1,0 +1,138 @@
+"""Accuracy against training budget: MSSD on a validation split after N crop-updates of one recipe.
+
+    python -m bench.budget_curve [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
+        [--epochs 5 10 20 40] [--images 1000] [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
+
+Renders the built-in parts into a training split (seed 0) and a separate validation split
+(seed 2000; the demo's test split, seed 1000, is never read here), trains one model with the
+config (its data paths and output folder replaced), and after each budget in ``--epochs``
+scores the last checkpoint on the validation split. The run is extended by resuming with more
+epochs (``train.epochs`` may grow on resume), so a curve costs its longest point only; with
+the constant learning rate of the quick recipe every point equals a run of that length.
+
+Each point records the crop-updates, the training seconds spent so far, MSSD overall and per
+part and the median rotation error; ``--work`` keeps the splits and runs, so an interrupted
+curve resumes. Results: ``bench/results/budget-<name>.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from popcode_runtime.errors import PopcodeError
+from popcode_trainer.config import Config, load_config
+from popcode_trainer.data.files import write_json_atomic
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from popcode_trainer.eval.pipeline.evaluate import evaluate_models
+from popcode_trainer.eval.pipeline.models import methods_from_paths
+from popcode_trainer.eval.pipeline.split import read_eval_split
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train import train
+from popcode_trainer.training_data import build_training_data
+
+from .report import write_results
+
+TRAIN_SEED, VALIDATION_SEED = 0, 2000  # pipeline.render_splits uses seed + 1000 for the test split
+
+
+def _config(base: Config, train_split: Path, run_dir: Path, epochs: int) -> Config:
+    data = replace(base.data, splits=(str(train_split),), models_dir=str(train_split / BUILTIN_MODELS_FOLDER),
+                   obj_ids=())
+    return Config.from_dict(replace(base, data=data, train=replace(base.train, out_dir=str(run_dir),
+                                                                   epochs=epochs)).to_dict())
+
+
+def _training_so_far(run_dir: Path) -> dict[str, float]:
+    """Seconds of the training loop and crops seen over the epochs run so far, and the last epoch's
+    median error on the images the run held out of its training split (up to symmetry)."""
+    with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
+        rows = list(csv.DictReader(file))
+    return {"training_s": round(sum(float(row["seconds"]) for row in rows), 1),
+            "crop_updates": int(round(sum(float(row["samples_per_s"]) * float(row["seconds"]) for row in rows))),
+            "held_out_median_deg": round(float(rows[-1]["val_error_median_deg"]), 2)}
+
+
+def _point(config: Config, run_dir: Path, validation_split: Path, obj_ids: Sequence[int]) -> dict[str, Any]:
+    split = read_eval_split([validation_split], validation_split / BUILTIN_MODELS_FOLDER, obj_ids)
+    methods = methods_from_paths([run_dir / LAST_CHECKPOINT], [config.train.representation])
+    result = evaluate_models(methods, split, vsd=False, progress=False)[0]
+    return {
+        "epochs": config.train.epochs,
+        **_training_so_far(run_dir),
+        "mssd": result.groups["All objects"]["MSSD"],
+        "mssd_with_ambiguity": result.groups["With ambiguity"]["MSSD"],
+        "mssd_without_ambiguity": result.groups["Without ambiguity"]["MSSD"],
+        "mssd_per_object": {str(obj): scores["MSSD"] for obj, scores in sorted(result.per_object.items())},
+    }
+
+
+def curve(base: Config, epochs: Sequence[int], images: int, obj_ids: Sequence[int], work: Path,
+          name: str) -> list[dict[str, Any]]:
+    train_split = render_builtin_split(work / "train", images, seed=TRAIN_SEED, obj_ids=obj_ids,
+                                       random_position=True, progress=True)
+    validation_split = render_builtin_split(work / "validation", max(20, images // 10), seed=VALIDATION_SEED,
+                                            obj_ids=obj_ids, random_position=True, progress=True)
+    run_dir = work / "runs" / name
+    scored = run_dir / "points.json"  # points already scored: an interrupted curve skips them
+    points = json.loads(scored.read_text(encoding="utf-8")) if scored.exists() else []
+    for budget in sorted(set(epochs) - {p["epochs"] for p in points}):
+        if points and budget < max(p["epochs"] for p in points):
+            raise PopcodeError(f"{run_dir} has trained past {budget} epochs; score smaller budgets in a new --work")
+        config = _config(base, train_split, run_dir, budget)
+        data = build_training_data(config)
+        train(config, data.representation, data.train_set, data.val_set, resume=(run_dir / LAST_CHECKPOINT).exists(),
+              val_instances=data.val_instances)
+        points.append(_point(config, run_dir, validation_split, obj_ids))
+        write_json_atomic(scored, points)
+        print(f"{budget} epochs: MSSD {100 * points[-1]['mssd']:.1f} %", flush=True)
+    return sorted((p for p in points if p["epochs"] in epochs), key=lambda p: p["epochs"])
+
+
+def to_markdown(name: str, points: Sequence[dict[str, Any]], overrides: Sequence[str], images: int) -> str:
+    obj_ids = list(points[0]["mssd_per_object"])
+    rows = [[str(p["epochs"]), f"{p['crop_updates']:,}", f"{p['training_s'] / 60:.1f}", f"{100 * p['mssd']:.1f}",
+             f"{100 * p['mssd_with_ambiguity']:.1f}", f"{100 * p['mssd_without_ambiguity']:.1f}",
+             f"{p['held_out_median_deg']:.1f}",
+             *(f"{100 * p['mssd_per_object'][obj]:.1f}" for obj in obj_ids)] for p in points]
+    header = ["epochs", "crop-updates", "training min", "MSSD %", "ambiguous", "not ambiguous",
+              "median error ° (held-out training images)",
+              *(f"obj {obj}" for obj in obj_ids)]
+    return "\n".join([
+        f"# Accuracy against training budget: {name}", "",
+        f"`python -m bench.budget_curve` with {images} training images per part, overrides: "
+        f"{', '.join(f'`{o}`' for o in overrides) or 'none'}. MSSD (BOP19 recall, rotation only, GT translation) "
+        "on the validation split (seed 2000), last checkpoint of one run extended epoch budget by epoch budget.",
+        "", markdown_table(header, rows),
+    ])
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, default=Path("trainer/configs/quick.toml"))
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one setting of the config (repeatable)")
+    parser.add_argument("--epochs", nargs="+", type=int, default=[5, 10, 20, 40], help="budgets to score")
+    parser.add_argument("--images", type=int, default=1000, help="training images per part")
+    parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
+    parser.add_argument("--work", type=Path, default=Path("runs/budget_curve"), help="splits and runs (resumable)")
+    parser.add_argument("--name", default="quick", help="name of the curve (results file budget-<name>)")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args(argv)
+    base = load_config(args.config, args.overrides)
+    points = curve(base, args.epochs, args.images, args.obj_ids, args.work, args.name)
+    payload = {"config": str(args.config), "overrides": args.overrides, "images_per_object": args.images,
+               "obj_ids": args.obj_ids, "points": points}
+    write_results(args.out, f"budget-{args.name}", payload, to_markdown(args.name, points, args.overrides, args.images))
+    return points
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() else 1)
