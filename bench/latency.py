@@ -37,7 +37,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -60,6 +60,7 @@ from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.export import ONNX_OPSET, export_onnx
 from popcode_trainer.model_io import ONNX_IR_VERSION
 from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
+from popcode_trainer.pipeline import SMALL_NETWORK
 from popcode_trainer.quantise import quantise
 from popcode_trainer.torch_engine import TorchEngine
 from popcode_trainer.training_data import validation_crops
@@ -84,6 +85,10 @@ NETWORKS = {
     "light": Network(NetworkConfig(conv_channels=(32, 64, 128)), CodeLayout()),
     "small": Network(NetworkConfig(output_dim=642 * 36, conv_channels=(32, 64, 64), squeeze_channels=16,
                                    hidden=(256, 256, 256)), CodeLayout(n_axes=642)),
+    # The quick recipe's networks (pipeline.SMALL_NETWORK and its residual trunk): the accuracy-latency frontier.
+    "quick-paper-trunk": Network(replace(SMALL_NETWORK, output_dim=642 * 36), CodeLayout(n_axes=642)),
+    "quick-residual": Network(replace(SMALL_NETWORK, output_dim=642 * 36, trunk="residual", conv_channels=(16, 32, 64)),
+                              CodeLayout(n_axes=642)),
     "tiny": Network(NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4,
                                   hidden=(32, 32, 32)), CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0)),
 }
@@ -316,8 +321,8 @@ def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any
                         "Batch 1, 1 thread, inference:", summary_table(records), "All runs:", latency, sizes])
 
 
-def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
-    """Measure every network; write ``latency.json`` and ``latency.md`` into ``out_dir``; return the payload."""
+def run(networks: Sequence[str], quick: bool, out_dir: Path, name: str = "latency") -> dict[str, Any]:
+    """Measure every network; write ``<name>.json`` and ``<name>.md`` into ``out_dir``; return the payload."""
     budget = QUICK if quick else FULL
     thread_counts = sorted({1, os.cpu_count() or 1})
     bandwidth = {t: read_bandwidth_gb_s(t, budget.bandwidth_mb, budget.bandwidth_repeats) for t in thread_counts}
@@ -339,7 +344,7 @@ def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
                "gemm_peak_gmac_s": {f"{t} {'int8' if int8 else 'fp32'}": gmac for (t, int8), gmac in peaks.items()},
                "networks": summaries,
                "records": records, "quick": quick}
-    write_results(out_dir, "latency", payload, markdown)
+    write_results(out_dir, name, payload, markdown)
     print(markdown)
     return payload
 
@@ -347,10 +352,11 @@ def run(networks: Sequence[str], quick: bool, out_dir: Path) -> dict[str, Any]:
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="few iterations: a smoke run, not a measurement")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for latency.json/.md")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for <name>.json/.md")
+    parser.add_argument("--name", default="latency", help="results file name (default: latency)")
     parser.add_argument("--networks", nargs="+", choices=sorted(NETWORKS), default=["paper", "light", "small"])
     args = parser.parse_args(argv)
-    return run(args.networks, args.quick, args.out)
+    return run(args.networks, args.quick, args.out, args.name)
 
 
 if __name__ == "__main__":

@@ -80,7 +80,7 @@ def network_summary(network: NetworkConfig) -> str:
     """The trunk's widths in a few words; 'paper size' for the paper's."""
     if network == NetworkConfig(output_dim=network.output_dim, input_size=network.input_size):
         return "paper size"
-    return (f"conv {list(network.conv_channels)}, squeeze {network.squeeze_channels}, "
+    return (f"{network.trunk} trunk, conv {list(network.conv_channels)}, squeeze {network.squeeze_channels}, "
             f"hidden {list(network.hidden)}")
 
 
@@ -102,7 +102,8 @@ def write_model_card(run: DemoRun) -> Path:
         "## Training",
         "Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
         f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation; "
-        f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}; network {network_summary(network)}.",
+        f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}, {train.loss} loss on the code; "
+        f"network {network_summary(network)}.",
         "",
         f"## Accuracy (all objects; {size.test_images_per_object} rendered test images per object, other seed; "
         "rotation from the model, translation from the ground truth)",
