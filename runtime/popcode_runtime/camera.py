@@ -37,11 +37,13 @@ def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
         raise PopcodeError(f"a camera matrix is fx,fy,cx,cy, 9 numbers or 3x3; got shape {K.shape}")
     if not np.isfinite(K).all():
         raise PopcodeError("camera matrix contains NaN or inf")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(np.linalg.det(K)) < 1e-12:
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise PopcodeError(f"not a valid camera matrix (focal lengths must be positive, last row 0 0 1): {K.tolist()}")
     if max(K[0, 0], K[1, 1]) > MAX_FOCAL_PX or np.abs(K[:2, 1:]).max() > MAX_PRINCIPAL_PX or K[1, 0] != 0.0:
         raise PopcodeError(f"camera matrix is not physical (focal lengths at most {MAX_FOCAL_PX:g} px, principal "
                            f"point and skew within {MAX_PRINCIPAL_PX:g} px, K[1][0] = 0): {K.tolist()}")
+    if abs(np.linalg.det(K)) < 1e-12:
+        raise PopcodeError(f"not a valid camera matrix (it is singular): {K.tolist()}")
     return K
 
 

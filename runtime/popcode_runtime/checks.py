@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,7 +32,7 @@ def integer(value: Any, name: str, low: int | None = None, high: int | None = No
         raise PopcodeError(f"{name} must be an integer, got {_shown(value)} ({type(value).__name__})")
     result = int(value)
     if (low is not None and result < low) or (high is not None and result > high):
-        raise PopcodeError(f"{name} must lie in [{low}, {high}], got {result}")
+        raise PopcodeError(f"{name} must lie in {_range_text(low, high)}, got {result}")
     return result
 
 
@@ -42,7 +44,7 @@ def number(value: Any, name: str, low: float | None = None, high: float | None =
     if not math.isfinite(result):
         raise PopcodeError(f"{name} must be finite, got {result}")
     if (low is not None and result < low) or (high is not None and result > high):
-        raise PopcodeError(f"{name} must lie in [{low:g}, {high:g}], got {result:g}")
+        raise PopcodeError(f"{name} must lie in {_range_text(low, high)}, got {result:g}")
     return result
 
 
@@ -60,6 +62,13 @@ def mapping(value: Any, name: str) -> Mapping[str, Any]:
     return value
 
 
+def path(value: Any, name: str) -> Path:
+    """``value`` as a ``Path``: a string or path-like, nothing else (``Path(None)`` is a ``TypeError``)."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise PopcodeError(f"{name} must be a file path, got {_shown(value)} ({type(value).__name__})")
+    return Path(value)
+
+
 def number_array(value: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape`` (``None``: any length along that axis)."""
     if isinstance(value, (str, bytes)):
@@ -74,6 +83,10 @@ def number_array(value: Any, name: str, shape: tuple[int | None, ...]) -> np.nda
     if not np.isfinite(array).all():
         raise PopcodeError(f"{name} contains NaN or inf")
     return array
+
+
+def _range_text(low: float | None, high: float | None) -> str:
+    return f"[{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}]"
 
 
 def _shape_text(shape: tuple[int | None, ...]) -> str:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from .checks import integer
+from .checks import integer, path
 from .errors import PopcodeError, library_step
 from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
@@ -63,8 +63,10 @@ def onnx_session(model: str | Path | bytes, providers: Sequence[str] | None = No
     cores); ``profile_prefix`` turns on onnxruntime's profiler, whose JSON
     ``session.end_profiling()`` writes under that prefix.
     """
+    if not isinstance(model, bytes):
+        model = path(model, "model path")
     name = "the given model bytes" if isinstance(model, bytes) else str(model)
-    if not isinstance(model, bytes) and not Path(model).is_file():
+    if not isinstance(model, bytes) and not model.is_file():
         raise PopcodeError(f"model file not found: {model}")
     check_threads(threads)
     options = ort.SessionOptions()
@@ -93,7 +95,7 @@ class OnnxEngine:
     """A popcode ONNX model file run by onnxruntime; its metadata, checked against its signature, from the file."""
 
     def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
-        self.model_path = Path(model_path)
+        self.model_path = path(model_path, "model path")
         self.session = onnx_session(self.model_path, providers, threads)
         with library_step(f"read the metadata of {self.model_path} (it must be UTF-8 JSON)"):
             props = self.session.get_modelmeta().custom_metadata_map

@@ -189,8 +189,12 @@ def _check_object(obj_id: Any, info: Any) -> None:
     integer(obj_id, "object id", 0)
     info = mapping(info, f"object {obj_id}")
     try:
-        if "diameter" in info:
-            number(info["diameter"], "diameter", 0.0)
+        for key in ("diameter", "size_x", "size_y", "size_z"):
+            if key in info:
+                number(info[key], key, 0.0)
+        for key in ("min_x", "min_y", "min_z"):
+            if key in info:
+                number(info[key], key)
         discrete = info.get("symmetries_discrete") or []
         if not isinstance(discrete, list) or len(discrete) > MAX_DISCRETE_SYMMETRIES:
             raise PopcodeError(f"symmetries_discrete must be a list of at most {MAX_DISCRETE_SYMMETRIES} matrices")
