@@ -292,10 +292,31 @@ API_CASES: list[tuple[str, Callable[[Path], object], str]] = [
 ]
 
 
-def expect_popcode_error(call: Callable[[Path], object], folder: Path) -> str:
-    """The message of the ``PopcodeError`` that ``call`` raises (anything else, or nothing, fails)."""
+def cli_problem(case: CliCase, folder: Path) -> str | None:
+    """What is wrong with how ``popcode`` handled ``case`` (None: exit 2 and one line naming the problem)."""
+    code, _, stderr = run_cli(cli_argv(case, folder))
+    lines = error_lines(stderr)
+    if code != 2 or "Traceback" in stderr or len(lines) != 1 or case.expect.lower() not in lines[0].lower():
+        return f"exit {code}, stderr {stderr!r}"
+    return None
+
+
+def api_problem(call: Callable[[Path], object], expect: str, folder: Path) -> str | None:
+    """What is wrong with how the API handled a case (None: one ``PopcodeError`` line naming the problem)."""
     try:
         call(folder)
     except PopcodeError as error:
-        return str(error)
-    raise AssertionError("no PopcodeError raised")
+        message = str(error)
+        if "\n" in message or expect.lower() not in message.lower():
+            return f"PopcodeError {message!r}"
+        return None
+    except Exception as error:  # the catalogue's point: report, do not crash the run
+        return f"{type(error).__name__}: {error}"
+    return "no PopcodeError raised"
+
+
+def catalogue_problems(folder: Path) -> dict[str, str]:
+    """Every case of the catalogue run once; case id -> problem, for the cases that have one."""
+    problems = {case.id: cli_problem(case, folder) for case in CLI_CASES}
+    problems.update({f"api-{case_id}": api_problem(call, expect, folder) for case_id, call, expect in API_CASES})
+    return {case_id: problem for case_id, problem in problems.items() if problem is not None}

@@ -71,7 +71,7 @@ def onnx_session(model: str | Path | bytes, providers: Sequence[str] | None = No
     check_threads(threads)
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
-    options.log_severity_level = 3
+    options.log_severity_level = 4  # fatal only: failures reach the user as one PopcodeError line, not C++ logs
     if profile_prefix is not None:
         options.enable_profiling = True
         options.profile_file_prefix = profile_prefix
