@@ -15,9 +15,11 @@ from functools import partial
 import numpy as np
 import onnxruntime as ort
 
+from .checks import integer
 from .estimator import PoseEstimator
 
 BENCH_IMAGE_SHAPE = (540, 720)  # T-LESS Primesense resolution, (H, W)
+MAX_BENCH_BATCH = 1024  # a batch's crops and outputs are held at once
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,8 @@ def benchmark_estimator(
     seed: int = 0,
 ) -> list[LatencyStats]:
     """End-to-end and inference-only latency for each batch size."""
+    for batch in batch_sizes:
+        integer(batch, "batch size", 1, MAX_BENCH_BATCH)
     rng = np.random.default_rng(seed)
     K = [1075.65, 1073.90, 360.0, 270.0]  # any valid camera; only allocentric models use it
     results = []

@@ -4,22 +4,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import sys
 from collections.abc import Sequence
 
 import numpy as np
 
 from . import __version__
-from .benchmark import benchmark_estimator, machine_description
+from .benchmark import MAX_BENCH_BATCH, benchmark_estimator, machine_description
 from .camera import parse_camera_matrix
-from .crop import read_image
+from .crop import MAX_IMAGE_PIXELS, read_image
 from .decoding import DECODERS
 from .errors import PopcodeError
-from .estimator import PoseEstimator
+from .estimator import MAX_BOXES_PER_CALL, PoseEstimator
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 
 INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
+NUMBER_OPTIONS = ("--box", "--K")  # their values may start with a minus sign
 
 
 def _numbers(text: str, count: int | None, what: str) -> list[float]:
@@ -48,7 +51,7 @@ def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
 
 def _predict(args: argparse.Namespace) -> int:
     estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
-    image = read_image(args.image)
+    image = read_image(args.image, args.max_pixels)
     K = parse_camera_matrix(args.K) if args.K else None
     predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
                                     top_k=args.top_k, translation=args.translation)
@@ -150,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="object id of each box, in order (for models of several objects)")
     predict.add_argument("--json", action="store_true", help="print JSON instead of text")
     predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
+    predict.add_argument("--max-pixels", type=int, default=MAX_IMAGE_PIXELS, metavar="N",
+                         help=f"refuse images of more pixels, before decoding them (default {MAX_IMAGE_PIXELS})")
     _add_runtime_options(predict)
     predict.set_defaults(handler=_predict)
 
@@ -176,24 +181,61 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; bad input ends with one line on stderr and exit code 2."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    if args.command == "predict" and len(args.box) > MAX_BOXES_PER_CALL:
+        parser.error(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
+    if args.command == "predict" and args.max_pixels < 1:
+        parser.error(f"--max-pixels must be positive, got {args.max_pixels}")
     if getattr(args, "batch", None) is None and args.command == "bench":
         args.batch = [1, 8, 32]
     if args.command == "bench" and (min(args.batch) < 1 or args.iterations < 1 or args.warmup < 0):
         parser.error("batch sizes and iterations must be positive, warmup non-negative")
+    if args.command == "bench" and max(args.batch) > MAX_BENCH_BATCH:
+        parser.error(f"--batch {max(args.batch)} is more than the limit of {MAX_BENCH_BATCH}")
     return run_handler(args, "popcode")
 
 
+def _attach_negative_values(argv: list[str]) -> list[str]:
+    """``--box -50,8,66,58`` as ``--box=-50,8,66,58``: argparse would read the value as an option."""
+    result: list[str] = []
+    index = 0
+    while index < len(argv):
+        token = argv[index]
+        if token in NUMBER_OPTIONS and index + 1 < len(argv) and re.match(r"-[\d.]", argv[index + 1]):
+            result.append(f"{token}={argv[index + 1]}")
+            index += 2
+            continue
+        result.append(token)
+        index += 1
+    return result
+
+
 def run_handler(args: argparse.Namespace, prog: str) -> int:
-    """Run ``args.handler``; a ``PopcodeError`` becomes one line on stderr and exit code 2."""
+    """Run ``args.handler``; a ``PopcodeError`` becomes one line on stderr and exit code 2.
+
+    A reader that stops early (``| head``) is not an error: the rest of the
+    output is dropped quietly and the exit code is the shell's for SIGPIPE.
+    """
     try:
         return int(args.handler(args) or 0)
     except PopcodeError as error:
-        print(f"{prog}: error: {error}", file=sys.stderr)
+        print(f"{prog}: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _silence_stdout()
+        return 141
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that Python's flush at exit does not raise BrokenPipeError again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real file descriptor (in-process tests capture stdout)
+        pass
 
 
 if __name__ == "__main__":

@@ -19,22 +19,42 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import PopcodeError
+from .checks import path as checked_path
+from .errors import PopcodeError, library_step
+from .image_size import image_size
 
 CROP_SIZE = 128
 CROP_PADDING = 1.1
+MIN_CROP_PADDING, MAX_CROP_PADDING = 1.0, 4.0  # the square is 1x to 4x the box's longer side
+MAX_IMAGE_PIXELS = 1 << 30  # OpenCV's own default limit (CV_IO_MAX_IMAGE_PIXELS); read_image takes another
+MAX_BOX_FACTOR = 4.0  # a box may be at most this many times the image's longer side (objects cut by the border)
+MIN_BOX_PX = 1.0  # a box's longer side [px]; smaller boxes hold no object to see
+MAX_SQUARE_PIXELS = 1 << 28  # the padded square before resizing: 1 GiB of float32
 
 _GREY_WEIGHTS_RGB = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image file as grey float32 ``(H, W)`` in [0, 1] (8- or 16-bit, grey or colour)."""
-    path = Path(path)
+def read_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Read an image file as grey float32 ``(H, W)`` in [0, 1] (8- or 16-bit, grey or colour).
+
+    Files of more than ``max_pixels`` pixels are refused from their header,
+    before OpenCV decodes (and allocates) them.
+    """
+    path = checked_path(path, "image path")
     if not path.is_file():
         raise PopcodeError(f"image file not found: {path}")
-    image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    with library_step(f"read the header of image {path}"):
+        size = image_size(path)
+    if size is not None and size[0] * size[1] > max_pixels:
+        raise PopcodeError(f"image {path} is {size[0]}x{size[1]} = {size[0] * size[1]} pixels, more than the "
+                           f"limit of {max_pixels}")
+    with library_step(f"decode image {path} with OpenCV"):
+        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if image is None:
         raise PopcodeError(f"cannot read image {path}: not an image format OpenCV can decode")
+    if image.shape[0] * image.shape[1] > max_pixels:
+        raise PopcodeError(f"image {path} has {image.shape[0] * image.shape[1]} pixels, more than the limit of "
+                           f"{max_pixels}")
     if image.ndim == 3:
         image = image[..., :3][..., ::-1]  # OpenCV reads BGR(A); popcode works in RGB
     return to_grey(image)
@@ -75,20 +95,46 @@ def to_grey(image: np.ndarray) -> np.ndarray:
 def check_box(box: Sequence[float], image_shape: tuple[int, ...]) -> tuple[float, float, float, float]:
     """Validate a box ``(x, y, w, h)`` against an image; returns it as floats.
 
-    A box partly outside the image is fine (zero fill); one wholly outside is not.
+    A box partly outside the image is fine (zero fill); one wholly outside is
+    not, nor one under a pixel or over ``MAX_BOX_FACTOR`` times the image's
+    longer side (its crop would be mostly fill, and its square unbounded memory).
     """
+    if isinstance(box, (str, bytes)) or not hasattr(box, "__len__") or len(box) != 4:
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")
     try:
         x, y, w, h = (float(v) for v in box)
     except (TypeError, ValueError) as error:
-        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {box!r}") from error
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}") from error
+    if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in box):
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")
     if not all(np.isfinite([x, y, w, h])):
-        raise PopcodeError(f"box {box!r} contains NaN or inf")
+        raise PopcodeError(f"box {_shown(box)} contains NaN or inf")
     if w <= 0 or h <= 0:
-        raise PopcodeError(f"box {box!r} is empty: width and height must be positive")
+        raise PopcodeError(f"box {_shown(box)} is empty: width and height must be positive")
+    if max(w, h) < MIN_BOX_PX:
+        raise PopcodeError(f"box {_shown(box)} is smaller than a pixel")
     height, width = image_shape[:2]
+    limit = MAX_BOX_FACTOR * max(height, width)
+    if max(w, h) > limit:
+        raise PopcodeError(f"box {_shown(box)} is larger than {MAX_BOX_FACTOR:g}x the {width}x{height} image "
+                           f"({limit:g} px)")
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
-        raise PopcodeError(f"box {box!r} lies wholly outside the {width}x{height} image")
+        raise PopcodeError(f"box {_shown(box)} lies wholly outside the {width}x{height} image")
     return x, y, w, h
+
+
+def check_padding(padding: float) -> float:
+    """The crop padding as a finite float in ``[MIN_CROP_PADDING, MAX_CROP_PADDING]``."""
+    if isinstance(padding, (bool, np.bool_, str, bytes)) or not isinstance(padding, (int, float, np.number)):
+        raise PopcodeError(f"crop padding must be a number, got {padding!r}")
+    if not (np.isfinite(padding) and MIN_CROP_PADDING <= padding <= MAX_CROP_PADDING):
+        raise PopcodeError(f"crop padding must lie in [{MIN_CROP_PADDING:g}, {MAX_CROP_PADDING:g}], got {padding}")
+    return float(padding)
+
+
+def _shown(box: object, width: int = 80) -> str:
+    text = repr(box.tolist() if isinstance(box, np.ndarray) else box)
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def crop_square(
@@ -105,7 +151,10 @@ def crop_square(
     shrunk with area interpolation, so large boxes do not alias.
     """
     x, y, w, h = check_box(box, grey.shape)
-    side = max(1, int(round(padding * max(w, h))))
+    side = max(1, int(round(check_padding(padding) * max(w, h))))
+    if side * side > MAX_SQUARE_PIXELS:
+        raise PopcodeError(f"box {_shown(box)} needs a {side}x{side} crop square, more than the limit of "
+                           f"{MAX_SQUARE_PIXELS} pixels")
     centre_x = x + w / 2.0 + shift_px[0]
     centre_y = y + h / 2.0 + shift_px[1]
     x0 = int(round(centre_x - side / 2.0))
@@ -128,6 +177,8 @@ def crop_batch(
 ) -> np.ndarray:
     """Crops of many boxes in one image as the network input ``(N, 1, size, size)`` float32."""
     grey = to_grey(image)
+    if isinstance(boxes, (str, bytes)) or not hasattr(boxes, "__len__"):
+        raise PopcodeError(f"boxes must be a list of (x, y, w, h), got {type(boxes).__name__}")
     if len(boxes) == 0:
         raise PopcodeError("no boxes given")
     crops = [crop_square(grey, box, size, padding) for box in boxes]

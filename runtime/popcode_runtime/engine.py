@@ -8,13 +8,15 @@ checkpoints. Every onnxruntime session of the project is built by
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from .errors import PopcodeError
+from .checks import integer, path
+from .errors import PopcodeError, library_step
 from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 Engine = Callable[[np.ndarray], np.ndarray]  # crops (N, 1, S, S) float32 in [0, 1] -> outputs (N, D) float32
@@ -34,9 +36,13 @@ def resolve_providers(providers: Sequence[str] | None) -> list[str]:
 
     Asking for one this onnxruntime build lacks is an error, not a silent fallback.
     """
+    if isinstance(providers, (str, bytes)) or not (providers is None or isinstance(providers, Sequence)):
+        raise PopcodeError(f"providers must be a list of names such as ['cpu'], got {providers!r}")
     available = ort.get_available_providers()
     resolved = []
     for name in providers or ["cpu"]:
+        if not isinstance(name, str):
+            raise PopcodeError(f"a provider is a name such as 'cpu', got {name!r}")
         full = PROVIDER_NAMES.get(name.lower(), name)
         if full not in available:
             raise PopcodeError(
@@ -57,32 +63,47 @@ def onnx_session(model: str | Path | bytes, providers: Sequence[str] | None = No
     cores); ``profile_prefix`` turns on onnxruntime's profiler, whose JSON
     ``session.end_profiling()`` writes under that prefix.
     """
+    if not isinstance(model, bytes):
+        model = path(model, "model path")
     name = "the given model bytes" if isinstance(model, bytes) else str(model)
-    if not isinstance(model, bytes) and not Path(model).is_file():
+    if not isinstance(model, bytes) and not model.is_file():
         raise PopcodeError(f"model file not found: {model}")
-    if threads < 0:
-        raise PopcodeError(f"threads must be >= 0, got {threads}")
+    check_threads(threads)
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
-    options.log_severity_level = 3
+    options.log_severity_level = 4  # fatal only: failures reach the user as one PopcodeError line, not C++ logs
     if profile_prefix is not None:
         options.enable_profiling = True
         options.profile_file_prefix = profile_prefix
     resolved = resolve_providers(providers)
-    try:
+    with library_step(f"load {name} as an ONNX model"):
         return ort.InferenceSession(model if isinstance(model, bytes) else str(model), options, providers=resolved)
-    except Exception as error:  # onnxruntime raises its own exception types
-        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise PopcodeError(f"cannot load {name} as an ONNX model: {first_line}") from error
+
+
+def check_threads(threads: int) -> int:
+    """Intra-op threads: 0 (all cores) up to this machine's core count; more only oversubscribe it."""
+    threads = integer(threads, "threads")
+    cores = os.cpu_count() or 1
+    if threads < 0:
+        raise PopcodeError(f"threads must be >= 0, got {threads}")
+    if threads > cores:
+        raise PopcodeError(f"threads {threads} is more than this machine's {cores} cores")
+    return threads
 
 
 class OnnxEngine:
     """A popcode ONNX model file run by onnxruntime; its metadata, checked against its signature, from the file."""
 
     def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
-        self.model_path = Path(model_path)
+        self.model_path = path(model_path, "model path")
         self.session = onnx_session(self.model_path, providers, threads)
-        self.metadata = ModelMetadata.from_props(self.session.get_modelmeta().custom_metadata_map)
+        with library_step(f"read the metadata of {self.model_path} (it must be UTF-8 JSON)"):
+            props = self.session.get_modelmeta().custom_metadata_map
+        try:
+            self.metadata = ModelMetadata.from_props(props)
+        except PopcodeError as error:
+            raise PopcodeError(f"{self.model_path}: {error}") from error
+        self.max_batch: int | None = None  # set when the model's batch axis is fixed
         self._check_signature()
 
     def _check_signature(self) -> None:
@@ -96,6 +117,8 @@ class OnnxEngine:
         shape = inputs[INPUT_NAME].shape
         if len(shape) != 4 or [d for d in shape[1:]] != [1, size, size]:
             raise PopcodeError(f"input '{INPUT_NAME}' must be [N, 1, {size}, {size}], the model declares {shape}")
+        if isinstance(shape[0], int) and shape[0] > 0:
+            self.max_batch = shape[0]  # a fixed batch axis: run in chunks of it
         if inputs[INPUT_NAME].type != "tensor(float)":
             raise PopcodeError(f"input '{INPUT_NAME}' must be float32, the model declares {inputs[INPUT_NAME].type}")
         self.metadata.check_output(outputs[OUTPUT_NAME].shape)
@@ -107,4 +130,5 @@ class OnnxEngine:
 
     def __call__(self, crops: np.ndarray) -> np.ndarray:
         """Outputs ``(N, D)`` for crops ``(N, 1, S, S)`` (made contiguous float32 first)."""
-        return self.session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]
+        with library_step(f"run {self.model_path} on {len(crops)} crops"):
+            return self.session.run([OUTPUT_NAME], {INPUT_NAME: np.ascontiguousarray(crops, dtype=np.float32)})[0]

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from .camera import parse_camera_matrix
-from .crop import box_centre, crop_batch
+from .checks import flag, integer
+from .crop import box_centre, crop_batch, to_grey
 from .decoding import DECODERS, decode_output
 from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
@@ -20,6 +21,11 @@ from .population_code import PopulationCode
 from .rotations import allocentric_to_egocentric, matrix_to_axis_angle
 from .symmetries import symmetry_rotations
 from .translation import object_points_mm, translation_from_box
+
+MAX_BOXES_PER_CALL = 10_000  # predict runs them in chunks; a robot's image holds far fewer
+MAX_CHUNK = 256  # crops per engine call
+MAX_TOP_K = 100
+MEMORY_BUDGET_BYTES = 1 << 30  # crops + outputs held at once by one call
 
 
 @dataclass(frozen=True)
@@ -105,12 +111,35 @@ class PoseEstimator:
         return self.engine.providers if isinstance(self.engine, OnnxEngine) else []
 
     def run(self, crops: np.ndarray) -> np.ndarray:
-        """Raw network output ``(N, D)`` float32 for crops ``(N, 1, S, S)`` float32 in [0, 1]."""
+        """Raw network output ``(N, D)`` float32 for crops ``(N, 1, S, S)`` float32 in [0, 1].
+
+        The engine sees at most :attr:`chunk_size` crops per call (exactly that
+        many for a model with a fixed batch axis, the last chunk zero-padded).
+        """
         size = self.metadata.input_size
-        if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or crops.dtype != np.float32:
-            raise PopcodeError(f"crops must be float32 [N, 1, {size}, {size}], got {crops.dtype} {crops.shape}")
-        output = self.engine(crops)
-        expected = (len(crops), self.metadata.output_dim)
+        if (not isinstance(crops, np.ndarray) or crops.ndim != 4 or crops.shape[1:] != (1, size, size)
+                or crops.dtype != np.float32):
+            shape = getattr(crops, "shape", type(crops).__name__)
+            raise PopcodeError(f"crops must be float32 [N, 1, {size}, {size}], got {getattr(crops, 'dtype', '')} "
+                               f"{shape}")
+        if len(crops) * self.metadata.output_dim * 4 > MEMORY_BUDGET_BYTES:
+            raise PopcodeError(f"{len(crops)} crops x {self.metadata.output_dim} outputs exceed the runtime's memory "
+                               f"budget of {MEMORY_BUDGET_BYTES >> 20} MiB; run fewer at a time")
+        chunk = self.chunk_size
+        fixed = getattr(self.engine, "max_batch", None) is not None
+        outputs = []
+        for start in range(0, len(crops), chunk):
+            part = crops[start : start + chunk]
+            count = len(part)
+            if fixed and count < chunk:
+                part = np.concatenate([part, np.zeros((chunk - count, *part.shape[1:]), np.float32)])
+            outputs.append(self._checked(self.engine(part), len(part))[:count])
+        if not outputs:
+            return np.empty((0, self.metadata.output_dim), np.float32)
+        return outputs[0] if len(outputs) == 1 else np.concatenate(outputs)
+
+    def _checked(self, output: np.ndarray, count: int) -> np.ndarray:
+        expected = (count, self.metadata.output_dim)
         if not isinstance(output, np.ndarray):
             raise PopcodeError(f"the engine returned a {type(output).__name__}, not a numpy array {expected}")
         if output.shape != expected or output.dtype != np.float32:
@@ -118,8 +147,18 @@ class PoseEstimator:
                                f"float32 {expected}")
         return output
 
+    @property
+    def chunk_size(self) -> int:
+        """Crops per engine call: the model's fixed batch, else as many as the memory budget allows (at most 256)."""
+        fixed = getattr(self.engine, "max_batch", None)
+        if fixed is not None:
+            return fixed
+        per_crop = 4 * (self.metadata.input_size**2 + self.metadata.output_dim)
+        return max(1, min(MAX_CHUNK, MEMORY_BUDGET_BYTES // per_crop))
+
     def crops(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> np.ndarray:
         """The network input ``(N, 1, S, S)`` for boxes in an image (the shared crop)."""
+        _check_box_count(boxes)
         return crop_batch(image, boxes, self.metadata.input_size, self.metadata.crop_padding)
 
     def _object_ids(self, count: int, obj_ids: Sequence[int] | None) -> list[int | None]:
@@ -127,12 +166,15 @@ class PoseEstimator:
         known = sorted(self.metadata.objects)
         if obj_ids is None:
             return [known[0] if len(known) == 1 else None] * count
+        if isinstance(obj_ids, (str, bytes)) or not isinstance(obj_ids, (Sequence, np.ndarray)):
+            raise PopcodeError(f"obj_ids must be a list of integers, got {type(obj_ids).__name__}")
         if len(obj_ids) != count:
             raise PopcodeError(f"got {len(obj_ids)} object ids for {count} boxes")
-        unknown = sorted({int(i) for i in obj_ids} - set(known))
+        ids = [integer(i, "an object id") for i in obj_ids]
+        unknown = sorted(set(ids) - set(known))
         if unknown:
             raise PopcodeError(f"object ids {unknown} are not in this model (it knows {known})")
-        return [int(i) for i in obj_ids]
+        return ids
 
     def predict(
         self,
@@ -151,25 +193,45 @@ class PoseEstimator:
         predict allocentric rotations and for ``translation``. ``obj_ids`` names
         the object in each box (needed for models of several objects when
         ``translation`` or ``top_k`` uses the object's extents or symmetries).
-        ``top_k > 1`` lists every distinct pose of a population code.
+        ``top_k > 1`` lists every distinct pose of a population code. Up to
+        ``MAX_BOXES_PER_CALL`` boxes, run in chunks of :attr:`chunk_size`.
+        Every argument is checked first; bad ones raise :class:`PopcodeError`.
         """
         meta = self.metadata
+        return_code, translation = flag(return_code, "return_code"), flag(translation, "translation")
+        top_k = integer(top_k, "top_k", 1, MAX_TOP_K)
         camera = None
         if K is not None:
             camera = parse_camera_matrix(K)
         elif meta.rotation_frame == RotationFrame.ALLOCENTRIC or translation:
             needs = "translation from the box" if translation else "this model predicts allocentric rotations"
             raise PopcodeError(f"{needs}: pass the camera matrix K")
-        if top_k < 1:
-            raise PopcodeError(f"top_k must be at least 1, got {top_k}")
         if top_k > 1 and meta.representation != Representation.POPULATION_CODE:
             raise PopcodeError(f"hypotheses (top_k > 1) need a population-code model, this one is "
                                f"{meta.representation}")
         if obj_ids is None and len(meta.objects) > 1 and (translation or top_k > 1):
             raise PopcodeError(f"this model knows objects {sorted(meta.objects)}: pass the object id of each box")
+        _check_box_count(boxes)
+        if return_code and len(boxes) * meta.output_dim * 4 > MEMORY_BUDGET_BYTES:
+            raise PopcodeError(f"returning the codes of {len(boxes)} boxes exceeds the memory budget of "
+                               f"{MEMORY_BUDGET_BYTES >> 20} MiB; ask for fewer boxes at a time")
         ids = self._object_ids(len(boxes), obj_ids)
+        grey = to_grey(image)
+        timings = np.zeros(3)
+        predictions: list[Prediction] = []
+        for start in range(0, len(boxes), self.chunk_size):
+            chunk = range(start, min(start + self.chunk_size, len(boxes)))
+            predictions += self._predict_chunk(grey, [boxes[i] for i in chunk], [ids[i] for i in chunk], camera,
+                                               return_code, top_k, translation, timings)
+        self.last_timings = Timings(*(float(t) for t in timings))
+        return predictions
+
+    def _predict_chunk(self, grey: np.ndarray, boxes: list, ids: list[int | None], camera: np.ndarray | None,
+                       return_code: bool, top_k: int, translation: bool, timings: np.ndarray) -> list[Prediction]:
+        """Crop, run, decode and convert one chunk of boxes; adds its stage times to ``timings``."""
+        meta = self.metadata
         started = time.perf_counter()
-        crops = self.crops(image, boxes)
+        crops = crop_batch(grey, boxes, meta.input_size, meta.crop_padding)
         cropped = time.perf_counter()
         output = self.run(crops)
         inferred = time.perf_counter()
@@ -192,8 +254,7 @@ class PoseEstimator:
                 box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if return_code else None,
                 t_m2c_mm=t, hypotheses=hypotheses,
             ))
-        finished = time.perf_counter()
-        self.last_timings = Timings(cropped - started, inferred - cropped, finished - inferred)
+        timings += (cropped - started, inferred - cropped, time.perf_counter() - inferred)
         return predictions
 
     def _to_camera_frame(self, boxes: Sequence[Sequence[float]], camera: np.ndarray | None):
@@ -204,6 +265,15 @@ class PoseEstimator:
         return lambda R, which: allocentric_to_egocentric(R, camera, centres[which])
 
 
+def _check_box_count(boxes: Sequence[Sequence[float]]) -> None:
+    if isinstance(boxes, (str, bytes)) or not hasattr(boxes, "__len__") or not hasattr(boxes, "__getitem__"):
+        raise PopcodeError(f"boxes must be a list of (x, y, w, h), got {type(boxes).__name__}")
+    if len(boxes) == 0:
+        raise PopcodeError("no boxes given")
+    if len(boxes) > MAX_BOXES_PER_CALL:
+        raise PopcodeError(f"{len(boxes)} boxes in one call; the limit is {MAX_BOXES_PER_CALL}")
+
+
 def _check_decoder(decoder: str) -> None:
-    if decoder not in DECODERS:
+    if not isinstance(decoder, str) or decoder not in DECODERS:
         raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")

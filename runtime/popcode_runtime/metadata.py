@@ -13,16 +13,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from .crop import CROP_PADDING, CROP_SIZE
+from .checks import integer, mapping, number
+from .crop import CROP_PADDING, CROP_SIZE, MAX_CROP_PADDING, MIN_CROP_PADDING
 from .errors import PopcodeError
 from .population_code import CodeLayout
-from .symmetries import SymmetryClass, symmetry_class
+from .symmetries import SymmetryClass, symmetry_class, symmetry_transforms
 from .text_enum import TextEnum
 from .translation import object_points_mm
 
 FORMAT_VERSION = 1
 INPUT_NAME = "image"
 OUTPUT_NAME = "code"
+MAX_INPUT_SIZE = 1024  # crop side [px]; a batch of crops is N x size^2 floats
+MAX_HYPOTHESES = 1024
+MAX_OBJECTS = 10000
+MAX_DISCRETE_SYMMETRIES = 1000
 
 
 class Representation(TextEnum):
@@ -72,14 +77,19 @@ class ModelMetadata:
             )
         object.__setattr__(self, "representation", Representation(self.representation))
         object.__setattr__(self, "rotation_frame", RotationFrame(self.rotation_frame))
-        if not self.objects:
+        if not isinstance(self.code, CodeLayout):
+            raise PopcodeError(f"metadata code must be a CodeLayout, got {type(self.code).__name__}")
+        object.__setattr__(self, "input_size", integer(self.input_size, "input size", 8, MAX_INPUT_SIZE))
+        object.__setattr__(self, "crop_padding", number(self.crop_padding, "input crop_padding", MIN_CROP_PADDING,
+                                                        MAX_CROP_PADDING))
+        object.__setattr__(self, "num_hypotheses", integer(self.num_hypotheses, "num_hypotheses", 0, MAX_HYPOTHESES))
+        mapping(self.training, "training")
+        if not isinstance(self.objects, Mapping) or not self.objects:
             raise PopcodeError("metadata lists no objects")
+        if len(self.objects) > MAX_OBJECTS:
+            raise PopcodeError(f"metadata lists {len(self.objects)} objects, more than the limit of {MAX_OBJECTS}")
         for obj_id, info in self.objects.items():
-            if "hull_points_mm" in info:  # checked now, not at the first call that asks for a translation
-                try:
-                    object_points_mm(info)
-                except PopcodeError as error:
-                    raise PopcodeError(f"object {obj_id}: {error}") from error
+            _check_object(obj_id, info)
         classes = {symmetry_class(info) for info in self.objects.values()}
         continuous = SymmetryClass.CONTINUOUS in classes
         if continuous and len(classes) > 1:
@@ -90,8 +100,6 @@ class ModelMetadata:
             )
         if self.representation == Representation.MULTI_HYPOTHESIS and self.num_hypotheses < 1:
             raise PopcodeError("a multi_hypothesis model needs num_hypotheses >= 1")
-        if self.input_size < 8:
-            raise PopcodeError(f"input_size {self.input_size} is too small")
 
     @property
     def output_dim(self) -> int:
@@ -128,7 +136,11 @@ class ModelMetadata:
 
     @classmethod
     def from_props(cls, props: Mapping[str, str]) -> ModelMetadata:
-        """Parse ``metadata_props``; names the key that is missing or malformed."""
+        """Parse ``metadata_props``; names the key that is missing or malformed.
+
+        Values are JSON without NaN or Infinity; every number is checked for its
+        type and range before anything is sized by it.
+        """
         if "popcode.format_version" not in props:
             raise PopcodeError("not a popcode model: its metadata has no 'popcode.format_version'")
 
@@ -138,34 +150,58 @@ class ModelMetadata:
                     return default
                 raise PopcodeError(f"model metadata lacks '{key}'")
             try:
-                return json.loads(props[key])
-            except json.JSONDecodeError as error:
-                raise PopcodeError(f"model metadata '{key}' is not valid JSON: {error}") from error
+                return json.loads(props[key], parse_constant=_refuse_constant)
+            except (json.JSONDecodeError, ValueError, RecursionError) as error:
+                first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
+                raise PopcodeError(f"model metadata '{key}' is not valid JSON: {first_line}") from error
 
         version = load("popcode.format_version")
-        if version != FORMAT_VERSION:
+        if version != FORMAT_VERSION or isinstance(version, bool):
             raise PopcodeError(
-                f"model format version {version} is not supported by this runtime (it reads {FORMAT_VERSION})"
+                f"model format version {version!r} is not supported by this runtime (it reads {FORMAT_VERSION})"
             )
-        code = load("popcode.code")
-        objects = load("popcode.objects")
-        input_info = load("popcode.input")
-        if not isinstance(code, dict) or not isinstance(objects, dict) or not isinstance(input_info, dict):
-            raise PopcodeError("model metadata 'popcode.code', 'popcode.objects' and 'popcode.input' must be objects")
-        try:
-            object_map = {int(k): dict(v) for k, v in objects.items()}
-            return cls(
-                representation=load("popcode.representation"),
-                code=CodeLayout.from_dict(code),
-                objects=object_map,
-                rotation_frame=load("popcode.rotation_frame"),
-                input_size=int(input_info.get("size", CROP_SIZE)),
-                crop_padding=float(input_info.get("crop_padding", CROP_PADDING)),
-                num_hypotheses=int(load("popcode.num_hypotheses", 0)),
-                training=load("popcode.training", {}),
-                format_version=version,
-            )
-        except (TypeError, ValueError) as error:
-            if isinstance(error, PopcodeError):
-                raise
-            raise PopcodeError(f"malformed popcode metadata: {error}") from error
+        objects = mapping(load("popcode.objects"), "model metadata 'popcode.objects'")
+        input_info = mapping(load("popcode.input"), "model metadata 'popcode.input'")
+        object_map = {}
+        for key, info in objects.items():
+            if not (isinstance(key, str) and key.isascii() and key.isdigit()):
+                raise PopcodeError(f"model metadata 'popcode.objects': object id {key!r} is not a whole number")
+            object_map[int(key)] = dict(mapping(info, f"object {key}"))
+        return cls(
+            representation=load("popcode.representation"),
+            code=CodeLayout.from_dict(mapping(load("popcode.code"), "model metadata 'popcode.code'")),
+            objects=object_map,
+            rotation_frame=load("popcode.rotation_frame"),
+            input_size=input_info.get("size", CROP_SIZE),
+            crop_padding=input_info.get("crop_padding", CROP_PADDING),
+            num_hypotheses=load("popcode.num_hypotheses", 0),
+            training=load("popcode.training", {}),
+            format_version=version,
+        )
+
+
+def _refuse_constant(name: str) -> None:
+    raise ValueError(f"{name} is not a number popcode accepts")
+
+
+def _check_object(obj_id: Any, info: Any) -> None:
+    """An object's entry must be a BOP ``models_info`` mapping with sound numbers; the error names the object."""
+    integer(obj_id, "object id", 0)
+    info = mapping(info, f"object {obj_id}")
+    try:
+        for key in ("diameter", "size_x", "size_y", "size_z"):
+            if key in info:
+                number(info[key], key, 0.0)
+        for key in ("min_x", "min_y", "min_z"):
+            if key in info:
+                number(info[key], key)
+        discrete = info.get("symmetries_discrete") or []
+        if not isinstance(discrete, list) or len(discrete) > MAX_DISCRETE_SYMMETRIES:
+            raise PopcodeError(f"symmetries_discrete must be a list of at most {MAX_DISCRETE_SYMMETRIES} matrices")
+        if not isinstance(info.get("symmetries_continuous") or [], list):
+            raise PopcodeError("symmetries_continuous must be a list")
+        symmetry_transforms(info)
+        if "hull_points_mm" in info:  # checked now, not at the first call that asks for a translation
+            object_points_mm(info)
+    except PopcodeError as error:
+        raise PopcodeError(f"object {obj_id}: {error}") from error

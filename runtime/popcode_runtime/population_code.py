@@ -13,6 +13,7 @@ encoding the direction of the symmetry axis in the camera frame.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import cached_property
@@ -20,12 +21,18 @@ from typing import Any
 
 import numpy as np
 
+from .checks import flag, integer, mapping, number, number_array
 from .errors import PopcodeError
 from .rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotation_between
 
 PAPER_N_AXES = 2562
 PAPER_N_ANGLES = 36
 PAPER_SIGMA_DEG = 20.0
+# Bounds on a layout read from a model file: the lattice neighbour search is O(n_axes^2) and a
+# decoded batch holds N x size floats, so absurd sizes must stop at the metadata, not in numpy.
+MAX_AXES = 16384
+MAX_ANGLES = 720
+MAX_CODE_SIZE = 1 << 21
 
 
 def fibonacci_lattice(n: int) -> np.ndarray:
@@ -63,17 +70,36 @@ class CodeLayout:
     def __post_init__(self) -> None:
         if self.lattice != "fibonacci":
             raise PopcodeError(f"unknown lattice {self.lattice!r}; only 'fibonacci' is defined")
-        if int(self.n_axes) < 1 or (not self.axis_only and int(self.n_angles) < 1):
-            raise PopcodeError(f"code sizes must be positive (n_axes={self.n_axes}, n_angles={self.n_angles})")
-        if not (0.0 < float(self.sigma_deg) < 180.0):
-            raise PopcodeError(f"sigma_deg must lie in (0, 180), got {self.sigma_deg}")
-        if self.axis_only:
+        axis_only = flag(self.axis_only, "code.axis_only")
+        n_axes = integer(self.n_axes, "code.n_axes", 1, MAX_AXES)
+        n_angles = integer(self.n_angles, "code.n_angles", 0 if axis_only else 1, MAX_ANGLES)
+        sigma = number(self.sigma_deg, "code.sigma_deg")
+        if not 0.0 < sigma < 180.0:
+            raise PopcodeError(f"code.sigma_deg must lie in (0, 180), got {sigma:g}")
+        if not axis_only and n_axes * n_angles > MAX_CODE_SIZE:
+            raise PopcodeError(f"code of {n_axes} x {n_angles} neurons exceeds the runtime's limit of "
+                               f"{MAX_CODE_SIZE} neurons")
+        for name, value in (("axis_only", axis_only), ("n_axes", n_axes), ("n_angles", n_angles),
+                            ("sigma_deg", sigma)):
+            object.__setattr__(self, name, value)
+        if axis_only:
             if self.symmetry_axis is None:
                 raise PopcodeError("an axis-only code needs the object's symmetry_axis")
-            axis = np.asarray(self.symmetry_axis, dtype=np.float64)
-            if axis.shape != (3,) or not np.isfinite(axis).all() or np.linalg.norm(axis) < 1e-9:
-                raise PopcodeError(f"symmetry_axis must be 3 finite numbers, not all zero: {self.symmetry_axis}")
+            axis = number_array(self.symmetry_axis, "code.symmetry_axis", (3,))
+            if np.linalg.norm(axis) < 1e-9:
+                raise PopcodeError(f"code.symmetry_axis must not be zero: {self.symmetry_axis}")
             object.__setattr__(self, "symmetry_axis", tuple(float(v) for v in axis / np.linalg.norm(axis)))
+
+    @property
+    def digest(self) -> str:
+        """A checksum of what fixes each neuron's meaning (lattice, n, m, sigma).
+
+        Written into the metadata at export, so a layout relabelled by hand
+        (642 x 36 as 1284 x 18: same width, other neurons) is caught at load.
+        """
+        n_angles = 0 if self.axis_only else self.n_angles
+        text = f"{self.lattice}|{self.n_axes}|{n_angles}|{self.axis_only}|{self.sigma_deg!r}"
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     @property
     def size(self) -> int:
@@ -102,21 +128,25 @@ class CodeLayout:
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["symmetry_axis"] = list(self.symmetry_axis) if self.symmetry_axis else None
+        data["digest"] = self.digest
         return data
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> CodeLayout:
-        known = {"n_axes", "n_angles", "sigma_deg", "axis_only", "symmetry_axis", "lattice"}
+        """A layout from its :meth:`to_dict` form; a ``digest`` (absent in older models) must match."""
+        data = mapping(data, "code")
+        known = {"n_axes", "n_angles", "sigma_deg", "axis_only", "symmetry_axis", "lattice", "digest"}
         unknown = set(data) - known
         if unknown:
             raise PopcodeError(f"unknown code layout keys {sorted(unknown)}; expected {sorted(known)}")
-        values = dict(data)
-        if values.get("symmetry_axis") is not None:
-            values["symmetry_axis"] = tuple(values["symmetry_axis"])
-        try:
-            return cls(**values)
-        except TypeError as error:
-            raise PopcodeError(f"bad code layout {dict(data)}: {error}") from error
+        values = {key: value for key, value in data.items() if key != "digest"}
+        layout = cls(**values)
+        if "digest" in data and data["digest"] != layout.digest:
+            raise PopcodeError(
+                f"code layout checksum {data['digest']!r} does not match its values ({layout.n_axes} axes x "
+                f"{layout.n_angles} angles, sigma {layout.sigma_deg:g}); the layout was edited after export"
+            )
+        return layout
 
 
 @dataclass(frozen=True)

@@ -40,11 +40,16 @@ class SymmetryTransforms:
 def _discrete(info: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     Rs, ts = [np.eye(3)], [np.zeros(3)]
     for index, flat in enumerate(info.get("symmetries_discrete", []) or []):
-        matrix = np.asarray(flat, dtype=np.float64)
+        try:
+            matrix = np.asarray(flat, dtype=np.float64)
+        except (TypeError, ValueError) as error:
+            raise PopcodeError(f"symmetries_discrete[{index}] is not a list of numbers") from error
         if matrix.size != 16:
             raise PopcodeError(
                 f"symmetries_discrete[{index}] has {matrix.size} numbers; a row-major 4x4 matrix has 16"
             )
+        if not np.isfinite(matrix).all():
+            raise PopcodeError(f"symmetries_discrete[{index}] contains NaN or inf")
         matrix = matrix.reshape(4, 4)
         R = matrix[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
@@ -60,11 +65,13 @@ def _continuous(info: Mapping[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
         try:
             axis = np.asarray(sym["axis"], dtype=np.float64).reshape(3)
             offset = np.asarray(sym.get("offset", [0, 0, 0]), dtype=np.float64).reshape(3)
-        except (KeyError, TypeError, ValueError) as error:
+        except (AttributeError, KeyError, TypeError, ValueError) as error:
             raise PopcodeError(
                 f"symmetries_continuous[{index}] needs 'axis' and 'offset' as 3 numbers each"
             ) from error
         norm = np.linalg.norm(axis)
+        if not np.isfinite(offset).all():
+            raise PopcodeError(f"symmetries_continuous[{index}] has a NaN or inf offset")
         if not np.isfinite(norm) or norm < 1e-9:
             raise PopcodeError(f"symmetries_continuous[{index}] has a zero or invalid axis")
         result.append((axis / norm, offset))

@@ -30,12 +30,18 @@ def object_points_mm(info: Mapping[str, Any]) -> np.ndarray:
             points = np.empty(0)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4 or not np.isfinite(points).all():
             raise PopcodeError("hull_points_mm must be a list of at least 4 finite points [x, y, z]")
+        if np.linalg.matrix_rank(points - points.mean(axis=0), tol=1e-6 * max(np.abs(points).max(), 1.0)) < 3:
+            raise PopcodeError("hull_points_mm are degenerate: they must span a volume, not a point, line or plane")
         return points
     try:
         low = np.array([info["min_x"], info["min_y"], info["min_z"]], dtype=np.float64)
         size = np.array([info["size_x"], info["size_y"], info["size_z"]], dtype=np.float64)
     except KeyError as error:
         raise PopcodeError(f"object metadata lacks {error.args[0]!r}: no extents to place the object") from error
+    except (TypeError, ValueError) as error:
+        raise PopcodeError("object extents (min_x ... size_z) must be numbers") from error
+    if not (np.isfinite(low).all() and np.isfinite(size).all() and (size > 0).all()):
+        raise PopcodeError(f"object extents must be finite with positive sizes, got size {size.tolist()}")
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
     return low + corners * size
 
@@ -54,6 +60,8 @@ def translation_from_box(
     rotated = points_mm @ np.asarray(R_m2c, dtype=np.float64).T
     # Start on the ray through the box centre, at the distance where the object's spread fits the box.
     spread_mm = np.ptp(rotated[:, :2], axis=0).max()
+    if spread_mm <= 0.0:
+        raise PopcodeError("the object's points have no extent across the view; no distance fills the box")
     focal = (K[0, 0] + K[1, 1]) / 2.0
     distance = focal * spread_mm / (target[2:] - target[:2]).max()
     ray = np.linalg.solve(K, np.append(box_centre(box), 1.0))
@@ -67,10 +75,12 @@ def translation_from_box(
             step = np.zeros(3)
             step[axis] = 1e-4 * max(abs(t[2]), 1.0)
             jacobian[:, axis] = (_box_of(rotated + t + step, K) - _box_of(rotated + t - step, K)) / (2 * step[axis])
+        if not (np.isfinite(jacobian).all() and np.isfinite(residual).all()):
+            break  # LAPACK may not return on NaN; the check below refuses the result
         update, *_ = np.linalg.lstsq(jacobian, -residual, rcond=None)
         t = t + update
         if np.linalg.norm(update) < 1e-6 * abs(t[2]):
             break
-    if not np.isfinite(t).all() or t[2] <= 0:
+    if not (np.isfinite(t).all() and np.isfinite(_box_of(rotated + t, K)).all()) or t[2] <= 0:
         raise PopcodeError(f"no translation places the object in box {list(box)}")
     return t

@@ -173,7 +173,16 @@ def test_mixing_continuous_and_discrete_objects_is_refused():
 def test_malformed_hull_points_are_refused_at_load(points):
     with pytest.raises(PopcodeError, match="object 1: hull_points_mm must be"):
         metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": points}})
-    assert metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": [[1.0, 2.0, 3.0]] * 4}})
+    tetrahedron = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    assert metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": tetrahedron}})
+
+
+@pytest.mark.parametrize("points", [[[1.0, 2.0, 3.0]] * 4, [[0.0, 0.0, z] for z in range(5)],
+                                    [[x, y, 0.0] for x in (0, 1) for y in (0, 1)]])
+def test_degenerate_hull_points_are_refused_at_load(points):
+    """Identical, collinear or coplanar points fit any box at some distance: a silent wrong translation."""
+    with pytest.raises(PopcodeError, match="object 1: hull_points_mm are degenerate"):
+        metadata(objects={1: {**CASES["two_fold"], "hull_points_mm": points}})
 
 
 def test_corrupt_or_missing_model_file(tmp_path, code_model):

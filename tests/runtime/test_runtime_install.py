@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hostile_files import write_hostile_files
 from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
@@ -25,6 +26,9 @@ from popcode_runtime.rotations import geodesic_angle, random_rotations
 
 RUNTIME_DIR = Path(__file__).resolve().parents[2] / "runtime"
 MODELS = RUNTIME_DIR.parent / "models"
+TESTS = Path(__file__).resolve().parents[1]
+CATALOGUE = ("import json, sys; from pathlib import Path; sys.path.insert(0, sys.argv[1]);"
+             "from hostile_cases import catalogue_problems; print(json.dumps(catalogue_problems(Path(sys.argv[2]))))")
 TRAINER_ONLY = {"torch", "onnx", "trimesh", "pyrender", "matplotlib", "scipy", "popcode-trainer"}
 REQUIRES = (
     "import importlib.metadata as m, re;"
@@ -75,4 +79,10 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
 
     failing = subprocess.run([str(popcode), "info", str(tmp_path / "missing.onnx")], capture_output=True, text=True)
     assert failing.returncode == 2 and "not found" in failing.stderr and "Traceback" not in failing.stderr
+
+    # The hostile-input catalogue (issue 19) holds with the runtime alone too.
+    hostile = write_hostile_files(tmp_path / "hostile")
+    report = subprocess.run([str(python), "-c", CATALOGUE, str(TESTS), str(hostile)], check=True,
+                            capture_output=True, text=True).stdout
+    assert json.loads(report) == {}
     assert sys.executable != str(python)

@@ -81,3 +81,14 @@ def test_checkpoints_load_with_weights_only(tmp_path: Path) -> None:
     assert state["config"] == config.to_dict()
     assert (tmp_path / BEST_CHECKPOINT).is_file()
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_fresh_start_drops_rows_of_a_run_killed_before_its_first_checkpoint(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=1)
+    rep = tiny_representation(config)
+    train_set, _ = tiny_data(rep, val_count=0)
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    (tmp_path / METRICS_FILE).write_text("epoch,train_loss\n1,0.5\n")  # killed mid-epoch 2: no checkpoint yet
+    train(config, rep, train_set)
+    with (tmp_path / METRICS_FILE).open() as handle:
+        assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1]

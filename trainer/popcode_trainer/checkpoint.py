@@ -9,6 +9,7 @@ a crash mid-write leaves the previous checkpoint intact.
 from __future__ import annotations
 
 import os
+import pickle
 import random
 import subprocess
 from pathlib import Path
@@ -17,10 +18,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.errors import PopcodeError, first_line
 
 # Keys that may change when resuming: more epochs extend a run; the output folder may move.
 RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers")}
+# What every checkpoint of ``popcode-train train`` holds (train.py's state dict); export and evaluate need them.
+TRAINED_KEYS = frozenset({"network", "model", "metadata", "config", "epoch", "best_val_error_deg"})
 
 
 def save_atomic(state: dict[str, Any], path: Path) -> None:
@@ -36,9 +39,30 @@ def load(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise PopcodeError(f"checkpoint not found: {path}")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError...
-        raise PopcodeError(f"cannot read checkpoint {path}: {str(error).splitlines()[0]}") from error
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        if "Unsupported global" not in str(error):  # not a pickle of plain data at all
+            raise PopcodeError(f"cannot read checkpoint {path}: not a torch checkpoint file") from error
+        # weights_only refused a class it would have to import: torch explains for a page, one line is enough
+        raise PopcodeError(f"{path} is not a trusted popcode checkpoint: it needs pickled code to load, which "
+                           "popcode never runs") from error
+    except Exception as error:  # RuntimeError, EOFError, zipfile errors...: not a torch file at all
+        raise PopcodeError(f"cannot read checkpoint {path}: {first_line(error)}") from error
+    if not isinstance(state, dict):
+        raise PopcodeError(f"{path} is not a popcode checkpoint: it holds a {type(state).__name__}, not a dict")
+    return state
+
+
+def load_trained(path: str | Path) -> dict[str, Any]:
+    """A checkpoint written by ``popcode-train train``, recognised by its keys before any is used."""
+    state = load(path)
+    missing = sorted(TRAINED_KEYS - set(state))
+    if missing:
+        raise PopcodeError(f"{path} is not a popcode training checkpoint: it lacks {missing}")
+    wrong = sorted(key for key in ("network", "model", "metadata", "config") if not isinstance(state[key], dict))
+    if wrong:
+        raise PopcodeError(f"{path} is not a popcode training checkpoint: {wrong} are not dicts")
+    return state
 
 
 def rng_state() -> dict[str, Any]:

@@ -181,6 +181,13 @@ def _check_choices(config: Config) -> None:
             raise PopcodeError(f"train.{key} must be at least 1")
     if config.train.lr <= 0:
         raise PopcodeError("train.lr must be positive")
+    network = config.network
+    for key in ("conv_channels", "hidden"):
+        if min(getattr(network, key)) < 1:
+            raise PopcodeError(f"network.{key} widths must be at least 1, got {list(getattr(network, key))}")
+    for key in ("conv_kernel", "squeeze_channels"):
+        if getattr(network, key) < 1:
+            raise PopcodeError(f"network.{key} must be at least 1, got {getattr(network, key)}")
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:

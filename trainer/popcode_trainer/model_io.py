@@ -30,7 +30,7 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
     Each object's ``hull_points_mm`` come from its mesh in the training config's
     models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
     """
-    state = checkpoint.load(path)
+    state = checkpoint.load_trained(path)
     try:
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
         model = build_network(NetworkConfig(**fields))

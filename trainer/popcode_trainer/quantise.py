@@ -50,10 +50,14 @@ def _inline_identity_initializers(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-def _quantise_int8(float_path: Path, out_path: Path, calibration: np.ndarray) -> onnx.ModelProto:
-    """Static QDQ int8 of every Conv, Gemm and MatMul, ranges calibrated on ``calibration`` crops."""
+def _quantise_int8(float_path: Path, calibration: np.ndarray) -> onnx.ModelProto:
+    """Static QDQ int8 of every Conv, Gemm and MatMul, ranges calibrated on ``calibration`` crops.
+
+    ``quantize_static`` writes its file in a scratch folder: only :func:`save_onnx`'s atomic
+    rename puts a model at its final name.
+    """
     with tempfile.TemporaryDirectory() as folder:
-        inlined = Path(folder) / "inlined.onnx"
+        inlined, out_path = Path(folder) / "inlined.onnx", Path(folder) / "int8.onnx"
         onnx.save(_inline_identity_initializers(onnx.load(str(float_path))), str(inlined))
         logging.disable(logging.WARNING)  # "consider pre-processing": done above, nothing left to act on
         try:
@@ -62,7 +66,7 @@ def _quantise_int8(float_path: Path, out_path: Path, calibration: np.ndarray) ->
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
         finally:
             logging.disable(logging.NOTSET)
-    return onnx.load(str(out_path))
+        return onnx.load(str(out_path))
 
 
 def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: np.ndarray | None = None) -> Path:
@@ -83,7 +87,7 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     if kind == "int8":
         if calibration is None or len(calibration) == 0:
             raise PopcodeError("int8 quantisation needs calibration crops float32 [N, 1, S, S] (N >= 1)")
-        quantised = _quantise_int8(float_path, out_path, calibration)
+        quantised = _quantise_int8(float_path, calibration)
     else:
         from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
 

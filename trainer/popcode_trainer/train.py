@@ -196,6 +196,8 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
             _truncate_metrics(out_dir / METRICS_FILE, start_epoch)
     elif (out_dir / LAST_CHECKPOINT).exists():
         raise PopcodeError(f"{out_dir} already holds a run; pass --resume to continue it or choose a new out_dir")
+    elif context.is_main:
+        (out_dir / METRICS_FILE).unlink(missing_ok=True)  # rows of a run killed before its first checkpoint
 
     # DDP averages gradients across ranks in backward; every rank steps the same optimizer state.
     trained = DistributedDataParallel(model) if context.distributed else model

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.errors import PopcodeError, first_line
 
 from .. import checkpoint
 from ..config import Config
@@ -39,19 +39,39 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _load_npy(path: Path, what: str) -> np.ndarray:
     if not path.is_file():
         raise PopcodeError(f"{what} file not found: {path}")
-    return np.load(path, allow_pickle=False)
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:  # not .npy, or an object array that needs pickle
+        raise PopcodeError(f"{what} {path} is not a .npy array of numbers: {first_line(error)}") from error
+    if not isinstance(array, np.ndarray):  # an .npz archive
+        raise PopcodeError(f"{what} {path} is an .npz archive; save one array with numpy.save")
+    return array
+
+
+def _check_crops(crops: np.ndarray, obj_ids: np.ndarray | None) -> None:
+    """Parity and calibration crops must be what the runtime feeds the model: finite, in [0, 1], [N, 1, S, S]."""
+    if crops.ndim != 4 or crops.shape[1] != 1 or len(crops) == 0 or not np.issubdtype(crops.dtype, np.floating):
+        raise PopcodeError(f"--crops must be float [N >= 1, 1, S, S], got {crops.dtype} {crops.shape}")
+    if not np.isfinite(crops).all():
+        raise PopcodeError("--crops contains NaN or inf: no agreement can be judged on them")
+    if crops.min() < 0.0 or crops.max() > 1.0:
+        raise PopcodeError(f"--crops must lie in [0, 1], got [{crops.min():.3g}, {crops.max():.3g}]")
+    if obj_ids is not None and (obj_ids.shape != (len(crops),) or not np.issubdtype(obj_ids.dtype, np.integer)):
+        raise PopcodeError(f"--crop-obj-ids must be {len(crops)} integers, got {obj_ids.dtype} {obj_ids.shape}")
 
 
 def _crops(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray | None]:
     """Parity crops and their object ids (None: not given)."""
     if args.crops is not None:
         obj_ids = None if args.crop_obj_ids is None else _load_npy(args.crop_obj_ids, "crop object ids")
-        return _load_npy(args.crops, "crops"), obj_ids
+        crops = _load_npy(args.crops, "crops")
+        _check_crops(crops, obj_ids)
+        return crops, obj_ids
     if args.crop_obj_ids is not None:
         raise PopcodeError("--crop-obj-ids names the objects of --crops; give --crops too")
     from ..training_data import validation_crops  # imports the data side only when needed
 
-    return validation_crops(Config.from_dict(checkpoint.load(args.checkpoint)["config"]))
+    return validation_crops(Config.from_dict(checkpoint.load_trained(args.checkpoint)["config"]))
 
 
 def _percent(share: float | None) -> str:
@@ -59,6 +79,11 @@ def _percent(share: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out.is_dir():
+        raise PopcodeError(f"--out {args.out} is a folder; give the path of the .onnx file to write")
+    if not args.out.parent.is_dir():
+        raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
+    checkpoint.load_trained(args.checkpoint)  # refused here, before any crop is read
     crops, obj_ids = _crops(args)
     results = export_checkpoint(args.checkpoint, args.out, crops, tuple(args.quantize), args.split_output,
                                 obj_ids=obj_ids)

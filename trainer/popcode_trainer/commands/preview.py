@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.symmetries import symmetry_class
 
@@ -64,6 +65,8 @@ def write_preview(dataset: CropDataset, indices: list[int], codes: PerObjectPopu
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.count < 1:
+        raise PopcodeError(f"--count must be at least 1, got {args.count}")
     models_dir = args.models or args.split / "models"
     split = read_bop_split(args.split, models_dir, obj_ids=args.obj_ids)
     paper = CodeLayout()

@@ -35,6 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out.is_file():
+        raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
     if args.objects == "builtin":
         models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
     else:

@@ -19,6 +19,8 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import symmetry_transforms
 
+from .files import require_folder
+
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
 IMAGE_FOLDERS = ("rgb", "gray")
 _BOX_KINDS = ("bbox_obj", "bbox_visib")
@@ -197,8 +199,8 @@ def read_bop_split(
     split_dir, models_dir = Path(split_dir), Path(models_dir)
     if box not in _BOX_KINDS:
         raise PopcodeError(f"box must be one of {list(_BOX_KINDS)}, got {box!r}")
-    if not split_dir.is_dir():
-        raise PopcodeError(f"split folder not found: {split_dir}")
+    require_folder(split_dir, "split folder")
+    require_folder(models_dir, "models folder")
     models_info = load_models_info(models_dir)
     wanted = set(models_info) if obj_ids is None else {int(obj_id) for obj_id in obj_ids}
     unknown = sorted(wanted - set(models_info))

@@ -13,6 +13,15 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 
 
+def require_folder(path: Path, what: str) -> Path:
+    """``path`` if it is a folder; a file where a folder belongs (a ``.pt`` for a split) is named as such."""
+    if path.is_file():
+        raise PopcodeError(f"{what} {path} is a file, not a folder")
+    if not path.is_dir():
+        raise PopcodeError(f"{what} not found: {path}")
+    return path
+
+
 def write_bytes_atomic(path: Path, data: bytes) -> None:
     """Write to a temporary name in the same folder, then rename over ``path``."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")

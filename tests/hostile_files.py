@@ -1,0 +1,106 @@
+"""Write the files that the hostile-input catalogue (``hostile_cases``) names: bad models, bad images.
+
+Needs onnx to build models, so it runs in the test environment; the runtime-only
+venv test reads the files it wrote.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import onnx
+from hostile_cases import IMAGE_SHAPE, LAYOUT, METADATA_CASES, OBJECT
+from onnx import TensorProto, helper
+from onnx_models import ONNX_IR_VERSION, ONNX_OPSET, linear_model
+
+from popcode_runtime import ModelMetadata, PopulationCode, Representation, symmetry_rotations
+from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME
+from popcode_runtime.rotations import random_rotations
+
+_NON_UTF8_MARK = "Z" * 16
+
+
+def _metadata() -> ModelMetadata:
+    return ModelMetadata(representation=Representation.POPULATION_CODE, code=LAYOUT, objects={7: OBJECT},
+                         training={"dataset": "hostile"})
+
+
+def _bias() -> np.ndarray:
+    R = random_rotations(1, np.random.default_rng(19))[0]
+    return PopulationCode(LAYOUT).encode(R, symmetry_rotations(OBJECT))
+
+
+def _with_props(props: dict[str, str]) -> onnx.ModelProto:
+    model = linear_model(_bias(), weight_scale=0.1)
+    helper.set_model_props(model, props)
+    return model
+
+
+def _png_header(width: int, height: int) -> bytes:
+    """A PNG signature and IHDR claiming ``width x height`` (no pixel data follows)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    return b"\x89PNG\r\n\x1a\n" + chunk
+
+
+def _jpeg_header(width: int, height: int) -> bytes:
+    """SOI, an APP0 segment and a baseline SOF0 claiming ``width x height``."""
+    app0 = b"\xff\xe0" + struct.pack(">H", 16) + b"JFIF\x00\x01\x01\x00\x00\x01\x00\x01\x00\x00"
+    sof0 = b"\xff\xc0" + struct.pack(">HBHHB", 11, 8, height, width, 1) + b"\x01\x11\x00"
+    return b"\xff\xd8" + app0 + sof0
+
+
+def _runtime_failure_model() -> onnx.ModelProto:
+    """Valid signature and metadata, but a Reshape to a shape that only fits a batch of 3: fails at run time."""
+    width = LAYOUT.size
+    nodes = [
+        helper.make_node("ReduceMean", [INPUT_NAME], ["mean"], axes=[1, 2, 3], keepdims=0),
+        helper.make_node("Reshape", ["mean", "shape"], ["row"]),
+        helper.make_node("Expand", ["row", "full"], [OUTPUT_NAME]),
+    ]
+    graph = helper.make_graph(
+        nodes, "run_fails",
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["N", 1, 128, 128])],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, ["N", width])],
+        initializer=[helper.make_tensor("shape", TensorProto.INT64, [2], [3, 1]),
+                     helper.make_tensor("full", TensorProto.INT64, [2], [3, width])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
+    model.ir_version = ONNX_IR_VERSION
+    helper.set_model_props(model, _metadata().to_props())
+    return model
+
+
+def write_hostile_files(folder: Path) -> Path:
+    """Every file the catalogue names, in ``folder``; returns ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    good = _metadata().to_props()
+    onnx.save(linear_model(_bias(), weight_scale=0.1, metadata=_metadata()), str(folder / "model.onnx"))
+    for name, (key, text, _) in METADATA_CASES.items():
+        props = {**good, key: text} if text is not None else {k: v for k, v in good.items() if k != key}
+        onnx.save(_with_props(props), str(folder / f"meta_{name}.onnx"))
+
+    marked = _with_props({**good, "popcode.training": f'"{_NON_UTF8_MARK}"'}).SerializeToString()
+    (folder / "non_utf8.onnx").write_bytes(marked.replace(_NON_UTF8_MARK.encode(), b"\xff\xfe" * 8))
+    (folder / "junk.onnx").write_bytes(b"\x00garbage")
+    (folder / "empty.onnx").write_bytes(b"")
+    (folder / "truncated.onnx").write_bytes((folder / "model.onnx").read_bytes()[:200])
+    wrong_input = linear_model(_bias(), metadata=_metadata())
+    wrong_input.graph.input[0].name = "pixels"
+    wrong_input.graph.node[0].input[0] = "pixels"
+    onnx.save(wrong_input, str(folder / "wrong_input.onnx"))
+    onnx.save(linear_model(_bias(), metadata=_metadata(), output_dim=LAYOUT.size - 1), str(folder / "wrong_width.onnx"))
+    onnx.save(_runtime_failure_model(), str(folder / "run_fails.onnx"))
+
+    scene = np.random.default_rng(0).integers(0, 256, size=IMAGE_SHAPE, dtype=np.uint8)
+    cv2.imwrite(str(folder / "scene.png"), scene)
+    (folder / "text.png").write_text("not an image\n")
+    (folder / "empty.png").write_bytes(b"")
+    (folder / "truncated.png").write_bytes((folder / "scene.png").read_bytes()[:60])
+    (folder / "huge.png").write_bytes(_png_header(100_000, 100_000) + b"\x00" * 64)
+    (folder / "huge.jpg").write_bytes(_jpeg_header(60_000, 60_000) + b"\x00" * 64)
+    return folder

@@ -1,0 +1,102 @@
+"""Issue 19's catalogue: every hostile input ends in one clear line (exit 2 or ``PopcodeError``), never a traceback."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import cv2
+import numpy as np
+import onnx
+import pytest
+from hostile_cases import API_CASES, CLI_CASES, api_problem, cli_problem
+from hostile_files import write_hostile_files
+
+from bench.fuzz import fuzz
+from popcode_runtime import PoseEstimator
+from popcode_runtime.cli import main
+from popcode_runtime.rotations import geodesic_angle
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return write_hostile_files(tmp_path_factory.mktemp("hostile"))
+
+
+def test_the_catalogue_has_at_least_100_cases():
+    assert len(CLI_CASES) + len(API_CASES) >= 100
+    assert len({case.id for case in CLI_CASES}) == len(CLI_CASES)
+    assert len({case_id for case_id, _, _ in API_CASES}) == len(API_CASES)
+
+
+@pytest.mark.parametrize("case", CLI_CASES, ids=lambda case: case.id)
+def test_cli_refuses_in_one_line(case, folder):
+    assert cli_problem(case, folder) is None
+
+
+@pytest.mark.parametrize(("call", "expect"), [case[1:] for case in API_CASES], ids=[case[0] for case in API_CASES])
+def test_api_raises_popcode_error(call, expect, folder):
+    assert api_problem(call, expect, folder) is None
+
+
+def test_leading_minus_values_are_read_as_numbers(folder, capsys):
+    assert main(["predict", str(folder / "model.onnx"), str(folder / "scene.png"), "--box", "-50,8,66,58",
+                 "--K", "-.5e3,500,80,60", "--json"]) == 2  # parsed: the K is refused for its value, not by argparse
+    assert "focal lengths must be positive" in capsys.readouterr().err
+    assert main(["predict", str(folder / "model.onnx"), str(folder / "scene.png"), "--box", "-50,8,66,58",
+                 "--K", "500,500,80,60", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["predictions"][0]["box"] == [-50.0, 8.0, 66.0, 58.0]
+
+
+def test_broken_pipe_is_quiet(folder, monkeypatch, capsys):
+    class ClosedPipe(io.StringIO):
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr("sys.stdout", ClosedPipe())
+    assert main(["info", str(folder / "model.onnx"), "--json"]) == 141
+    assert capsys.readouterr().err == ""
+
+
+def test_fixed_batch_model_runs_in_chunks_of_its_batch(folder, tmp_path):
+    model = onnx.load(str(folder / "model.onnx"))
+    for value_info in (model.graph.input[0], model.graph.output[0]):
+        value_info.type.tensor_type.shape.dim[0].dim_value = 1
+    onnx.save(model, str(tmp_path / "batch1.onnx"))
+    fixed, dynamic = PoseEstimator(tmp_path / "batch1.onnx", threads=1), PoseEstimator(folder / "model.onnx")
+    assert fixed.chunk_size == 1
+    image = cv2.imread(str(folder / "scene.png"), cv2.IMREAD_GRAYSCALE)
+    boxes = [[10, 10, 40, 40], [60, 30, 50, 70], [100, 50, 30, 30]]
+    for a, b in zip(fixed.predict(image, boxes), dynamic.predict(image, boxes), strict=True):
+        np.testing.assert_allclose(a.R_m2c, b.R_m2c, atol=1e-6)
+    assert main(["bench", str(tmp_path / "batch1.onnx"), "--batch", "4", "--iterations", "2", "--warmup", "0",
+                 "--threads", "1", "--json"]) == 0
+
+
+def test_many_boxes_are_chunked_not_failed(folder):
+    estimator = PoseEstimator(folder / "model.onnx", threads=1)
+    image = cv2.imread(str(folder / "scene.png"), cv2.IMREAD_GRAYSCALE)
+    boxes = np.random.default_rng(1).uniform([0, 0, 5, 5], [100, 80, 60, 40], size=(1000, 4))
+    predictions = estimator.predict(image, boxes)
+    assert len(predictions) == 1000 and estimator.chunk_size < 1000
+    R = np.stack([p.R_m2c for p in predictions])
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-6)
+    first = estimator.predict(image, boxes[:1])[0].R_m2c
+    assert geodesic_angle(first, predictions[0].R_m2c) < 1e-6
+
+
+def test_models_without_a_layout_digest_still_load(folder, tmp_path):
+    model = onnx.load(str(folder / "model.onnx"))
+    code = next(p for p in model.metadata_props if p.key == "popcode.code")
+    assert "digest" in json.loads(code.value)
+    code.value = json.dumps({k: v for k, v in json.loads(code.value).items() if k != "digest"})
+    onnx.save(model, str(tmp_path / "old.onnx"))
+    assert PoseEstimator(tmp_path / "old.onnx").metadata.code == PoseEstimator(folder / "model.onnx").metadata.code
+
+
+def test_fuzzing_predict_finds_nothing_unhandled(folder):
+    """500 random, mostly hostile, calls: each returns valid rotations or raises PopcodeError."""
+    report = fuzz(PoseEstimator(folder / "model.onnx", threads=1), calls=500, seed=19)
+    assert report.unhandled == [] and report.invalid_rotations == 0
+    assert report.returned > 50 and report.refused > 100  # both paths exercised
+    assert report.slowest_s < 10.0
