@@ -86,9 +86,9 @@ NETWORKS = {
     "small": Network(NetworkConfig(output_dim=642 * 36, conv_channels=(32, 64, 64), squeeze_channels=16,
                                    hidden=(256, 256, 256)), CodeLayout(n_axes=642)),
     # The quick recipe's networks (pipeline.SMALL_NETWORK and its residual trunk): the accuracy-latency frontier.
-    "quick-paper-trunk": Network(replace(SMALL_NETWORK, output_dim=642 * 36), CodeLayout(n_axes=642)),
-    "quick-residual": Network(replace(SMALL_NETWORK, output_dim=642 * 36, trunk="residual", conv_channels=(16, 32, 64)),
-                              CodeLayout(n_axes=642)),
+    "quick-paper-trunk": Network(replace(SMALL_NETWORK, output_dim=642 * 36, trunk="paper", conv_channels=(16, 32, 32)),
+                                 CodeLayout(n_axes=642)),
+    "quick-residual": Network(replace(SMALL_NETWORK, output_dim=642 * 36), CodeLayout(n_axes=642)),
     "tiny": Network(NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4,
                                   hidden=(32, 32, 32)), CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0)),
 }
