@@ -55,7 +55,7 @@ def _training_so_far(run_dir: Path) -> dict[str, float]:
     median error on the images the run held out of its training split (up to symmetry)."""
     with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
         rows = list(csv.DictReader(file))
-    return {"training_s": round(sum(float(row["seconds"]) for row in rows), 1),
+    return {"training_s": sum(float(row["seconds"]) for row in rows),
             "crop_updates": int(round(sum(float(row["samples_per_s"]) * float(row["seconds"]) for row in rows))),
             "held_out_median_deg": round(float(rows[-1]["val_error_median_deg"]), 2)}
 
