@@ -24,6 +24,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,8 @@ from .report import machine, write_results
 
 NETWORKS = {
     "tiny": NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16)),  # smoke tests only
-    "small": SMALL_NETWORK,
+    "small": SMALL_NETWORK,  # the quick recipe's residual trunk
+    "small-paper-trunk": replace(SMALL_NETWORK, trunk="paper", conv_channels=(16, 32, 32)),  # before the quick recipe
     "paper": NetworkConfig(),
 }
 BATCH = 32
@@ -146,7 +148,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two batches per measurement: a smoke run")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for training.json/.md")
-    parser.add_argument("--networks", nargs="+", choices=list(NETWORKS), default=["small", "paper"])
+    parser.add_argument("--networks", nargs="+", choices=list(NETWORKS), default=["small", "small-paper-trunk", "paper"])
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch intra-op threads to try")
     parser.add_argument("--workers", nargs="+", type=int, default=[0, 2], help="DataLoader worker counts to try")
     parser.add_argument("--batches", type=int, default=6, help="timed batches per measurement (after a warm-up)")
