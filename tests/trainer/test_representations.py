@@ -13,6 +13,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
 from popcode_trainer.representations import (
+    HYBRID_CE_WEIGHT,
     MultiHypothesisRepresentation,
     PerObjectPopulationCodes,
     build_representation,
@@ -165,6 +166,23 @@ def test_cross_entropy_loss_is_least_at_the_normalised_code() -> None:
     decoded = rep.decode(best.detach().numpy())
     assert np.degrees(rep.errors_rad(decoded.R, R, np.ones(len(R), int))).max() < 20.0  # the grid's resolution
     assert np.all(decoded.activation > 0)
+
+
+def test_hybrid_loss_adds_weighted_cross_entropy_and_decodes_its_output_as_a_code() -> None:
+    """``mse+cross_entropy``: MSE on the output plus the weighted cross entropy of the same output as logits;
+    its output is decoded as the MSE model's is, with no softmax."""
+    layout = {1: CASES["four_fold"]}
+    hybrid, mse, ce = (build_representation(Representation.POPULATION_CODE, layout, loss=kind, **SMALL)
+                       for kind in ("mse+cross_entropy", "mse", "cross_entropy"))
+    R = random_rotations(6, np.random.default_rng(5))
+    target = torch.from_numpy(hybrid.targets(instances(R)))
+    output = target + 0.05 * torch.randn(target.shape, generator=torch.Generator().manual_seed(0))
+    expected = float(mse.loss(output, target, 0.5)) + HYBRID_CE_WEIGHT * float(ce.loss(output, target, 0.5))
+    assert float(hybrid.loss(output, target, 0.5)) == pytest.approx(expected, rel=1e-6)
+    decoded, as_mse = hybrid.decode(target.numpy()), mse.decode(target.numpy())
+    np.testing.assert_array_equal(decoded.R, as_mse.R)
+    np.testing.assert_array_equal(decoded.activation, as_mse.activation)
+    assert not np.allclose(ce.decode(target.numpy()).activation, as_mse.activation)  # CE's softmax would differ
 
 
 def test_cross_entropy_is_only_for_the_population_code() -> None:

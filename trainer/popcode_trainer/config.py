@@ -67,7 +67,7 @@ class TrainConfig:
     """Optimisation and the output representation."""
 
     representation: str = Representation.POPULATION_CODE
-    loss: str = "mse"  # population code: "mse" (the paper's) or "cross_entropy" (representations.LOSSES)
+    loss: str = "mse"  # population code: "mse" (the paper's), "cross_entropy" or both (representations.LOSSES)
     rotation_frame: str = RotationFrame.EGOCENTRIC
     num_hypotheses: int = 20  # M of the multi_hypothesis baseline
     epochs: int = 80
