@@ -3,16 +3,69 @@
 from __future__ import annotations
 
 import io
+import json
 import pickle
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import trimesh
 from hostile_cases import error_lines
 
+from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_trainer.checkpoint import TRAINED_KEYS
 from popcode_trainer.cli import main
+from popcode_trainer.data.objects import model_info
+
+
+def _about(axis: tuple[float, float, float], *angles_deg: float) -> list[list[float]]:
+    """BOP ``symmetries_discrete`` rotations about an axis through the origin."""
+    result = []
+    for angle in angles_deg:
+        matrix = np.eye(4)
+        matrix[:3, :3] = axis_angle_to_matrix(np.asarray(axis, float), np.deg2rad(angle))
+        result.append(matrix.ravel().tolist())
+    return result
+
+
+# models folder -> (mesh, declared symmetries): each declaration is wrong for its mesh
+WRONG_SYMMETRIES = {
+    "flange_4fold": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)),
+                     {"symmetries_discrete": _about((0, 0, 1), 90, 180, 270)}),
+    "nut_generator": (lambda: trimesh.creation.cylinder(radius=20.0, height=8.0, sections=6),
+                      {"symmetries_discrete": _about((0, 0, 1), 60)}),
+    "rod_axis_x": (lambda: trimesh.creation.cylinder(radius=8.0, height=50.0, sections=64),
+                   {"symmetries_continuous": [{"axis": [1, 0, 0], "offset": [0, 0, 0]}]}),
+    "bar_wrong_flip": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)),
+                       {"symmetries_discrete": _about((1, 1, 0), 180)}),
+}
+
+
+def _write_models_and_split(folder: Path, name: str) -> None:
+    """``folder/name`` (models) and ``folder/name_split`` (one annotated image, JSON only: enough to train from)."""
+    build, symmetries = WRONG_SYMMETRIES[name]
+    models = folder / name
+    models.mkdir()
+    mesh = build()
+    mesh.export(models / "obj_000001.ply")
+    (models / "models_info.json").write_text(json.dumps({"1": model_info(mesh, symmetries)}))
+    scene = folder / f"{name}_split" / "000000"
+    (scene / "rgb").mkdir(parents=True)
+    (scene / "rgb" / "000000.png").write_bytes(b"")
+    pose = {"obj_id": 1, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0, 0, 500]}
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [pose]}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": [10, 10, 40, 40], "visib_fract": 1.0}]}))
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, 64, 0, 500, 64, 0, 0, 1]}}))
+
+
+def _render(files: Path, models: str) -> list[str]:
+    return ["render", "--objects", str(files / models), "--images", "1", "--out", str(files / f"{models}_render")]
+
+
+def _train(files: Path, models: str) -> list[str]:
+    return ["train", "--set", f'data.splits=["{files / models}_split"]', "--set", f'data.models_dir="{files / models}"',
+            "--set", f'train.out_dir="{files / models}_run"']
 
 
 class NotPlainData:
@@ -40,6 +93,8 @@ def files(tmp_path_factory) -> Path:
     (folder / "not_npy.npy").write_text("text")
     (folder / "a_folder").mkdir()
     (folder / "config.toml").write_text("[data]\nsplits = ['nowhere']\n")
+    for name in WRONG_SYMMETRIES:
+        _write_models_and_split(folder, name)
     return folder
 
 
@@ -83,6 +138,13 @@ CASES = [
      "--count must be at least 1"),
     ("preview-split-is-a-file", lambda f: ["preview", "--split", str(f / "keys.pt"), "--out", str(f / "p.png")],
      "is a file, not a folder"),
+    ("render-symmetry-wrong-4fold", lambda f: _render(f, "flange_4fold"),
+     "symmetries_discrete[0] (rotation 90.0 deg about (0, 0, 1)) does not map the mesh onto itself"),
+    ("render-symmetry-generator-alone", lambda f: _render(f, "nut_generator"), "not closed under composition"),
+    ("render-symmetry-wrong-axis", lambda f: _render(f, "rod_axis_x"), "symmetries_continuous[0] (axis (1, 0, 0)"),
+    ("render-symmetry-wrong-flip", lambda f: _render(f, "bar_wrong_flip"), "does not map the mesh onto itself"),
+    ("train-symmetry-wrong-4fold", lambda f: _train(f, "flange_4fold"), "of the diameter away from the surface"),
+    ("train-symmetry-generator-alone", lambda f: _train(f, "nut_generator"), "declare all 5 non-identity"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),
