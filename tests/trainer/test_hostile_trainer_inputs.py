@@ -12,6 +12,7 @@ import pytest
 import torch
 import trimesh
 from hostile_cases import error_lines
+from hostile_files import write_hostile_files
 
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_trainer.checkpoint import TRAINED_KEYS
@@ -93,6 +94,7 @@ def files(tmp_path_factory) -> Path:
     (folder / "not_npy.npy").write_text("text")
     (folder / "a_folder").mkdir()
     (folder / "config.toml").write_text("[data]\nsplits = ['nowhere']\n")
+    write_hostile_files(folder / "runtime")  # a population-code and a single-variable ONNX model among them
     for name in WRONG_SYMMETRIES:
         _write_models_and_split(folder, name)
     return folder
@@ -145,6 +147,11 @@ CASES = [
     ("render-symmetry-wrong-flip", lambda f: _render(f, "bar_wrong_flip"), "does not map the mesh onto itself"),
     ("train-symmetry-wrong-4fold", lambda f: _train(f, "flange_4fold"), "of the diameter away from the surface"),
     ("train-symmetry-generator-alone", lambda f: _train(f, "nut_generator"), "declare all 5 non-identity"),
+    ("evaluate-refined-single-variable", lambda f: ["evaluate", str(f / "runtime/model.onnx"),
+                                                    str(f / "runtime/single_variable.onnx"),
+                                                    "--split", str(f / "a_folder"), "--models-dir", str(f / "a_folder"),
+                                                    "--decoder", "refined"],
+     "single_variable.onnx: the refined decoder needs a population-code model, this one is single_variable"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),
