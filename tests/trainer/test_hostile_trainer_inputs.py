@@ -7,6 +7,7 @@ import json
 import pickle
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -30,8 +31,9 @@ def _about(axis: tuple[float, float, float], *angles_deg: float) -> list[list[fl
     return result
 
 
-# models folder -> (mesh, declared symmetries): each declaration is wrong for its mesh
-WRONG_SYMMETRIES = {
+# models folder -> (mesh, declared symmetries); "bar_2fold" is right, the others are wrong for their mesh
+MODELS = {
+    "bar_2fold": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)), {"symmetries_discrete": _about((0, 0, 1), 180)}),
     "flange_4fold": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)),
                      {"symmetries_discrete": _about((0, 0, 1), 90, 180, 270)}),
     "nut_generator": (lambda: trimesh.creation.cylinder(radius=20.0, height=8.0, sections=6),
@@ -42,31 +44,44 @@ WRONG_SYMMETRIES = {
                        {"symmetries_discrete": _about((1, 1, 0), 180)}),
 }
 
+# split folder -> (image width and height [px], cam_R_m2c, bbox_obj, cx = cy [px]); "split" is right
+SPLITS = {
+    "split": ((128, 128), np.eye(3).ravel().tolist(), [10, 10, 40, 40], 64.0),
+    "split_nan_pose": ((128, 128), [float("nan")] + np.eye(3).ravel().tolist()[1:], [10, 10, 40, 40], 64.0),
+    "split_scaled_pose": ((128, 128), (2 * np.eye(3)).ravel().tolist(), [10, 10, 40, 40], 64.0),
+    "split_image_small_for_box": ((48, 48), np.eye(3).ravel().tolist(), [60, 60, 40, 40], 24.0),
+    "split_image_small_for_camera": ((32, 32), np.eye(3).ravel().tolist(), [10, 10, 20, 20], 64.0),
+}
 
-def _write_models_and_split(folder: Path, name: str) -> None:
-    """``folder/name`` (models) and ``folder/name_split`` (one annotated image, JSON only: enough to train from)."""
-    build, symmetries = WRONG_SYMMETRIES[name]
-    models = folder / name
-    models.mkdir()
+
+def _write_models(folder: Path, name: str) -> None:
+    build, symmetries = MODELS[name]
+    (folder / name).mkdir()
     mesh = build()
-    mesh.export(models / "obj_000001.ply")
-    (models / "models_info.json").write_text(json.dumps({"1": model_info(mesh, symmetries)}))
-    scene = folder / f"{name}_split" / "000000"
+    mesh.export(folder / name / "obj_000001.ply")
+    (folder / name / "models_info.json").write_text(json.dumps({"1": model_info(mesh, symmetries)}))
+
+
+def _write_split(folder: Path, name: str) -> None:
+    """One image with one annotated instance of object 1, as BOP writes it."""
+    (width, height), R, box, centre = SPLITS[name]
+    scene = folder / name / "000000"
     (scene / "rgb").mkdir(parents=True)
-    (scene / "rgb" / "000000.png").write_bytes(b"")
-    pose = {"obj_id": 1, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0, 0, 500]}
+    cv2.imwrite(str(scene / "rgb" / "000000.png"), np.full((height, width), 128, np.uint8))
+    pose = {"obj_id": 1, "cam_R_m2c": R, "cam_t_m2c": [0, 0, 500]}
     (scene / "scene_gt.json").write_text(json.dumps({"0": [pose]}))
-    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": [10, 10, 40, 40], "visib_fract": 1.0}]}))
-    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, 64, 0, 500, 64, 0, 0, 1]}}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": box, "visib_fract": 1.0}]}))
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, centre, 0, 500, centre, 0, 0, 1]}}))
 
 
 def _render(files: Path, models: str) -> list[str]:
     return ["render", "--objects", str(files / models), "--images", "1", "--out", str(files / f"{models}_render")]
 
 
-def _train(files: Path, models: str) -> list[str]:
-    return ["train", "--set", f'data.splits=["{files / models}_split"]', "--set", f'data.models_dir="{files / models}"',
-            "--set", f'train.out_dir="{files / models}_run"']
+def _train(files: Path, models: str = "bar_2fold", split: str = "split") -> list[str]:
+    return ["train", "--set", f'data.splits=["{files / split}"]', "--set", f'data.models_dir="{files / models}"',
+            "--set", f'train.out_dir="{files / models}_{split}_run"', "--set", "data.val_fraction=0",
+            "--set", "data.augment=false"]
 
 
 class NotPlainData:
@@ -95,8 +110,10 @@ def files(tmp_path_factory) -> Path:
     (folder / "a_folder").mkdir()
     (folder / "config.toml").write_text("[data]\nsplits = ['nowhere']\n")
     write_hostile_files(folder / "runtime")  # a population-code and a single-variable ONNX model among them
-    for name in WRONG_SYMMETRIES:
-        _write_models_and_split(folder, name)
+    for name in MODELS:
+        _write_models(folder, name)
+    for name in SPLITS:
+        _write_split(folder, name)
     return folder
 
 
@@ -152,6 +169,13 @@ CASES = [
                                                     "--split", str(f / "a_folder"), "--models-dir", str(f / "a_folder"),
                                                     "--decoder", "refined"],
      "single_variable.onnx: the refined decoder needs a population-code model, this one is single_variable"),
+    ("train-split-nan-pose", lambda f: _train(f, split="split_nan_pose"),
+     "'cam_R_m2c' in image 0, object 0 contains NaN"),
+    ("train-split-scaled-pose", lambda f: _train(f, split="split_scaled_pose"), "is not a rotation matrix"),
+    ("train-split-image-small-for-box", lambda f: _train(f, split="split_image_small_for_box"),
+     "is 48x48 px but the box [60.0, 60.0, 40.0, 40.0] of scene 0, image 0, object 0 (scene_gt_info.json)"),
+    ("train-split-image-small-for-camera", lambda f: _train(f, split="split_image_small_for_camera"),
+     "puts the principal point at (64, 64), outside it"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),
