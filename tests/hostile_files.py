@@ -19,7 +19,7 @@ from onnx_models import ONNX_IR_VERSION, ONNX_OPSET, linear_model
 
 from popcode_runtime import ModelMetadata, PopulationCode, Representation, symmetry_rotations
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.rotations import matrix_to_sixd, random_rotations
 
 _NON_UTF8_MARK = "Z" * 16
 
@@ -95,6 +95,9 @@ def write_hostile_files(folder: Path) -> Path:
     onnx.save(wrong_input, str(folder / "wrong_input.onnx"))
     onnx.save(linear_model(_bias(), metadata=_metadata(), output_dim=LAYOUT.size - 1), str(folder / "wrong_width.onnx"))
     onnx.save(_runtime_failure_model(), str(folder / "run_fails.onnx"))
+    single = ModelMetadata(representation=Representation.SINGLE_VARIABLE, code=LAYOUT, objects={7: OBJECT})
+    onnx.save(linear_model(matrix_to_sixd(np.eye(3)).astype(np.float32), metadata=single),
+              str(folder / "single_variable.onnx"))
 
     scene = np.random.default_rng(0).integers(0, 256, size=IMAGE_SHAPE, dtype=np.uint8)
     cv2.imwrite(str(folder / "scene.png"), scene)

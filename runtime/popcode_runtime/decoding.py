@@ -51,18 +51,24 @@ def quaternion_mean_shift(quaternions: np.ndarray, bandwidth_rad: float = MEAN_S
 DECODERS = ("argmax", "refined")
 
 
+def check_decoder(decoder: str, metadata: ModelMetadata | None = None) -> None:
+    """Refuse an unknown decoder, or one the model cannot use, when the model is opened, not after predicting."""
+    if not isinstance(decoder, str) or decoder not in DECODERS:
+        raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
+    if metadata is not None and decoder == "refined" and metadata.representation != Representation.POPULATION_CODE:
+        raise PopcodeError(f"the refined decoder needs a population-code model, this one is "
+                           f"{metadata.representation}; use --decoder argmax")
+
+
 def decode_output(output: np.ndarray, metadata: ModelMetadata, decoder: str = "argmax") -> DecodedRotations:
     """Rotations (in the model's rotation frame) from a batch of outputs ``(N, D)``.
 
     ``decoder`` is ``argmax`` (the paper's) or ``refined`` (sub-neuron, population codes only).
     """
-    if decoder not in DECODERS:
-        raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")
+    check_decoder(decoder, metadata)
     output = check_code(output, metadata.output_dim)
     representation = metadata.representation
     if decoder == "refined":
-        if representation != Representation.POPULATION_CODE:
-            raise PopcodeError(f"the refined decoder needs a population-code model, this one is {representation}")
         return decode_refined(PopulationCode(metadata.code), output)
     if representation in (Representation.POPULATION_CODE, Representation.ONE_HOT):
         return PopulationCode(metadata.code).decode(output)

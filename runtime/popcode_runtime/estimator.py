@@ -12,7 +12,7 @@ import numpy as np
 from .camera import parse_camera_matrix
 from .checks import flag, integer
 from .crop import box_centre, crop_batch, to_grey
-from .decoding import DECODERS, decode_output
+from .decoding import check_decoder, decode_output
 from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
 from .hypotheses import Hypothesis, find_hypotheses
@@ -85,7 +85,7 @@ class PoseEstimator:
 
     def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0,
                  decoder: str = "argmax") -> None:
-        _check_decoder(decoder)
+        check_decoder(decoder)
         engine = OnnxEngine(model_path, providers, threads)
         self._attach(engine, engine.metadata, decoder)
 
@@ -96,12 +96,13 @@ class PoseEstimator:
         ``metadata`` is the model's, as its ONNX export would carry it: it
         says how to crop, decode and convert the engine's outputs.
         """
-        _check_decoder(decoder)
+        check_decoder(decoder)
         estimator = cls.__new__(cls)
         estimator._attach(engine, metadata, decoder)
         return estimator
 
     def _attach(self, engine: Engine, metadata: ModelMetadata, decoder: str) -> None:
+        check_decoder(decoder, metadata)
         self.engine, self.metadata, self.decoder = engine, metadata, decoder
         self.last_timings = Timings(0.0, 0.0, 0.0)
 
@@ -272,8 +273,3 @@ def _check_box_count(boxes: Sequence[Sequence[float]]) -> None:
         raise PopcodeError("no boxes given")
     if len(boxes) > MAX_BOXES_PER_CALL:
         raise PopcodeError(f"{len(boxes)} boxes in one call; the limit is {MAX_BOXES_PER_CALL}")
-
-
-def _check_decoder(decoder: str) -> None:
-    if not isinstance(decoder, str) or decoder not in DECODERS:
-        raise PopcodeError(f"unknown decoder {decoder!r}; expected one of {DECODERS}")

@@ -102,6 +102,16 @@ def symmetry_transforms(info: Mapping[str, Any], max_sym_disc_step: float = 0.01
     return SymmetryTransforms(np.concatenate(R_list), np.concatenate(t_list))
 
 
+def discrete_transforms(info: Mapping[str, Any]) -> SymmetryTransforms:
+    """The declared ``symmetries_discrete`` as given (translations kept), identity first; no continuous steps."""
+    return SymmetryTransforms(*_discrete(info))
+
+
+def continuous_symmetries(info: Mapping[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The declared ``symmetries_continuous`` as (unit axis ``(3,)``, offset ``(3,)`` [mm]) pairs."""
+    return _continuous(info)
+
+
 def symmetry_rotations(info: Mapping[str, Any]) -> np.ndarray:
     """The discrete symmetry rotations ``(K, 3, 3)``, identity first (what the code encodes).
 

@@ -3,16 +3,85 @@
 from __future__ import annotations
 
 import io
+import json
 import pickle
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
+import trimesh
 from hostile_cases import error_lines
+from hostile_files import write_hostile_files
 
+from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_trainer.checkpoint import TRAINED_KEYS
 from popcode_trainer.cli import main
+from popcode_trainer.data.objects import model_info
+
+
+def _about(axis: tuple[float, float, float], *angles_deg: float) -> list[list[float]]:
+    """BOP ``symmetries_discrete`` rotations about an axis through the origin."""
+    result = []
+    for angle in angles_deg:
+        matrix = np.eye(4)
+        matrix[:3, :3] = axis_angle_to_matrix(np.asarray(axis, float), np.deg2rad(angle))
+        result.append(matrix.ravel().tolist())
+    return result
+
+
+# models folder -> (mesh, declared symmetries); "bar_2fold" is right, the others are wrong for their mesh
+MODELS = {
+    "bar_2fold": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)), {"symmetries_discrete": _about((0, 0, 1), 180)}),
+    "flange_4fold": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)),
+                     {"symmetries_discrete": _about((0, 0, 1), 90, 180, 270)}),
+    "nut_generator": (lambda: trimesh.creation.cylinder(radius=20.0, height=8.0, sections=6),
+                      {"symmetries_discrete": _about((0, 0, 1), 60)}),
+    "rod_axis_x": (lambda: trimesh.creation.cylinder(radius=8.0, height=50.0, sections=64),
+                   {"symmetries_continuous": [{"axis": [1, 0, 0], "offset": [0, 0, 0]}]}),
+    "bar_wrong_flip": (lambda: trimesh.creation.box((60.0, 30.0, 10.0)),
+                       {"symmetries_discrete": _about((1, 1, 0), 180)}),
+}
+
+# split folder -> (image width and height [px], cam_R_m2c, bbox_obj, cx = cy [px]); "split" is right
+SPLITS = {
+    "split": ((128, 128), np.eye(3).ravel().tolist(), [10, 10, 40, 40], 64.0),
+    "split_nan_pose": ((128, 128), [float("nan")] + np.eye(3).ravel().tolist()[1:], [10, 10, 40, 40], 64.0),
+    "split_scaled_pose": ((128, 128), (2 * np.eye(3)).ravel().tolist(), [10, 10, 40, 40], 64.0),
+    "split_image_small_for_box": ((48, 48), np.eye(3).ravel().tolist(), [60, 60, 40, 40], 24.0),
+    "split_image_small_for_camera": ((32, 32), np.eye(3).ravel().tolist(), [10, 10, 20, 20], 64.0),
+}
+
+
+def _write_models(folder: Path, name: str) -> None:
+    build, symmetries = MODELS[name]
+    (folder / name).mkdir()
+    mesh = build()
+    mesh.export(folder / name / "obj_000001.ply")
+    (folder / name / "models_info.json").write_text(json.dumps({"1": model_info(mesh, symmetries)}))
+
+
+def _write_split(folder: Path, name: str) -> None:
+    """One image with one annotated instance of object 1, as BOP writes it."""
+    (width, height), R, box, centre = SPLITS[name]
+    scene = folder / name / "000000"
+    (scene / "rgb").mkdir(parents=True)
+    cv2.imwrite(str(scene / "rgb" / "000000.png"), np.full((height, width), 128, np.uint8))
+    pose = {"obj_id": 1, "cam_R_m2c": R, "cam_t_m2c": [0, 0, 500]}
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [pose]}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": box, "visib_fract": 1.0}]}))
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, centre, 0, 500, centre, 0, 0, 1]}}))
+
+
+def _render(files: Path, models: str) -> list[str]:
+    return ["render", "--objects", str(files / models), "--images", "1", "--out", str(files / f"{models}_render")]
+
+
+def _train(files: Path, models: str = "bar_2fold", split: str = "split") -> list[str]:
+    return ["train", "--set", f'data.splits=["{files / split}"]', "--set", f'data.models_dir="{files / models}"',
+            "--set", f'train.out_dir="{files / models}_{split}_run"', "--set", "data.val_fraction=0",
+            "--set", "data.augment=false"]
 
 
 class NotPlainData:
@@ -40,6 +109,11 @@ def files(tmp_path_factory) -> Path:
     (folder / "not_npy.npy").write_text("text")
     (folder / "a_folder").mkdir()
     (folder / "config.toml").write_text("[data]\nsplits = ['nowhere']\n")
+    write_hostile_files(folder / "runtime")  # a population-code and a single-variable ONNX model among them
+    for name in MODELS:
+        _write_models(folder, name)
+    for name in SPLITS:
+        _write_split(folder, name)
     return folder
 
 
@@ -83,6 +157,25 @@ CASES = [
      "--count must be at least 1"),
     ("preview-split-is-a-file", lambda f: ["preview", "--split", str(f / "keys.pt"), "--out", str(f / "p.png")],
      "is a file, not a folder"),
+    ("render-symmetry-wrong-4fold", lambda f: _render(f, "flange_4fold"),
+     "symmetries_discrete[0] (rotation 90.0 deg about (0, 0, 1)) does not map the mesh onto itself"),
+    ("render-symmetry-generator-alone", lambda f: _render(f, "nut_generator"), "not closed under composition"),
+    ("render-symmetry-wrong-axis", lambda f: _render(f, "rod_axis_x"), "symmetries_continuous[0] (axis (1, 0, 0)"),
+    ("render-symmetry-wrong-flip", lambda f: _render(f, "bar_wrong_flip"), "does not map the mesh onto itself"),
+    ("train-symmetry-wrong-4fold", lambda f: _train(f, "flange_4fold"), "of the diameter away from the surface"),
+    ("train-symmetry-generator-alone", lambda f: _train(f, "nut_generator"), "declare all 5 non-identity"),
+    ("evaluate-refined-single-variable", lambda f: ["evaluate", str(f / "runtime/model.onnx"),
+                                                    str(f / "runtime/single_variable.onnx"),
+                                                    "--split", str(f / "a_folder"), "--models-dir", str(f / "a_folder"),
+                                                    "--decoder", "refined"],
+     "single_variable.onnx: the refined decoder needs a population-code model, this one is single_variable"),
+    ("train-split-nan-pose", lambda f: _train(f, split="split_nan_pose"),
+     "'cam_R_m2c' in image 0, object 0 contains NaN"),
+    ("train-split-scaled-pose", lambda f: _train(f, split="split_scaled_pose"), "is not a rotation matrix"),
+    ("train-split-image-small-for-box", lambda f: _train(f, split="split_image_small_for_box"),
+     "is 48x48 px but the box [60.0, 60.0, 40.0, 40.0] of scene 0, image 0, object 0 (scene_gt_info.json)"),
+    ("train-split-image-small-for-camera", lambda f: _train(f, split="split_image_small_for_camera"),
+     "puts the principal point at (64, 64), outside it"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),

@@ -18,6 +18,7 @@ from .config import Config
 from .data.augment import Augmentation
 from .data.bop import Instance, read_bop_split
 from .data.samples import CropDataset
+from .data.symmetry_check import check_models_symmetries
 from .representations import OutputRepresentation, build_representation
 from .run_files import CROP_CACHE_FOLDER
 
@@ -47,6 +48,7 @@ def read_instances(config: Config) -> tuple[list[Instance], dict[int, dict[str, 
         raise PopcodeError(f"no instances with visib_fract >= {data.min_visib_fract} of objects "
                            f"{obj_ids or 'any'} in {list(data.splits)}")
     used = sorted({inst.obj_id for inst in instances})
+    check_models_symmetries(data.models_dir, models_info, used)
     return instances, {obj_id: dict(models_info[obj_id]) for obj_id in used}
 
 

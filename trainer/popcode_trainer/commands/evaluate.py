@@ -7,6 +7,7 @@ from pathlib import Path
 
 from popcode_runtime.decoding import DECODERS
 
+from ..data.files import require_folder
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import methods_from_paths
 from ..eval.pipeline.split import EVAL_MIN_VISIB_FRACT, read_eval_split
@@ -50,8 +51,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
+    for split_dir in args.splits:  # cheap checks first: folders, then every model with the options
+        require_folder(split_dir, "split folder")
+    require_folder(args.models_dir, "models folder")
     methods = methods_from_paths(args.models, args.names, args.decoder)
+    split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation)
     written = write_report(results, args.out, bop19_csv=args.bop19_csv)
     print(report_markdown(results))

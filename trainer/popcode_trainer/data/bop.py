@@ -94,6 +94,34 @@ def _field(entry: Any, key: str, path: Path, where: str, size: int | None = None
     return array
 
 
+def _rotation(values: np.ndarray, path: Path, where: str) -> np.ndarray:
+    """A row-major ``cam_R_m2c`` as a 3x3 rotation; a scaled, skewed or mirrored matrix is corrupt ground truth."""
+    R = values.reshape(3, 3)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0:
+        deviation = np.abs(R @ R.T - np.eye(3)).max()
+        raise PopcodeError(f"{path}: key 'cam_R_m2c' in {where} is not a rotation matrix "
+                           f"(R R^T deviates from I by {deviation:.3g}, det {np.linalg.det(R):.3g})")
+    return R
+
+
+def check_image_matches(instance: Instance, width: int, height: int) -> None:
+    """Refuse an image whose size contradicts its annotations: the box or K's principal point outside it.
+
+    Called where an image is first decoded (the crop); a split with resized or
+    swapped images would otherwise train on the wrong pixels without a word.
+    """
+    x, y, w, h = instance.box
+    where = f"scene {instance.scene_id}, image {instance.im_id}, object {instance.gt_index}"
+    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
+        raise PopcodeError(f"{instance.image_path} is {width}x{height} px but the box {list(instance.box)} of {where} "
+                           "(scene_gt_info.json) lies outside it: the images do not match the annotations")
+    cx, cy = instance.K[0, 2], instance.K[1, 2]
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise PopcodeError(f"{instance.image_path} is {width}x{height} px but cam_K of image {instance.im_id} "
+                           f"(scene_camera.json) puts the principal point at ({cx:g}, {cy:g}), outside it: "
+                           "the images do not match the camera")
+
+
 def _int_keys(data: Any, path: Path) -> dict[int, Any]:
     if not isinstance(data, Mapping):
         raise PopcodeError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
@@ -165,7 +193,7 @@ def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visi
                 obj_id=obj_id,
                 box=(float(x), float(y), float(w), float(h)),
                 K=K,
-                R_m2c=_field(gt, "cam_R_m2c", gt_path, where, size=9).reshape(3, 3),
+                R_m2c=_rotation(_field(gt, "cam_R_m2c", gt_path, where, size=9), gt_path, where),
                 t_m2c_mm=_field(gt, "cam_t_m2c", gt_path, where, size=3),
                 scene_id=scene_id,
                 im_id=im_id,

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from popcode_runtime.crop import CROP_PADDING, crop_square, read_image
 from popcode_runtime.errors import PopcodeError
 
-from .bop import Instance
+from .bop import Instance, check_image_matches
 
 CACHE_FORMAT = 1  # bump when what is stored changes
 CACHE_SUFFIX = ".crops.npy"
@@ -47,9 +47,16 @@ def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> np.ndar
     """
     outer = crop_size + 2 * margin
     padding = CROP_PADDING * outer / crop_size
-    image = crop_square(read_image(instance.image_path), instance.box, outer, padding)
-    mask = (crop_square(read_image(instance.mask_visib_path), instance.box, outer, padding)
-            if instance.mask_visib_path is not None else np.zeros_like(image))
+    full = read_image(instance.image_path)
+    check_image_matches(instance, full.shape[1], full.shape[0])
+    image = crop_square(full, instance.box, outer, padding)
+    mask = np.zeros_like(image)
+    if instance.mask_visib_path is not None:
+        full_mask = read_image(instance.mask_visib_path)
+        if full_mask.shape[:2] != full.shape[:2]:
+            raise PopcodeError(f"{instance.mask_visib_path} is {full_mask.shape[1]}x{full_mask.shape[0]} px, its "
+                               f"image {instance.image_path} {full.shape[1]}x{full.shape[0]}: they must match")
+        mask = crop_square(full_mask, instance.box, outer, padding)
     return np.stack([to_uint8(image), to_uint8(mask)])
 
 

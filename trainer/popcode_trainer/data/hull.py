@@ -31,6 +31,7 @@ from popcode_runtime.population_code import fibonacci_lattice
 
 from .bop import model_path
 from .meshes import load_mesh
+from .symmetry_check import check_object_symmetries
 
 HULL_POINTS = 64  # about 1.5 kB of metadata per object
 HULL_DECIMALS = 2  # 0.01 mm: far below a pixel, keeps the metadata short
@@ -91,6 +92,7 @@ def with_hull_points(objects: Mapping[int, Mapping[str, Any]], models_dir: str |
         if mesh is None:
             missing.append(obj_id)
             continue
+        check_object_symmetries(model_path(models_dir, obj_id), info, obj_id, mesh)
         info["hull_points_mm"] = hull_points_mm(np.asarray(mesh.vertices), count).tolist()
     if missing:
         where = f"in {models_dir}" if models_dir else "(no models folder given)"

@@ -32,6 +32,7 @@ from .files import write_json_atomic, write_png_atomic
 from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
+from .symmetry_check import check_object_symmetries
 
 RECORDS_FOLDER = ".popcode_records"
 BUILTIN_MODELS_FOLDER = "models"
@@ -236,16 +237,20 @@ def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSe
 
 def _render_todo(models_dir: Path, out_dir: Path, models_info: dict[int, dict[str, Any]],
                  todo: list[tuple[int, int]], settings: RenderSettings, progress: bool) -> None:
+    meshes: dict[int, trimesh.Trimesh] = {}
+    for obj_id in dict.fromkeys(obj_id for obj_id, _ in todo):  # every mesh read and checked before GL starts
+        path = model_path(models_dir, obj_id)
+        meshes[obj_id] = load_mesh(path)
+        check_object_symmetries(path, models_info[obj_id], obj_id, meshes[obj_id])
     renderer = _SceneRenderer(settings.width, settings.height)
     vertices: dict[int, np.ndarray] = {}
-    for obj_id in dict.fromkeys(obj_id for obj_id, _ in todo):
-        mesh = load_mesh(model_path(models_dir, obj_id))
-        renderer.add_object(obj_id, mesh)
-        vertices[obj_id] = np.asarray(mesh.vertices, dtype=np.float64)
-        scene_dir = _scene_dir(out_dir, obj_id)
-        for folder in ("gray" if settings.gray else "rgb", "depth", "mask_visib", RECORDS_FOLDER):
-            (scene_dir / folder).mkdir(parents=True, exist_ok=True)
     try:
+        for obj_id, mesh in meshes.items():
+            renderer.add_object(obj_id, mesh)
+            vertices[obj_id] = np.asarray(mesh.vertices, dtype=np.float64)
+            scene_dir = _scene_dir(out_dir, obj_id)
+            for folder in ("gray" if settings.gray else "rgb", "depth", "mask_visib", RECORDS_FOLDER):
+                (scene_dir / folder).mkdir(parents=True, exist_ok=True)
         for obj_id, im_id in tqdm(todo, desc="render", unit="img", disable=not progress):
             _render_one(renderer, _scene_dir(out_dir, obj_id), obj_id, im_id, vertices[obj_id],
                         float(models_info[obj_id]["diameter"]), settings)

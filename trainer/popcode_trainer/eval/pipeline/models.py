@@ -56,11 +56,16 @@ def load_model(path: str | Path, decoder: str = "argmax") -> RotationModel:
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"model file not found: {path}")
-    if path.suffix == ".onnx":
-        return RotationModel(path, PoseEstimator(path, decoder=decoder))
-    if path.suffix == ".pt":
+    if path.suffix not in (".onnx", ".pt"):
+        raise PopcodeError(f"{path}: a model is a training checkpoint (.pt) or an ONNX file (.onnx)")
+    try:  # every model is opened, and its decoder checked, before the first prediction
+        if path.suffix == ".onnx":
+            return RotationModel(path, PoseEstimator(path, decoder=decoder))
         return RotationModel(path, checkpoint_estimator(path, decoder))
-    raise PopcodeError(f"{path}: a model is a training checkpoint (.pt) or an ONNX file (.onnx)")
+    except PopcodeError as error:
+        if str(path) in str(error):
+            raise
+        raise PopcodeError(f"{path}: {error}") from error
 
 
 @dataclass(frozen=True)
