@@ -148,7 +148,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two batches per measurement: a smoke run")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="folder for training.json/.md")
-    parser.add_argument("--networks", nargs="+", choices=list(NETWORKS), default=["small", "small-paper-trunk", "paper"])
+    parser.add_argument("--networks", nargs="+", choices=list(NETWORKS),
+                        default=["small", "small-paper-trunk", "paper"])
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch intra-op threads to try")
     parser.add_argument("--workers", nargs="+", type=int, default=[0, 2], help="DataLoader worker counts to try")
     parser.add_argument("--batches", type=int, default=6, help="timed batches per measurement (after a warm-up)")
