@@ -20,6 +20,7 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
+from popcode_trainer import export
 from popcode_trainer.agreement import compare
 from popcode_trainer.export import export_checkpoint, export_onnx
 from popcode_trainer.model_io import load_checkpoint_model
@@ -100,6 +101,20 @@ def test_cross_entropy_model_exports_its_code(tmp_path: Path) -> None:
     np.testing.assert_array_equal(code.argmax(axis=1), logits.argmax(axis=1))
     metadata = PoseEstimator(onnx_path).metadata
     np.testing.assert_allclose(decode_output(code, metadata).R, rep.decode(logits).R, atol=1e-6)
+
+def test_export_that_fails_its_parity_check_leaves_no_model(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ckpt, crops = trained_checkpoint(tmp_path)
+    onnx_path = tmp_path / "model.onnx"
+
+    class ShiftedTorch(export.TorchEngine):  # torch's outputs with the argmax moved: a wrong export
+        def __call__(self, batch: np.ndarray) -> np.ndarray:
+            return np.roll(super().__call__(batch), 1, axis=1)
+
+    monkeypatch.setattr(export, "TorchEngine", ShiftedTorch)
+    with pytest.raises(PopcodeError, match="disagree on the argmax"):
+        export_checkpoint(ckpt, onnx_path, crops)
+    assert not onnx_path.exists() and list(tmp_path.glob("*.onnx")) == []
+
 
 def test_export_meets_the_contract_and_quantises(tmp_path: Path) -> None:
     ckpt, crops = trained_checkpoint(tmp_path)

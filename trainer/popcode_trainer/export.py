@@ -93,7 +93,11 @@ def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: 
         raise PopcodeError(f"parity crops must be float32 [N, 1, {size}, {size}], got {crops.shape}")
     crop_symmetries(metadata, len(crops), obj_ids)  # bad object ids are refused before anything is written
     float_path = export_onnx(model, metadata, out_path, split_output)
-    parity, reference = check_parity(model, float_path, crops, metadata, obj_ids)
+    try:
+        parity, reference = check_parity(model, float_path, crops, metadata, obj_ids)
+    except PopcodeError:
+        float_path.unlink(missing_ok=True)  # a model that failed its check must not look finished
+        raise
     results = [parity]
     for kind in quantisations:
         path = quantise(float_path, kind, metadata, calibration=crops)
