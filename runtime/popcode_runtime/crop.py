@@ -60,10 +60,11 @@ def read_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
     return to_grey(image)
 
 
-def to_grey(image: np.ndarray) -> np.ndarray:
-    """Grey float32 ``(H, W)`` in [0, 1] from grey ``(H, W)``/``(H, W, 1)`` or RGB ``(H, W, 3)``.
+def check_image(image: np.ndarray) -> np.ndarray:
+    """``image`` checked as :func:`to_grey` takes it, ``(H, W, 1)`` squeezed to ``(H, W)``; not converted.
 
-    uint8 is divided by 255, uint16 by 65535; float images must already lie in [0, 1].
+    Cropping converts only the pixels a crop reads: converting a whole camera frame to float for every
+    call can cost more than the network does (`popcode bench` end to end against inference).
     """
     if not isinstance(image, np.ndarray):
         raise PopcodeError(f"image must be a numpy array, got {type(image).__name__}")
@@ -73,20 +74,28 @@ def to_grey(image: np.ndarray) -> np.ndarray:
         raise PopcodeError(f"image must have shape (H, W) or (H, W, 3), got {image.shape}")
     if image.shape[0] < 1 or image.shape[1] < 1:
         raise PopcodeError(f"image is empty: shape {image.shape}")
+    if image.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise PopcodeError(f"unsupported image dtype {image.dtype}; use uint8, uint16 or float32 in [0, 1]")
+    if image.dtype in (np.float32, np.float64):
+        if not np.isfinite(image).all():
+            raise PopcodeError("image contains NaN or inf pixels")
+        if image.min() < 0.0 or image.max() > 1.0:
+            raise PopcodeError(f"float image values must lie in [0, 1], got [{image.min():.3g}, {image.max():.3g}]")
+    return image
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """Grey float32 ``(H, W)`` in [0, 1] from grey ``(H, W)``/``(H, W, 1)`` or RGB ``(H, W, 3)``.
+
+    uint8 is divided by 255, uint16 by 65535; float images must already lie in [0, 1].
+    """
+    image = check_image(image)
     if image.dtype == np.uint8:
         grey = image.astype(np.float32) / 255.0
     elif image.dtype == np.uint16:
         grey = image.astype(np.float32) / 65535.0
-    elif image.dtype in (np.float32, np.float64):
-        grey = image.astype(np.float32)
-        if not np.isfinite(grey).all():
-            raise PopcodeError("image contains NaN or inf pixels")
-        if grey.min() < 0.0 or grey.max() > 1.0:
-            raise PopcodeError(
-                f"float image values must lie in [0, 1], got [{grey.min():.3g}, {grey.max():.3g}]"
-            )
     else:
-        raise PopcodeError(f"unsupported image dtype {image.dtype}; use uint8, uint16 or float32 in [0, 1]")
+        grey = image.astype(np.float32)
     if grey.ndim == 3:
         grey = grey @ _GREY_WEIGHTS_RGB
     return np.ascontiguousarray(grey)
@@ -138,19 +147,20 @@ def _shown(box: object, width: int = 80) -> str:
 
 
 def crop_square(
-    grey: np.ndarray,
+    image: np.ndarray,
     box: Sequence[float],
     size: int = CROP_SIZE,
     padding: float = CROP_PADDING,
     shift_px: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """One crop ``(size, size)`` float32 from a grey image ``(H, W)`` in [0, 1].
+    """One grey crop ``(size, size)`` float32 in [0, 1] from an image that :func:`to_grey` takes.
 
     ``shift_px`` moves the square by whole source pixels (used by the
     training augmentation); the padded side is rounded to whole pixels and
     shrunk with area interpolation, so large boxes do not alias.
     """
-    x, y, w, h = check_box(box, grey.shape)
+    image = check_image(image)
+    x, y, w, h = check_box(box, image.shape)
     side = max(1, int(round(check_padding(padding) * max(w, h))))
     if side * side > MAX_SQUARE_PIXELS:
         raise PopcodeError(f"box {_shown(box)} needs a {side}x{side} crop square, more than the limit of "
@@ -160,11 +170,11 @@ def crop_square(
     x0 = int(round(centre_x - side / 2.0))
     y0 = int(round(centre_y - side / 2.0))
     square = np.zeros((side, side), dtype=np.float32)
-    height, width = grey.shape
+    height, width = image.shape[:2]
     src_x0, src_y0 = max(x0, 0), max(y0, 0)
     src_x1, src_y1 = min(x0 + side, width), min(y0 + side, height)
     if src_x1 > src_x0 and src_y1 > src_y0:
-        square[src_y0 - y0 : src_y1 - y0, src_x0 - x0 : src_x1 - x0] = grey[src_y0:src_y1, src_x0:src_x1]
+        square[src_y0 - y0 : src_y1 - y0, src_x0 - x0 : src_x1 - x0] = to_grey(image[src_y0:src_y1, src_x0:src_x1])
     interpolation = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
     return cv2.resize(square, (size, size), interpolation=interpolation)
 
@@ -176,12 +186,12 @@ def crop_batch(
     padding: float = CROP_PADDING,
 ) -> np.ndarray:
     """Crops of many boxes in one image as the network input ``(N, 1, size, size)`` float32."""
-    grey = to_grey(image)
+    image = check_image(image)
     if isinstance(boxes, (str, bytes)) or not hasattr(boxes, "__len__"):
         raise PopcodeError(f"boxes must be a list of (x, y, w, h), got {type(boxes).__name__}")
     if len(boxes) == 0:
         raise PopcodeError("no boxes given")
-    crops = [crop_square(grey, box, size, padding) for box in boxes]
+    crops = [crop_square(image, box, size, padding) for box in boxes]
     return np.stack(crops)[:, None]
 
 

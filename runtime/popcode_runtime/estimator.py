@@ -11,7 +11,7 @@ import numpy as np
 
 from .camera import parse_camera_matrix
 from .checks import flag, integer
-from .crop import box_centre, crop_batch, to_grey
+from .crop import box_centre, check_image, crop_batch
 from .decoding import check_decoder, decode_output
 from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
@@ -217,22 +217,22 @@ class PoseEstimator:
             raise PopcodeError(f"returning the codes of {len(boxes)} boxes exceeds the memory budget of "
                                f"{MEMORY_BUDGET_BYTES >> 20} MiB; ask for fewer boxes at a time")
         ids = self._object_ids(len(boxes), obj_ids)
-        grey = to_grey(image)
+        image = check_image(image)
         timings = np.zeros(3)
         predictions: list[Prediction] = []
         for start in range(0, len(boxes), self.chunk_size):
             chunk = range(start, min(start + self.chunk_size, len(boxes)))
-            predictions += self._predict_chunk(grey, [boxes[i] for i in chunk], [ids[i] for i in chunk], camera,
+            predictions += self._predict_chunk(image, [boxes[i] for i in chunk], [ids[i] for i in chunk], camera,
                                                return_code, top_k, translation, timings)
         self.last_timings = Timings(*(float(t) for t in timings))
         return predictions
 
-    def _predict_chunk(self, grey: np.ndarray, boxes: list, ids: list[int | None], camera: np.ndarray | None,
+    def _predict_chunk(self, image: np.ndarray, boxes: list, ids: list[int | None], camera: np.ndarray | None,
                        return_code: bool, top_k: int, translation: bool, timings: np.ndarray) -> list[Prediction]:
         """Crop, run, decode and convert one chunk of boxes; adds its stage times to ``timings``."""
         meta = self.metadata
         started = time.perf_counter()
-        crops = crop_batch(grey, boxes, meta.input_size, meta.crop_padding)
+        crops = crop_batch(image, boxes, meta.input_size, meta.crop_padding)
         cropped = time.perf_counter()
         output = self.run(crops)
         inferred = time.perf_counter()
