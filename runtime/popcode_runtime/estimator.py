@@ -41,6 +41,7 @@ class Prediction:
     code: np.ndarray | None = None  # raw network output, when asked for
     t_m2c_mm: np.ndarray | None = None  # (3,) translation from the box, when asked for
     hypotheses: list[Hypothesis] | None = None  # every distinct pose, strongest first, when top_k > 1
+    confidence: float | None = None  # P(rotation error < the model's threshold); None without a calibrator
 
     def to_dict(self) -> dict:
         data = {
@@ -50,6 +51,7 @@ class Prediction:
             "axis": self.axis.tolist(),
             "angle_deg": float(np.degrees(self.angle_rad)),
             "score": self.score,
+            "confidence": self.confidence,
         }
         if self.t_m2c_mm is not None:
             data["t_m2c_mm"] = self.t_m2c_mm.tolist()
