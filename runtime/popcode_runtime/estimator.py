@@ -11,6 +11,7 @@ import numpy as np
 
 from .camera import parse_camera_matrix
 from .checks import flag, integer
+from .confidence import code_features
 from .crop import box_centre, check_image, crop_batch
 from .decoding import check_decoder, decode_output
 from .engine import Engine, OnnxEngine
@@ -239,6 +240,7 @@ class PoseEstimator:
         output = self.run(crops)
         inferred = time.perf_counter()
         decoded = decode_output(output, meta, self.decoder)
+        confidence = self._confidence(output, ids)
         to_camera = self._to_camera_frame(boxes, camera)
         R = to_camera(decoded.R, slice(None))
         axes, angles = matrix_to_axis_angle(R)
@@ -255,10 +257,25 @@ class PoseEstimator:
             predictions.append(Prediction(
                 R_m2c=R[i], axis=axes[i], angle_rad=float(angles[i]), score=float(decoded.activation[i]),
                 box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if return_code else None,
-                t_m2c_mm=t, hypotheses=hypotheses,
+                t_m2c_mm=t, hypotheses=hypotheses, confidence=confidence[i],
             ))
         timings += (cropped - started, inferred - cropped, time.perf_counter() - inferred)
         return predictions
+
+    def _confidence(self, output: np.ndarray, ids: list[int | None]) -> list[float | None]:
+        """The calibrated confidence of each output; None without a calibrator or when the object is not known
+        (the features need its symmetries)."""
+        calibrator, meta = self.metadata.confidence, self.metadata
+        confidence: list[float | None] = [None] * len(output)
+        if calibrator is None:
+            return confidence
+        for obj_id in {i for i in ids if i is not None}:
+            rows = [row for row, i in enumerate(ids) if i == obj_id]
+            features = code_features(meta.code, output[rows], symmetry_rotations(meta.objects[obj_id]),
+                                     calibrator.rival_radius_deg)
+            for row, value in zip(rows, calibrator.probability(features), strict=True):
+                confidence[row] = float(value)
+        return confidence
 
     def _to_camera_frame(self, boxes: Sequence[Sequence[float]], camera: np.ndarray | None):
         """A function ``(R, which_boxes) -> R`` in the camera frame (identity for egocentric models)."""

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .checks import integer, mapping, number
+from .confidence import Calibrator
 from .crop import CROP_PADDING, CROP_SIZE, MAX_CROP_PADDING, MIN_CROP_PADDING
 from .errors import PopcodeError
 from .population_code import CodeLayout
@@ -37,6 +38,9 @@ class Representation(TextEnum):
     ONE_HOT = "one_hot"
     SINGLE_VARIABLE = "single_variable"
     MULTI_HYPOTHESIS = "multi_hypothesis"
+
+
+GRID_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.ONE_HOT)  # outputs one value per neuron
 
 
 class RotationFrame(TextEnum):
@@ -64,6 +68,7 @@ class ModelMetadata:
     crop_padding: float = CROP_PADDING
     num_hypotheses: int = 0
     training: dict[str, Any] = field(default_factory=dict)
+    confidence: Calibrator | None = None  # fitted at export on held-out crops; None: no calibrated confidence
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
@@ -100,11 +105,14 @@ class ModelMetadata:
             )
         if self.representation == Representation.MULTI_HYPOTHESIS and self.num_hypotheses < 1:
             raise PopcodeError("a multi_hypothesis model needs num_hypotheses >= 1")
+        if self.confidence is not None and self.representation not in GRID_REPRESENTATIONS:
+            raise PopcodeError(f"a confidence calibrator reads a population code; a {self.representation} model "
+                               "cannot carry one")
 
     @property
     def output_dim(self) -> int:
         """Length of one output row that this metadata implies."""
-        if self.representation in (Representation.POPULATION_CODE, Representation.ONE_HOT):
+        if self.representation in GRID_REPRESENTATIONS:
             return self.code.size
         if self.representation == Representation.SINGLE_VARIABLE:
             return 3 if self.code.axis_only else 6
@@ -132,6 +140,7 @@ class ModelMetadata:
             "popcode.input": json.dumps({"size": self.input_size, "crop_padding": self.crop_padding}),
             "popcode.num_hypotheses": json.dumps(self.num_hypotheses),
             "popcode.training": json.dumps(self.training),
+            "popcode.confidence": json.dumps(None if self.confidence is None else self.confidence.to_dict()),
         }
 
     @classmethod
@@ -176,8 +185,14 @@ class ModelMetadata:
             crop_padding=input_info.get("crop_padding", CROP_PADDING),
             num_hypotheses=load("popcode.num_hypotheses", 0),
             training=load("popcode.training", {}),
+            confidence=_calibrator(load("popcode.confidence")) if "popcode.confidence" in props else None,
             format_version=version,
         )
+
+
+def _calibrator(value: Any) -> Calibrator | None:
+    """The optional confidence calibrator (null in models exported without one)."""
+    return None if value is None else Calibrator.from_dict(value)
 
 
 def _refuse_constant(name: str) -> None:

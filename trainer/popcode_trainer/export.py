@@ -9,6 +9,7 @@ pose agreement against the float model; all carry the same metadata.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import tempfile
 import warnings
 from collections.abc import Sequence
@@ -18,6 +19,7 @@ import numpy as np
 import onnx
 import torch
 
+from popcode_runtime.confidence import Calibrator
 from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
@@ -78,15 +80,17 @@ def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray, met
 
 def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: np.ndarray,
                       quantisations: tuple[str, ...] = (), split_output: int = 0,
-                      obj_ids: Sequence[int] | None = None) -> list[Comparison]:
+                      obj_ids: Sequence[int] | None = None, calibrator: Calibrator | None = None) -> list[Comparison]:
     """Export, check parity, quantise; returns the float parity and each quantised model's agreement.
 
     int8 is calibrated on ``crops`` too, so its agreement is measured on the
     crops it was calibrated on. ``obj_ids`` (the object of each crop) picks
     each crop's symmetries for the pose agreement; a model of several objects
-    with different symmetries has none without them.
+    with different symmetries has none without them. ``calibrator`` (see
+    :mod:`popcode_trainer.confidence_fit`) goes into the metadata of every model written.
     """
     model, metadata = load_checkpoint_model(checkpoint_path)
+    metadata = dataclasses.replace(metadata, confidence=calibrator)
     size = metadata.input_size
     crops = np.asarray(crops, dtype=np.float32)
     if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or len(crops) == 0:

@@ -22,6 +22,7 @@ from popcode_runtime.metadata import Representation
 from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
+from .confidence_fit import calibrate_checkpoint
 from .config import CodeConfig, Config, DataConfig, TrainConfig
 from .data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from .export import export_checkpoint
@@ -133,5 +134,7 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
         train(config, data.representation, data.train_set, data.val_set,
               resume=(folder / LAST_CHECKPOINT).exists(), val_instances=data.val_instances)
         crops, obj_ids = validation_crops(config)
-        export_checkpoint(folder / LAST_CHECKPOINT, onnx_path, crops, quantisations, obj_ids=obj_ids)
+        calibrator, _ = calibrate_checkpoint(folder / LAST_CHECKPOINT)
+        export_checkpoint(folder / LAST_CHECKPOINT, onnx_path, crops, quantisations, obj_ids=obj_ids,
+                          calibrator=calibrator)
     return onnx_path, time.perf_counter() - started

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError, first_line
 
 from .. import checkpoint
+from ..confidence_fit import calibrate_checkpoint
 from ..config import Config
 from ..export import COREML_MAX_DIM, export_checkpoint
 from ..quantise import QUANTISATIONS
@@ -33,6 +35,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--crop-obj-ids", type=Path, metavar="NPY",
                         help="the object id of each of --crops, a .npy of N integers; picks each crop's symmetries "
                              "for the pose agreement (needed for a model of objects with different symmetries)")
+    parser.add_argument("--confidence-threshold", type=float, default=DEFAULT_THRESHOLD_DEG, metavar="DEG",
+                        help=f"the calibrated confidence is P(rotation error < DEG), fitted on the images the "
+                             f"checkpoint's training held out (default {DEFAULT_THRESHOLD_DEG:g})")
+    parser.add_argument("--no-confidence", action="store_true",
+                        help="export without a confidence calibrator (the runtime then reports confidence null)")
     parser.set_defaults(handler=run)
 
 
@@ -85,8 +92,10 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
     checkpoint.load_trained(args.checkpoint)  # refused here, before any crop is read
     crops, obj_ids = _crops(args)
+    calibrator, note = (None, "not asked for (--no-confidence)") if args.no_confidence else \
+        calibrate_checkpoint(args.checkpoint, args.confidence_threshold)
     results = export_checkpoint(args.checkpoint, args.out, crops, tuple(args.quantize), args.split_output,
-                                obj_ids=obj_ids)
+                                obj_ids=obj_ids, calibrator=calibrator)
     print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17} {'pose agreement':>15}")
     for result in results:
         print(f"{str(result.path):<50} {result.max_abs_diff:>14.3g} {_percent(result.argmax_agreement):>17} "
@@ -96,4 +105,5 @@ def run(args: argparse.Namespace) -> int:
     if any(result.pose_agreement is None for result in results):
         print("pose agreement n/a: the model's objects differ in symmetry; give the object of each crop "
               "(--crop-obj-ids)")
+    print(f"confidence calibrator: {note}" if calibrator else f"no confidence calibrator: {note}")
     return 0

@@ -9,6 +9,7 @@ renderers of one :class:`.split_metrics.SplitMetrics`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
@@ -16,10 +17,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError
 
-from ..metrics.recall import InstanceErrors, Thresholds
-from .models import Method, predict_rotations
+from ..metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
+from ..metrics.recall import InstanceErrors, Thresholds, metric_scores
+from .models import Estimates, Method, predict_rotations
 from .split import EvalSplit, restrict_to_objects
 from .split_metrics import SplitMetrics
 from .translation import FullPose, full_pose
@@ -41,6 +44,7 @@ class MethodResult:
     metric_s: float
     full_pose: FullPose | None = None  # when asked for: translation from the box, 6-D scores
     thresholds: Thresholds = field(default_factory=Thresholds)  # those every score was computed with
+    confidence: ConfidenceEvaluation | None = None  # how well the per-estimate score predicts a small error
 
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
@@ -63,9 +67,25 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
 def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True,
                    translation: bool = False) -> MethodResult:
     """Predict every instance of the split with the method's models, then score (6-D too with ``translation``)."""
-    R_est, model_s_per_crop = predict_rotations(method, metrics.split.instances, progress)
-    return evaluate_rotations(method.name, R_est, metrics, tuple(str(m.path) for m in method.models),
-                              1000.0 * model_s_per_crop, method.object_points() if translation else None)
+    estimates = predict_rotations(method, metrics.split.instances, progress)
+    result = evaluate_rotations(method.name, estimates.R_m2c, metrics, tuple(str(m.path) for m in method.models),
+                                1000.0 * estimates.seconds_per_crop, method.object_points() if translation else None)
+    thresholds = {m.confidence_threshold_deg for m in method.models}
+    return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors, thresholds))
+
+
+def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,
+                          thresholds_deg: set[float | None]) -> ConfidenceEvaluation:
+    """The calibrated confidence when every model of the method has one (and all share a threshold), else the
+    raw score at the default threshold."""
+    split = metrics.split
+    calibrated = len(thresholds_deg) == 1 and None not in thresholds_deg and np.isfinite(estimates.confidence).all()
+    threshold = next(iter(thresholds_deg)) if calibrated else DEFAULT_THRESHOLD_DEG
+    errors_deg = rotation_errors_deg(estimates.R_m2c, np.stack([inst.R_m2c for inst in split.instances]),
+                                     errors.obj_id, split.models_info)
+    return evaluate_confidence(
+        estimates.confidence if calibrated else estimates.score, calibrated, errors_deg, threshold,
+        lambda mask: metric_scores(errors.select(mask), metrics.diameters_mm, metrics.thresholds)["MSSD"])
 
 
 def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable[int] | None) -> EvalSplit:

@@ -45,10 +45,17 @@ class RotationModel:
         return frozenset(self.objects)
 
     def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
-                obj_ids: list[int]) -> np.ndarray:
-        """Rotations ``(n, 3, 3)`` in the camera frame."""
+                obj_ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rotations ``(n, 3, 3)`` in the camera frame, their calibrated confidence (NaN: none) and raw score."""
         predictions = self.estimator.predict(image, boxes, K=K, obj_ids=obj_ids)
-        return np.stack([p.R_m2c for p in predictions])
+        confidence = [np.nan if p.confidence is None else p.confidence for p in predictions]
+        return np.stack([p.R_m2c for p in predictions]), np.array(confidence), np.array([p.score for p in predictions])
+
+    @property
+    def confidence_threshold_deg(self) -> float | None:
+        """The error threshold the model's calibrated confidence is about; None without a calibrator."""
+        calibrator = self.estimator.metadata.confidence
+        return None if calibrator is None else calibrator.threshold_deg
 
 
 def load_model(path: str | Path, decoder: str = "argmax") -> RotationModel:
@@ -91,19 +98,25 @@ class Method:
         return {obj_id: points for model in self.models for obj_id, points in object_points(model.objects).items()}
 
 
-def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True,
-                      ) -> tuple[np.ndarray, float]:
-    """Rotations ``(N, 3, 3)`` for the instances and the model's seconds per crop.
+@dataclass(frozen=True)
+class Estimates:
+    """A method's rotations of a split's instances, with what it says about each."""
 
-    Each image is read once; the model time covers crop, network and decoding.
-    """
+    R_m2c: np.ndarray  # (N, 3, 3)
+    confidence: np.ndarray  # (N,) calibrated P(error < threshold); NaN where the model has no calibrator
+    score: np.ndarray  # (N,) the representation's raw score (peak activation, ...)
+    seconds_per_crop: float  # crop + network + decoding
+
+
+def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True) -> Estimates:
+    """The method's estimate of every instance; each image is read once."""
     owner = method.model_of()
     missing = sorted({inst.obj_id for inst in instances} - set(owner))
     if missing:
         raise PopcodeError(f"method {method.name!r} has no model for objects {missing} of the split "
                            f"(its models know {sorted(owner)}); pass --obj-ids to evaluate fewer objects")
     by_image = rows_by_image(instances)
-    R_est = np.empty((len(instances), 3, 3))
+    R_est, confidence, score = np.empty((len(instances), 3, 3)), np.empty(len(instances)), np.empty(len(instances))
     model_s = 0.0
     for image_path, rows in tqdm(by_image.items(), desc=f"predict {method.name}", unit="img", disable=not progress):
         image = read_image(image_path)
@@ -112,10 +125,11 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
             if not chosen:
                 continue
             started = time.perf_counter()
-            R_est[chosen] = model.predict(image, [instances[i].box for i in chosen], instances[chosen[0]].K,
-                                          [instances[i].obj_id for i in chosen])
+            R_est[chosen], confidence[chosen], score[chosen] = model.predict(
+                image, [instances[i].box for i in chosen], instances[chosen[0]].K,
+                [instances[i].obj_id for i in chosen])
             model_s += time.perf_counter() - started
-    return R_est, model_s / max(len(instances), 1)
+    return Estimates(R_est, confidence, score, model_s / max(len(instances), 1))
 
 
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,

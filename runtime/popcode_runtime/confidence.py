@@ -1,0 +1,137 @@
+"""A calibrated confidence per estimate: the probability that its rotation error is below a threshold.
+
+A population code says how sure the network is: a tall, sharp peak with no
+rival elsewhere is usually right; a low peak, or mass spread over a second
+pose that is *not* a symmetric equivalent of the first, is often wrong.
+:func:`code_features` measures that on each code, and a :class:`Calibrator`
+(a logistic model with non-negative weights, so confidence never falls when a
+feature improves) maps the features to a probability. The trainer fits it at
+export on held-out validation crops and stores it in the model's metadata;
+this module only applies it, with numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .checks import mapping, number
+from .errors import PopcodeError
+from .population_code import CodeLayout, PopulationCode, check_code
+from .rotations import matrix_to_axis_angle
+
+FEATURES = ("peak", "margin", "concentration")
+DEFAULT_THRESHOLD_DEG = 10.0
+RIVAL_RADIUS_SIGMAS = 2.5  # in code space, neurons further than this from every equivalent peak are rival poses
+
+
+@dataclass(frozen=True)
+class Calibrator:
+    """``P(rotation error up to symmetry < threshold_deg) = sigmoid(bias + weights . features)``.
+
+    ``weights`` (one per name in :data:`FEATURES`) are non-negative: the
+    confidence is monotone in every feature. ``rival_radius_deg`` is the radius
+    :func:`code_features` used when the calibrator was fitted; it must be the
+    same at run time. ``fitted_on`` says what it was fitted on (for people).
+    """
+
+    threshold_deg: float
+    rival_radius_deg: float
+    weights: tuple[float, ...]
+    bias: float
+    fitted_on: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "threshold_deg", number(self.threshold_deg, "confidence threshold_deg", 0.0, 180.0))
+        object.__setattr__(self, "rival_radius_deg",
+                           number(self.rival_radius_deg, "confidence rival_radius_deg", 0.0, 180.0))
+        object.__setattr__(self, "bias", number(self.bias, "confidence bias"))
+        if isinstance(self.weights, (str, bytes)) or not isinstance(self.weights, Sequence) \
+                or len(self.weights) != len(FEATURES):
+            raise PopcodeError(f"confidence weights must be {len(FEATURES)} numbers ({', '.join(FEATURES)}), "
+                               f"got {self.weights!r}")
+        weights = tuple(number(w, f"confidence weight of {name}", 0.0) for w, name in zip(self.weights, FEATURES,
+                                                                                          strict=True))
+        object.__setattr__(self, "weights", weights)
+        mapping(self.fitted_on, "confidence fitted_on")
+        if self.threshold_deg == 0.0 or self.rival_radius_deg == 0.0:
+            raise PopcodeError("confidence threshold_deg and rival_radius_deg must be positive")
+
+    def probability(self, features: np.ndarray) -> np.ndarray:
+        """Confidence ``(N,)`` in [0, 1] for features ``(N, len(FEATURES))``."""
+        logits = self.bias + np.asarray(features, np.float64) @ np.asarray(self.weights)
+        return 0.5 * (1.0 + np.tanh(0.5 * logits))  # the logistic function, without overflow warnings
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"threshold_deg": self.threshold_deg, "rival_radius_deg": self.rival_radius_deg,
+                "features": list(FEATURES), "weights": list(self.weights), "bias": self.bias,
+                "fitted_on": dict(self.fitted_on)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Calibrator:
+        data = mapping(data, "model metadata 'popcode.confidence'")
+        if data.get("features") != list(FEATURES):
+            raise PopcodeError(f"model metadata 'popcode.confidence' uses features {data.get('features')!r}; "
+                               f"this runtime computes {list(FEATURES)}")
+        missing = [key for key in ("threshold_deg", "rival_radius_deg", "weights", "bias") if key not in data]
+        if missing:
+            raise PopcodeError(f"model metadata 'popcode.confidence' lacks {', '.join(missing)}")
+        return cls(data["threshold_deg"], data["rival_radius_deg"], data["weights"], data["bias"],
+                   dict(data.get("fitted_on", {})))
+
+
+def default_rival_radius_deg(layout: CodeLayout) -> float:
+    """Where a peak's own blob ends: ``RIVAL_RADIUS_SIGMAS`` tuning widths, at least two lattice steps."""
+    return float(max(RIVAL_RADIUS_SIGMAS * layout.sigma_deg, 2.0 * math.degrees(layout.axis_spacing_rad)))
+
+
+def code_features(layout: CodeLayout, codes: np.ndarray, symmetries: np.ndarray,
+                  rival_radius_deg: float) -> np.ndarray:
+    """Features ``(N, 3)`` of codes ``(N, D)``, in the order of :data:`FEATURES`.
+
+    ``symmetries`` ``(K, 3, 3)`` are the object's discrete symmetry rotations
+    (identity included). A neuron belongs to the winning pose when it lies
+    within ``rival_radius_deg`` of the argmax neuron's pose, or of one of its
+    symmetric equivalents or axis/angle twins, in the code's own geometry
+    (``sqrt(dtheta^2 + dphi^2)``, where the encoder puts its Gaussians; on the
+    sphere for axis-only codes).
+
+    - ``peak``: the argmax activation;
+    - ``margin``: the peak minus the strongest neuron of any other pose;
+    - ``concentration``: the share of the positive activation that sits on the winning pose.
+    """
+    codes = check_code(codes, layout.size).astype(np.float64, copy=False)
+    symmetries = np.asarray(symmetries, np.float64)
+    radius = math.radians(rival_radius_deg)
+    winners = PopulationCode(layout).preferred_rotations(np.argmax(codes, axis=1)) if len(codes) else None
+    features = np.empty((len(codes), len(FEATURES)))
+    for n, code in enumerate(codes):
+        near = _near_pose(layout, winners[n] @ symmetries, radius)
+        top = code.max()
+        rival = code[~near].max() if not near.all() else -np.inf
+        positive = np.maximum(code, 0.0)
+        total = positive.sum()
+        features[n] = (top, top - rival if np.isfinite(rival) else top,
+                       positive[near].sum() / total if total > 0 else 0.0)
+    return features
+
+
+def _near_pose(layout: CodeLayout, equivalents: np.ndarray, radius_rad: float) -> np.ndarray:
+    """``(D,)`` bool: neurons within ``radius_rad`` of any of the rotations ``(K, 3, 3)`` in code space."""
+    if layout.axis_only:
+        directions = equivalents @ np.asarray(layout.symmetry_axis)  # (K, 3)
+        return (directions @ layout.axes.T).max(axis=0) >= math.cos(radius_rad)
+    axes, angles = matrix_to_axis_angle(equivalents)
+    axes = np.concatenate([axes, -axes])  # each rotation sits in the code twice: (r, phi) and (-r, 2 pi - phi)
+    angles = np.concatenate([angles, 2.0 * np.pi - angles])
+    dtheta2 = np.arccos(np.clip(axes @ layout.axes.T, -1.0, 1.0)) ** 2  # (2K, n_axes)
+    dphi2 = np.angle(np.exp(1j * (angles[:, None] - layout.angles_rad[None]))) ** 2  # (2K, m)
+    near = np.zeros((layout.n_axes, layout.n_angles), bool)
+    candidates = np.flatnonzero((dtheta2 < radius_rad**2).any(axis=0))  # only axes inside some cap can be near
+    distance2 = dtheta2[:, candidates, None] + dphi2[:, None, :]  # (2K, candidates, m)
+    near[candidates] = distance2.min(axis=0) < radius_rad**2
+    return near.reshape(-1)

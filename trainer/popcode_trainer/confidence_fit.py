@@ -1,0 +1,146 @@
+"""Fit a model's confidence calibrator at export, on validation images held out of its training.
+
+The exported network runs through the runtime's one pipeline on each held-out
+instance (crop -> network -> decode -> camera frame), its rotation error up to
+symmetry is measured against the ground truth, and a logistic model with
+non-negative weights is fitted from the code's features
+(:func:`popcode_runtime.confidence.code_features`) to "error < threshold".
+The weights are constrained, not just fitted, to be non-negative so that a
+taller, sharper, less contested peak can never lower the confidence.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+from tqdm import tqdm
+
+from popcode_runtime.confidence import (
+    DEFAULT_THRESHOLD_DEG,
+    FEATURES,
+    Calibrator,
+    code_features,
+    default_rival_radius_deg,
+)
+from popcode_runtime.crop import read_image
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.metadata import GRID_REPRESENTATIONS
+from popcode_runtime.symmetries import symmetry_rotations
+
+from . import checkpoint
+from .config import Config
+from .data.bop import Instance
+from .eval.metrics.confidence import rotation_errors_deg
+from .eval.pipeline.split import rows_by_image
+from .torch_engine import checkpoint_estimator
+from .training_data import read_instances, split_by_image
+
+MAX_CALIBRATION_INSTANCES = 2000  # enough for four weights; bounds the export's time
+MIN_PER_OUTCOME = 5  # correct and wrong estimates each; fewer cannot say where the boundary lies
+L2_PENALTY = 1e-3  # keeps the weights finite when the classes separate perfectly
+
+
+@dataclass(frozen=True)
+class HeldOutEstimates:
+    """What the model says about held-out instances and how wrong it is."""
+
+    features: np.ndarray  # (N, len(FEATURES))
+    errors_deg: np.ndarray  # (N,) rotation error up to symmetry
+
+
+def held_out_instances(config: Config, limit: int = MAX_CALIBRATION_INSTANCES) -> list[Instance]:
+    """The validation instances of a training config (the images training held out), at most ``limit``, seeded."""
+    instances, _ = read_instances(config)
+    _, held_out = split_by_image(instances, config.data.val_fraction, config.train.seed)
+    if len(held_out) > limit:
+        chosen = np.random.default_rng(config.train.seed).choice(len(held_out), limit, replace=False)
+        held_out = [held_out[i] for i in sorted(chosen)]
+    return held_out
+
+
+def estimate_held_out(estimator: PoseEstimator, instances: Sequence[Instance], rival_radius_deg: float,
+                      progress: bool = True) -> HeldOutEstimates:
+    """Run the estimator on every instance (each image read once); code features and errors up to symmetry."""
+    meta = estimator.metadata
+    codes = np.empty((len(instances), meta.output_dim), np.float32)
+    R_est = np.empty((len(instances), 3, 3))
+    for image_path, rows in tqdm(rows_by_image(instances).items(), desc="confidence: held-out crops", unit="img",
+                                 disable=not progress):
+        image = read_image(image_path)
+        predictions = estimator.predict(image, [instances[i].box for i in rows], K=instances[rows[0]].K,
+                                        obj_ids=[instances[i].obj_id for i in rows], return_code=True)
+        for row, prediction in zip(rows, predictions, strict=True):
+            codes[row], R_est[row] = prediction.code, prediction.R_m2c
+    obj_ids = np.array([inst.obj_id for inst in instances])
+    features = np.empty((len(instances), len(FEATURES)))
+    for obj_id in np.unique(obj_ids):
+        rows = np.flatnonzero(obj_ids == obj_id)
+        features[rows] = code_features(meta.code, codes[rows], symmetry_rotations(meta.objects[int(obj_id)]),
+                                       rival_radius_deg)
+    errors = rotation_errors_deg(R_est, np.stack([inst.R_m2c for inst in instances]), obj_ids, meta.objects)
+    return HeldOutEstimates(features, errors)
+
+
+def fit_logistic(features: np.ndarray, correct: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weights ``>= 0`` and bias of ``P(correct) = sigmoid(bias + w . features)`` (maximum likelihood, small L2).
+
+    Features are standardised for the fit and the weights mapped back, which
+    keeps their signs.
+    """
+    mean, scale = features.mean(axis=0), features.std(axis=0)
+    scale = np.where(scale > 1e-12, scale, 1.0)
+    x = (features - mean) / scale
+    y = np.asarray(correct, np.float64)
+
+    def loss(params: np.ndarray) -> tuple[float, np.ndarray]:
+        logits = params[0] + x @ params[1:]
+        p = 0.5 * (1.0 + np.tanh(0.5 * logits))
+        nll = np.logaddexp(0.0, logits) - y * logits  # -log likelihood, stable for large |logits|
+        residual = (p - y) / len(y)
+        grad = np.concatenate([[residual.sum()], x.T @ residual + 2 * L2_PENALTY * params[1:]])
+        return float(nll.mean() + L2_PENALTY * params[1:] @ params[1:]), grad
+
+    bounds = [(None, None)] + [(0.0, None)] * x.shape[1]
+    result = minimize(loss, np.zeros(x.shape[1] + 1), jac=True, method="L-BFGS-B", bounds=bounds)
+    weights = result.x[1:] / scale
+    return weights, float(result.x[0] - weights @ mean)
+
+
+def fit_calibrator(estimator: PoseEstimator, instances: Sequence[Instance],
+                   threshold_deg: float = DEFAULT_THRESHOLD_DEG,
+                   progress: bool = True) -> tuple[Calibrator | None, str]:
+    """A calibrator for the estimator's model, or None and the reason there is none."""
+    meta = estimator.metadata
+    if not 0.0 < threshold_deg < 180.0:
+        raise PopcodeError(f"the confidence threshold must lie in (0, 180) degrees, got {threshold_deg:g}")
+    if meta.representation not in GRID_REPRESENTATIONS:
+        return None, f"a {meta.representation} model has no code to read a confidence from"
+    if not instances:
+        return None, "no held-out images (set data.val_fraction above 0 to keep some out of training)"
+    radius = default_rival_radius_deg(meta.code)
+    held_out = estimate_held_out(estimator, instances, radius, progress)
+    correct = held_out.errors_deg < threshold_deg
+    if min(correct.sum(), (~correct).sum()) < MIN_PER_OUTCOME:
+        return None, (f"{int(correct.sum())} of {len(correct)} held-out estimates are within {threshold_deg:g} deg: "
+                      f"at least {MIN_PER_OUTCOME} right and {MIN_PER_OUTCOME} wrong ones are needed to calibrate")
+    weights, bias = fit_logistic(held_out.features, correct)
+    fitted_on = {"held_out_instances": len(correct), "share_correct": round(float(correct.mean()), 4)}
+    return Calibrator(threshold_deg, radius, tuple(float(w) for w in weights), bias, fitted_on), \
+        f"fitted on {len(correct)} held-out crops ({100 * correct.mean():.1f} % within {threshold_deg:g} deg)"
+
+
+def calibrate_checkpoint(path: str | Path, threshold_deg: float = DEFAULT_THRESHOLD_DEG,
+                         progress: bool = True) -> tuple[Calibrator | None, str]:
+    """Fit the calibrator of a training checkpoint on the images its training held out (see :func:`fit_calibrator`)."""
+    estimator = checkpoint_estimator(path)
+    if estimator.metadata.representation not in GRID_REPRESENTATIONS:
+        return fit_calibrator(estimator, [], threshold_deg, progress)
+    config = Config.from_dict(checkpoint.load_trained(path)["config"])
+    if not config.data.splits or not config.data.models_dir:
+        return None, "the checkpoint's config names no BOP split whose held-out images could calibrate it"
+    return fit_calibrator(estimator, held_out_instances(config), threshold_deg, progress)
