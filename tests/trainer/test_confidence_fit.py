@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -87,9 +88,7 @@ out_dir = "{tmp_path / 'run'}"
     model = tmp_path / "model.onnx"
     assert main(["export", str(tmp_path / "run" / "last.pt"), "--out", str(model),
                  "--confidence-threshold", "30"]) == 0
-    out = capsys.readouterr().out
-    print(out)
-    assert "confidence calibrator: fitted on 100 held-out crops" in out
+    assert "confidence calibrator: fitted on 100 held-out crops" in capsys.readouterr().out
     estimator = PoseEstimator(model)
     calibrator = estimator.metadata.confidence
     assert calibrator is not None and calibrator.threshold_deg == 30.0
@@ -108,3 +107,11 @@ out_dir = "{tmp_path / 'run'}"
     evaluation = evaluate_confidence(confidence, True, errors, 30.0, lambda mask: float(mask.mean()))
     assert evaluation.kind == "calibrated confidence" and 0.0 <= evaluation.ece <= 1.0
     assert evaluation.mssd_at_coverage[0.5] == pytest.approx(0.5, abs=1 / len(instances))
+
+    assert main(["evaluate", str(model), "--split", str(test), "--models-dir", str(test / "models"),
+                 "--out", str(tmp_path / "eval"), "--no-vsd"]) == 0
+    report = json.loads((tmp_path / "eval" / "report.json").read_text())["methods"]["model"]["confidence"]
+    assert report["kind"] == "calibrated confidence" and report["threshold_deg"] == 30.0
+    assert report["auroc"] == pytest.approx(evaluation.auroc)  # the same estimates as the runtime's, one by one
+    assert (tmp_path / "eval" / "reliability.png").read_bytes()[:4] == b"\x89PNG"
+    assert "## Confidence" in (tmp_path / "eval" / "report.md").read_text()

@@ -45,6 +45,10 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
         assert f"| {name} |" in report
         all_objects = summary["scores"][name]["All objects"]
         assert 0.0 <= all_objects["MSSD"] <= 1.0
+    assert set(summary["confidence"]) == methods  # each judged: a calibrated confidence or its raw score
+    for name in methods:
+        assert 0.0 <= summary["confidence"][name]["mssd_at_coverage"]["0.5"] <= 1.0
+    assert "### Confidence" in report
     # 3 models x 2 batches x 2 stages, each with a positive median
     assert len(summary["latency"]) == 12
     assert all(record["median_ms"] > 0 for record in summary["latency"])

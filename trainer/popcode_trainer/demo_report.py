@@ -17,6 +17,7 @@ from popcode_runtime.metadata import Representation
 from .data.files import write_bytes_atomic
 from .eval.pipeline.evaluate import MethodResult
 from .eval.pipeline.split import EvalSplit
+from .eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
 from .eval.reporting.markdown import markdown_table
 from .eval.reporting.report import REPORT_MD, full_pose_markdown
 from .eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
@@ -180,9 +181,17 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
         + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
+        _confidence_section(run),
         "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ]) + "\n"
+
+
+def _confidence_section(run: DemoRun) -> str:
+    """The confidence table and, when a model is calibrated, its reliability diagram."""
+    reliability = run.out_dir / "eval" / RELIABILITY_PNG
+    figure = f"\n\n![Reliability]({run.link(reliability)})" if reliability.is_file() else ""
+    return _demote_headings(confidence_markdown(run.results)) + figure
 
 
 def write_outputs(run: DemoRun) -> dict[str, Any]:
@@ -195,6 +204,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
         "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
         "wall_seconds": run.seconds, "machine": machine_description(), "step_seconds": run.step_seconds,
         "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,
+        "confidence": {r.name: r.confidence.to_dict() for r in run.results if r.confidence is not None},
         "models": {name: [str(p) for p in paths] for name, paths in run.models.by_representation.items()},
         "quantised_models": [str(p) for p in run.models.quantised],
         "figures": {title: [str(p) for p in paths] for title, paths in run.figures.items()},

@@ -25,6 +25,7 @@ from ..pipeline.evaluate import MethodResult
 from ..pipeline.split import EvalSplit
 from ..pipeline.translation import relative_translation_error, translation_summary
 from .bop19_csv import PoseEstimate, write_bop19_results
+from .confidence import RELIABILITY_PNG, confidence_markdown, plot_reliability
 from .markdown import markdown_table
 from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown
 
@@ -134,6 +135,9 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
     for metric in present:
         parts.append(per_object_markdown({r.name: r.per_object for r in results}, metric, dict(counts)))
     parts += full_pose_markdown(results)
+    confidence = confidence_markdown(results)
+    if confidence:
+        parts.append(confidence)
     parts += ["## Timing", timing_markdown(results)]
     return "\n\n".join(parts) + "\n"
 
@@ -172,7 +176,8 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
     methods: dict[str, Any] = {}
     for r in results:
         methods[r.name] = {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
-                           "tightest": r.tightest, "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s}
+                           "tightest": r.tightest, "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s,
+                           "confidence": None if r.confidence is None else r.confidence.to_dict()}
         if r.full_pose is not None:
             methods[r.name]["full_pose"] = {
                 "translation": translation[r.name], "translation_gt_rotation": translation[f"{r.name}, {GT_ROTATION}"],
@@ -207,6 +212,9 @@ def write_report(results: Sequence[MethodResult], out_dir: str | Path,
                 for inst, R, t in zip(split.instances, result.R_est, translations, strict=True)
             ])
             written.append(path)
+    reliability = plot_reliability(results, out_dir / RELIABILITY_PNG)
+    if reliability is not None:
+        written.append(reliability)
     (out_dir / REPORT_MD).write_text(report_markdown(results))
     (out_dir / REPORT_JSON).write_text(to_json(report_dict(results)) + "\n")
     return [*written, out_dir / REPORT_MD, out_dir / REPORT_JSON]
