@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.translation import object_points_mm, translation_from_box
@@ -26,7 +27,6 @@ from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.models import methods_from_paths
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
-from popcode_trainer.eval.reporting.bop19_csv import read_bop19_results
 from popcode_trainer.eval.reporting.report import write_report
 from popcode_trainer.export import export_checkpoint
 from popcode_trainer.run_files import LAST_CHECKPOINT

@@ -12,9 +12,9 @@ import numpy as np
 
 from popcode_runtime.benchmark import machine_description
 from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 
-from .data.files import write_bytes_atomic
 from .eval.pipeline.evaluate import MethodResult
 from .eval.pipeline.split import EvalSplit
 from .eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown

@@ -10,10 +10,10 @@ import torch
 from onnx import helper
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import ModelMetadata
 
 from . import checkpoint
-from .data.files import write_bytes_atomic
 from .data.hull import with_hull_points
 from .network import NetworkConfig, build_network
 from .representations import CodeSoftmax, code_mass

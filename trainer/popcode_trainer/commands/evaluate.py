@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.decoding import DECODERS
+from popcode_runtime.files import require_folder
 
-from ..data.files import require_folder
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import methods_from_paths
-from ..eval.pipeline.split import EVAL_MIN_VISIB_FRACT, read_eval_split
+from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.report import report_markdown, write_report
 
 
@@ -44,9 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     depth.add_argument("--no-vsd", dest="vsd", action="store_const", const=False,
                        help="skip the depth-based metrics (default: computed when the split has depth)")
     parser.add_argument("--max-instances", type=int, metavar="N", help="evaluate at most N instances per object")
-    parser.add_argument("--min-visib-fract", type=float, default=EVAL_MIN_VISIB_FRACT,
+    parser.add_argument("--min-visib-fract", type=float, default=BOP19_MIN_VISIB_FRACT,
                         help=f"leave out instances with less of the object visible (default, as BOP19: "
-                             f"{EVAL_MIN_VISIB_FRACT})")
+                             f"{BOP19_MIN_VISIB_FRACT})")
     parser.set_defaults(handler=run)
 
 

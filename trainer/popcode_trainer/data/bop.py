@@ -7,23 +7,27 @@ Only the JSON files are read when a split is indexed; images are opened by whoev
 
 from __future__ import annotations
 
-import json
-import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from popcode_runtime.bop_split import (
+    BOX_KINDS,
+    camera_matrix,
+    folder_index,
+    image_folder,
+    int_keys,
+    json_field,
+    scene_folders,
+)
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import read_json, require_folder
 from popcode_runtime.symmetries import symmetry_transforms
 
-from .files import require_folder
-
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
-IMAGE_FOLDERS = ("rgb", "gray")
-_BOX_KINDS = ("bbox_obj", "bbox_visib")
 
 
 @dataclass(frozen=True)
@@ -67,33 +71,6 @@ def model_path(models_dir: str | Path, obj_id: int) -> Path:
     return path
 
 
-def read_json(path: Path) -> Any:
-    """Parsed JSON, or a PopcodeError that names the file."""
-    if not path.is_file():
-        raise PopcodeError(f"missing file {path}")
-    try:
-        with path.open() as file:
-            return json.load(file)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise PopcodeError(f"{path} is not valid JSON: {error}") from error
-
-
-def _field(entry: Any, key: str, path: Path, where: str, size: int | None = None) -> Any:
-    """``entry[key]`` (as a float array of ``size`` numbers when size is given), else an error naming it."""
-    if not isinstance(entry, Mapping) or key not in entry:
-        raise PopcodeError(f"{path}: key '{key}' missing in {where}")
-    value = entry[key]
-    if size is None:
-        return value
-    try:
-        array = np.asarray(value, dtype=np.float64).reshape(size)
-    except (TypeError, ValueError) as error:
-        raise PopcodeError(f"{path}: key '{key}' in {where} must be {size} numbers, got {value!r}") from error
-    if not np.isfinite(array).all():
-        raise PopcodeError(f"{path}: key '{key}' in {where} contains NaN or inf")
-    return array
-
-
 def _rotation(values: np.ndarray, path: Path, where: str) -> np.ndarray:
     """A row-major ``cam_R_m2c`` as a 3x3 rotation; a scaled, skewed or mirrored matrix is corrupt ground truth."""
     R = values.reshape(3, 3)
@@ -122,22 +99,13 @@ def check_image_matches(instance: Instance, width: int, height: int) -> None:
                            "the images do not match the camera")
 
 
-def _int_keys(data: Any, path: Path) -> dict[int, Any]:
-    if not isinstance(data, Mapping):
-        raise PopcodeError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
-    try:
-        return {int(key): value for key, value in data.items()}
-    except ValueError as error:
-        raise PopcodeError(f"{path}: keys must be integer ids ({error})") from error
-
-
 def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
     """``models_info.json`` keyed by object id, each entry checked (diameter, extents, symmetries)."""
     path = Path(models_dir) / "models_info.json"
-    models_info = _int_keys(read_json(path), path)
+    models_info = int_keys(read_json(path), path)
     for obj_id, info in models_info.items():
         where = f"object {obj_id}"
-        diameter = float(_field(info, "diameter", path, where, size=1)[0])
+        diameter = float(json_field(info, "diameter", path, where, size=1)[0])
         if diameter <= 0:
             raise PopcodeError(f"{path}: key 'diameter' of {where} must be positive, got {diameter}")
         try:
@@ -147,24 +115,15 @@ def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
     return models_info
 
 
-def _folder_index(folder: Path) -> dict[str, Path]:
-    """File stem -> path for every file in a folder (one listdir instead of a stat per image)."""
-    if not folder.is_dir():
-        return {}
-    return {name.rsplit(".", 1)[0]: folder / name for name in os.listdir(folder) if not name.startswith(".")}
-
-
 def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visib_fract: float, box: str,
                      rendered: bool) -> Iterable[Instance]:
     gt_path, info_path, camera_path = (scene_dir / f"scene_{name}.json" for name in ("gt", "gt_info", "camera"))
-    scene_gt = _int_keys(read_json(gt_path), gt_path)
-    scene_info = _int_keys(read_json(info_path), info_path)
-    scene_camera = _int_keys(read_json(camera_path), camera_path)
-    image_folder = next((scene_dir / name for name in IMAGE_FOLDERS if (scene_dir / name).is_dir()), None)
-    if image_folder is None:
-        raise PopcodeError(f"{scene_dir} has no image folder; expected one of {list(IMAGE_FOLDERS)}")
-    images, depths = _folder_index(image_folder), _folder_index(scene_dir / "depth")
-    masks = _folder_index(scene_dir / "mask_visib")
+    scene_gt = int_keys(read_json(gt_path), gt_path)
+    scene_info = int_keys(read_json(info_path), info_path)
+    scene_camera = int_keys(read_json(camera_path), camera_path)
+    images_dir = image_folder(scene_dir)
+    images, depths = folder_index(images_dir), folder_index(scene_dir / "depth")
+    masks = folder_index(scene_dir / "mask_visib")
     for im_id, gts in sorted(scene_gt.items()):
         if im_id not in scene_info:
             raise PopcodeError(f"{info_path}: key '{im_id}' missing (it is in {gt_path.name})")
@@ -174,27 +133,27 @@ def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visi
         if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
             raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of objects")
         camera = scene_camera[im_id]
-        K = _field(camera, "cam_K", camera_path, f"image {im_id}", size=9).reshape(3, 3)
+        K = camera_matrix(camera, camera_path, im_id)
         depth_scale = float(camera.get("depth_scale", 1.0))
         stem = f"{im_id:06d}"
         for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
             where = f"image {im_id}, object {gt_index}"
-            obj_id = int(_field(gt, "obj_id", gt_path, where))
+            obj_id = int(json_field(gt, "obj_id", gt_path, where))
             if obj_id not in obj_ids:
                 continue
-            visib_fract = float(_field(info, "visib_fract", info_path, where, size=1)[0])
-            x, y, w, h = _field(info, box, info_path, where, size=4)
+            visib_fract = float(json_field(info, "visib_fract", info_path, where, size=1)[0])
+            x, y, w, h = json_field(info, box, info_path, where, size=4)
             if visib_fract < min_visib_fract or w <= 0 or h <= 0:
                 continue
             if stem not in images:
-                raise PopcodeError(f"image {stem} listed in {gt_path} is missing from {image_folder}")
+                raise PopcodeError(f"image {stem} listed in {gt_path} is missing from {images_dir}")
             yield Instance(
                 image_path=images[stem],
                 obj_id=obj_id,
                 box=(float(x), float(y), float(w), float(h)),
                 K=K,
-                R_m2c=_rotation(_field(gt, "cam_R_m2c", gt_path, where, size=9), gt_path, where),
-                t_m2c_mm=_field(gt, "cam_t_m2c", gt_path, where, size=3),
+                R_m2c=_rotation(json_field(gt, "cam_R_m2c", gt_path, where, size=9), gt_path, where),
+                t_m2c_mm=json_field(gt, "cam_t_m2c", gt_path, where, size=3),
                 scene_id=scene_id,
                 im_id=im_id,
                 gt_index=gt_index,
@@ -225,9 +184,9 @@ def read_bop_split(
     from the split (see :func:`is_rendered_split`).
     """
     split_dir, models_dir = Path(split_dir), Path(models_dir)
-    if box not in _BOX_KINDS:
-        raise PopcodeError(f"box must be one of {list(_BOX_KINDS)}, got {box!r}")
-    require_folder(split_dir, "split folder")
+    if box not in BOX_KINDS:
+        raise PopcodeError(f"box must be one of {list(BOX_KINDS)}, got {box!r}")
+    scene_dirs = scene_folders(split_dir)
     require_folder(models_dir, "models folder")
     models_info = load_models_info(models_dir)
     wanted = set(models_info) if obj_ids is None else {int(obj_id) for obj_id in obj_ids}
@@ -237,9 +196,6 @@ def read_bop_split(
                            f"(it lists {sorted(models_info)})")
     if rendered is None:
         rendered = is_rendered_split(split_dir)
-    scene_dirs = sorted(path for path in split_dir.iterdir() if path.is_dir() and path.name.isdigit())
-    if not scene_dirs:
-        raise PopcodeError(f"{split_dir} has no scene folders (000000, 000001, ...); is it a BOP split?")
     instances = [
         instance
         for scene_dir in scene_dirs

@@ -17,9 +17,8 @@ import trimesh
 from scipy.spatial.distance import pdist
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import write_bytes_atomic, write_json_atomic
 from popcode_runtime.rotations import axis_angle_to_matrix
-
-from .files import write_bytes_atomic, write_json_atomic
 
 _SECTIONS = 96  # facets of revolved surfaces: deviates from a true circle by < 0.06 % of the radius
 

@@ -25,10 +25,10 @@ from tqdm import tqdm
 
 from popcode_runtime.camera import project_points
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import read_json, write_json_atomic, write_png_atomic
 from popcode_runtime.rotations import random_rotations, rotation_between
 
-from .bop import RENDER_MARKER, load_models_info, model_path, read_json
-from .files import write_json_atomic, write_png_atomic
+from .bop import RENDER_MARKER, load_models_info, model_path
 from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models

@@ -8,11 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
 
 from ...data.bop import Instance, read_bop_split
-
-EVAL_MIN_VISIB_FRACT = 0.1  # the BOP19 test targets: at least 10 % of the object visible
 
 
 @dataclass(frozen=True)
@@ -29,7 +28,7 @@ class EvalSplit:
 
 
 def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, obj_ids: Iterable[int] | None = None,
-                    max_instances: int | None = None, min_visib_fract: float = EVAL_MIN_VISIB_FRACT) -> EvalSplit:
+                    max_instances: int | None = None, min_visib_fract: float = BOP19_MIN_VISIB_FRACT) -> EvalSplit:
     """Instances of one or more BOP splits; ``max_instances`` keeps the first N of each object."""
     if not split_dirs:
         raise PopcodeError("give at least one split folder")

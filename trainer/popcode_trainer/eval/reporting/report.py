@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
 from popcode_runtime.errors import PopcodeError
 
 from ..metrics.pose_errors import rotation_error_deg, translation_error_mm
@@ -24,7 +25,6 @@ from ..metrics.recall import METRICS, InstanceErrors, Thresholds, ambiguous_obje
 from ..pipeline.evaluate import MethodResult
 from ..pipeline.split import EvalSplit
 from ..pipeline.translation import relative_translation_error, translation_summary
-from .bop19_csv import PoseEstimate, write_bop19_results
 from .confidence import RELIABILITY_PNG, confidence_markdown, plot_reliability
 from .markdown import markdown_table
 from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown

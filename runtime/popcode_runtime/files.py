@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader (or a render shard running beside this one) never sees half a file."""
+"""Files in and out: JSON read with errors that name the file, and atomic writes, so that a reader (a resumed
+run, or a render shard running beside this one) never sees half a file."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from .errors import PopcodeError
+
+MAX_JSON_BYTES = 1 << 28  # a BOP annotation or detections file larger than this is refused before it is parsed
 
 
 def require_folder(path: Path, what: str) -> Path:
@@ -20,6 +23,20 @@ def require_folder(path: Path, what: str) -> Path:
     if not path.is_dir():
         raise PopcodeError(f"{what} not found: {path}")
     return path
+
+
+def read_json(path: Path) -> Any:
+    """Parsed JSON, or a PopcodeError that names the file (missing, too large, not JSON)."""
+    if not path.is_file():
+        raise PopcodeError(f"missing file {path}")
+    if path.stat().st_size > MAX_JSON_BYTES:
+        raise PopcodeError(f"{path} is {path.stat().st_size >> 20} MiB; JSON files over {MAX_JSON_BYTES >> 20} MiB "
+                           "are refused")
+    try:
+        with path.open() as file:
+            return json.load(file)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise PopcodeError(f"{path} is not valid JSON: {error}") from error
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:

@@ -1,0 +1,107 @@
+"""A BOP split's layout as both halves read it: scene folders, images, cameras, ground-truth boxes.
+
+The format is the BOP toolkit's (``docs/bop_datasets_format.md``): a split holds
+scene folders ``000000, 000001, ...``, each with ``rgb/`` or ``gray/`` images named
+by image id, ``scene_camera.json`` (``cam_K`` row-major), ``scene_gt.json`` and
+``scene_gt_info.json`` (one entry per object instance, in the same order). The
+trainer's reader (:mod:`popcode_trainer.data.bop`) builds on these functions;
+``popcode run`` uses them to find the images and cameras of a detections file.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import PopcodeError
+from .files import read_json, require_folder
+
+IMAGE_FOLDERS = ("rgb", "gray")
+BOX_KINDS = ("bbox_obj", "bbox_visib")
+BOP19_MIN_VISIB_FRACT = 0.1  # the BOP19 test targets: at least 10 % of the object visible
+
+
+def json_field(entry: Any, key: str, path: Path, where: str, size: int | None = None) -> Any:
+    """``entry[key]`` (as a finite float array of ``size`` numbers when size is given), else an error naming it."""
+    if not isinstance(entry, Mapping) or key not in entry:
+        raise PopcodeError(f"{path}: key '{key}' missing in {where}")
+    value = entry[key]
+    if size is None:
+        return value
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(size)
+    except (TypeError, ValueError) as error:
+        raise PopcodeError(f"{path}: key '{key}' in {where} must be {size} numbers, got {value!r}") from error
+    if not np.isfinite(array).all():
+        raise PopcodeError(f"{path}: key '{key}' in {where} contains NaN or inf")
+    return array
+
+
+def int_keys(data: Any, path: Path) -> dict[int, Any]:
+    """A JSON object keyed by integer ids (``"3": ...``) as a dict keyed by int."""
+    if not isinstance(data, Mapping):
+        raise PopcodeError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
+    try:
+        return {int(key): value for key, value in data.items()}
+    except ValueError as error:
+        raise PopcodeError(f"{path}: keys must be integer ids ({error})") from error
+
+
+def folder_index(folder: Path) -> dict[str, Path]:
+    """File stem -> path for every file in a folder (one listdir instead of a stat per image)."""
+    if not folder.is_dir():
+        return {}
+    return {name.rsplit(".", 1)[0]: folder / name for name in os.listdir(folder) if not name.startswith(".")}
+
+
+def scene_folders(split_dir: Path) -> list[Path]:
+    """The split's scene folders in id order; a folder without any is not a BOP split."""
+    require_folder(split_dir, "split folder")
+    scenes = sorted(path for path in split_dir.iterdir() if path.is_dir() and path.name.isdigit())
+    if not scenes:
+        raise PopcodeError(f"{split_dir} has no scene folders (000000, 000001, ...); is it a BOP split?")
+    return scenes
+
+
+def image_folder(scene_dir: Path) -> Path:
+    """The scene's ``rgb/`` or ``gray/`` folder."""
+    folder = next((scene_dir / name for name in IMAGE_FOLDERS if (scene_dir / name).is_dir()), None)
+    if folder is None:
+        raise PopcodeError(f"{scene_dir} has no image folder; expected one of {list(IMAGE_FOLDERS)}")
+    return folder
+
+
+def camera_matrix(camera: Any, path: Path, im_id: int) -> np.ndarray:
+    """``cam_K`` of one ``scene_camera.json`` entry as 3x3."""
+    return json_field(camera, "cam_K", path, f"image {im_id}", size=9).reshape(3, 3)
+
+
+@dataclass(frozen=True)
+class SplitImage:
+    """One image of a split and its camera (None where the split has no ``scene_camera.json``)."""
+
+    scene_id: int
+    im_id: int
+    path: Path
+    K: np.ndarray | None
+
+
+def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
+    """Every image of the split by ``(scene_id, im_id)``, with its camera matrix where the split has one."""
+    images: dict[tuple[int, int], SplitImage] = {}
+    for scene_dir in scene_folders(Path(split_dir)):
+        scene_id = int(scene_dir.name)
+        camera_path = scene_dir / "scene_camera.json"
+        cameras = int_keys(read_json(camera_path), camera_path) if camera_path.is_file() else {}
+        for stem, path in sorted(folder_index(image_folder(scene_dir)).items()):
+            if not stem.isdigit():
+                continue
+            im_id = int(stem)
+            K = camera_matrix(cameras[im_id], camera_path, im_id) if im_id in cameras else None
+            images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K)
+    return images
