@@ -1,16 +1,16 @@
-"""Atomic file writes: a reader (or a render shard running beside this one) never sees half a file."""
+"""Atomic file writes (the runtime's ``write_bytes_atomic``): a reader (or a render shard running beside this one)
+never sees half a file."""
 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import write_bytes_atomic, write_picture_atomic
 
 
 def require_folder(path: Path, what: str) -> Path:
@@ -22,22 +22,10 @@ def require_folder(path: Path, what: str) -> Path:
     return path
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> None:
-    """Write to a temporary name in the same folder, then rename over ``path``."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temporary.write_bytes(data)
-    os.replace(temporary, path)
-
-
 def write_json_atomic(path: Path, data: Any) -> None:
     write_bytes_atomic(path, json.dumps(data, indent=1).encode())
 
 
 def write_png_atomic(path: Path, image: np.ndarray) -> None:
     """PNG of a grey ``(H, W)`` or RGB ``(H, W, 3)`` uint8/uint16 image."""
-    if image.ndim == 3:
-        image = image[..., ::-1]  # OpenCV writes BGR
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image))
-    if not ok:
-        raise PopcodeError(f"cannot encode {path.name} as PNG")
-    write_bytes_atomic(path, encoded.tobytes())
+    write_picture_atomic(path, image[..., ::-1] if image.ndim == 3 else image)  # OpenCV writes BGR
