@@ -269,12 +269,13 @@ def _draw_label(picture: np.ndarray, prediction: Prediction, style: _Style) -> N
     sizes = [cv2.getTextSize(line, font, style.font_scale, 1) for line in lines]
     line_height = max(size[1] + baseline for size, baseline in sizes) + 2
     width = max(size[0] for size, _ in sizes) + 2
+    band_height = len(lines) * line_height
     height_px, width_px = picture.shape[:2]
     left, top = _pixel(np.array(prediction.box[:2]))
-    top = top - len(lines) * line_height if top - len(lines) * line_height >= 0 else top
+    top = top - band_height if top - band_height >= 0 else top  # rows top .. top + band_height - 1
     left = int(np.clip(left, 0, max(width_px - width, 0)))
-    top = int(np.clip(top, 0, max(height_px - len(lines) * line_height, 0)))
-    cv2.rectangle(picture, (left, top), (left + width, top + len(lines) * line_height), TEXT_BACKGROUND_BGR, -1)
+    top = int(np.clip(top, 0, max(height_px - band_height, 0)))
+    cv2.rectangle(picture, (left, top), (left + width - 1, top + band_height - 1), TEXT_BACKGROUND_BGR, -1)
     for index, line in enumerate(lines):
         baseline_y = top + (index + 1) * line_height - sizes[index][1] - 1
         cv2.putText(picture, line, (left + 1, baseline_y), font, style.font_scale, TEXT_COLOUR_BGR, 1, cv2.LINE_AA)
