@@ -263,19 +263,26 @@ def _revolved_camera_points(points_m_mm: np.ndarray, centre_m_mm: np.ndarray, ax
 
 
 def _draw_label(picture: np.ndarray, prediction: Prediction, style: _Style) -> None:
-    """The label's lines on a dark band above the box's top-left corner, or inside the box where there is no room."""
+    """The label's lines on a dark band above the box's top-left corner, else below the box, else inside it."""
     font = cv2.FONT_HERSHEY_SIMPLEX
     lines = estimate_label(prediction)
     sizes = [cv2.getTextSize(line, font, style.font_scale, 1) for line in lines]
-    line_height = max(size[1] + baseline for size, baseline in sizes) + 2
+    text_height = max(size[1] for size, _ in sizes)
+    line_height = text_height + max(baseline for _, baseline in sizes) + 2
     width = max(size[0] for size, _ in sizes) + 2
     band_height = len(lines) * line_height
     height_px, width_px = picture.shape[:2]
-    left, top = _pixel(np.array(prediction.box[:2]))
-    top = top - band_height if top - band_height >= 0 else top  # rows top .. top + band_height - 1
+    left, box_top = _pixel(np.array(prediction.box[:2]))
+    box_bottom = _pixel(np.array(prediction.box[:2]) + prediction.box[2:])[1]
+    if box_top - band_height >= 0:  # the band's rows are top .. top + band_height - 1
+        top = box_top - band_height
+    elif box_bottom + 1 + band_height <= height_px:
+        top = box_bottom + 1
+    else:
+        top = box_top
     left = int(np.clip(left, 0, max(width_px - width, 0)))
     top = int(np.clip(top, 0, max(height_px - band_height, 0)))
     cv2.rectangle(picture, (left, top), (left + width - 1, top + band_height - 1), TEXT_BACKGROUND_BGR, -1)
     for index, line in enumerate(lines):
-        baseline_y = top + (index + 1) * line_height - sizes[index][1] - 1
+        baseline_y = top + index * line_height + 1 + text_height
         cv2.putText(picture, line, (left + 1, baseline_y), font, style.font_scale, TEXT_COLOUR_BGR, 1, cv2.LINE_AA)
