@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from .camera import parse_camera_matrix, project_camera_points
+from .checks import number_array
 from .crop import box_centre, check_image
 from .errors import PopcodeError
 from .estimator import Prediction
@@ -125,6 +126,8 @@ def draw_predictions(image: np.ndarray, predictions: Sequence[Prediction], metad
     is needed when a prediction has a translation.
     """
     picture = _bgr_uint8(image)
+    for prediction in predictions:
+        _check_prediction(prediction, metadata)
     camera = None if K is None else parse_camera_matrix(K)
     if camera is None and any(p.t_m2c_mm is not None for p in predictions):
         raise PopcodeError("drawing an estimate with a translation needs the camera matrix K")
@@ -134,6 +137,18 @@ def draw_predictions(image: np.ndarray, predictions: Sequence[Prediction], metad
     for prediction in predictions:  # last, so that no other estimate's lines cover a label
         _draw_label(picture, prediction, style)
     return picture
+
+
+def _check_prediction(prediction: Prediction, metadata: ModelMetadata) -> None:
+    """Finite numbers of the right shapes and an object the model knows (or none: a model not told which)."""
+    if not isinstance(prediction, Prediction):
+        raise PopcodeError(f"draw_predictions draws Prediction objects, got {type(prediction).__name__}")
+    number_array(prediction.R_m2c, "a prediction's R_m2c", (3, 3))
+    number_array(prediction.box, "a prediction's box", (4,))
+    if prediction.t_m2c_mm is not None:
+        number_array(prediction.t_m2c_mm, "a prediction's t_m2c_mm", (3,))
+    if prediction.obj_id is not None and prediction.obj_id not in metadata.objects:
+        raise PopcodeError(f"object {prediction.obj_id} is not in this model (it knows {sorted(metadata.objects)})")
 
 
 @dataclass(frozen=True)

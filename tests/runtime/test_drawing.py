@@ -195,6 +195,18 @@ def test_images_of_every_kind_become_bgr_and_translation_needs_k() -> None:
         draw_predictions(BLANK, [prediction(np.eye(3), t_mm=T_MM)], meta)
 
 
+@pytest.mark.parametrize("bad, problem", [(dict(R=np.full((3, 3), np.nan)), "R_m2c contains NaN"),
+                                          (dict(box=(1.0, 2.0, np.inf, 4.0)), "box contains NaN or inf"),
+                                          (dict(t_mm=np.array([0.0, 1.0])), r"t_m2c_mm must have shape \(3\)"),
+                                          (dict(obj_id=9), "object 9 is not in this model")])
+def test_a_bad_prediction_is_one_line(bad: dict, problem: str) -> None:
+    arguments = {"R": np.eye(3), **bad}
+    with pytest.raises(PopcodeError, match=problem):
+        draw_predictions(BLANK, [prediction(arguments.pop("R"), **arguments)], metadata({1: {}}), K)
+    with pytest.raises(PopcodeError, match="Prediction objects"):
+        draw_predictions(BLANK, [{"R_m2c": np.eye(3)}], metadata({1: {}}), K)
+
+
 def sample_arguments(index: int) -> tuple[Path, list[str]]:
     sample = SAMPLES[index]
     model = MODELS / ("builtin-parts-1-2.onnx" if sample["obj_id"] <= 2 else "builtin-parts-3-6.onnx")
@@ -233,3 +245,15 @@ def test_a_bad_draw_path_is_one_line_before_the_model_runs(tmp_path: Path, draw:
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("popcode: error: --draw") and problem in err
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("t_mm", [[1e7, -1e7, 1e-3], [0.0, 0.0, -500.0], [0.0, 0.0, 1e-9]])
+@pytest.mark.parametrize("name", ["none", "continuous"])
+def test_degenerate_poses_draw_without_failing(t_mm: list[float], name: str) -> None:
+    """Far off, behind the camera, at the pinhole: clipped to what OpenCV's integer pixels hold, or left out."""
+    info = {**CASES[name], "hull_points_mm": HULL_MM.tolist()}
+    huge_box = (-1e4, -1e4, 4e4, 4e4)
+    for box in (BOX, huge_box):
+        picture = draw_predictions(BLANK, [prediction(rotvec_to_matrix(ROTVEC), t_mm=np.array(t_mm), box=box)],
+                                   metadata({1: info}), K)
+        assert picture.shape == (480, 640, 3)
