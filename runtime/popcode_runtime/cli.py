@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--obj-id", type=int, action="append", metavar="ID",
                          help="object id of each box, in order (for models of several objects)")
     predict.add_argument("--draw", metavar="PICTURE",
-                         help="also write the image with each estimate drawn (box, axes, hull outline with "
+                         help="also write the (grey) image with each estimate drawn (box, axes, hull outline with "
                               "--translation, object id and confidence) to PICTURE (.png, .jpg, ...)")
     predict.add_argument("--json", action="store_true", help="print JSON instead of text")
     predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
