@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from popcode_runtime.cli import build_parser as runtime_parser
@@ -88,11 +90,18 @@ def test_bench_commands_parse(module: str, options: str) -> None:
     assert result.returncode == 0, result.stderr
 
 
-def test_shipped_model_commands_run(capsys: pytest.CaptureFixture) -> None:
+def test_shipped_model_commands_run(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
     shipped = [words for words in COMMANDS if words[0] == "popcode" and words[2].startswith("models/")]
     assert len(shipped) >= 3
     for words in shipped:
         args = [str(ROOT / w) if REPO_PATH.match(w) else w for w in words[1:]]
+        shown = made = None
+        if "--draw" in args:  # not over the README's picture: beside it, then compared with it
+            value = args.index("--draw") + 1
+            shown, made = Path(args[value]), tmp_path / Path(args[value]).name
+            args[value] = str(made)
         assert runtime_main(args) == 0, " ".join(words)
+        if shown is not None:
+            assert np.array_equal(cv2.imread(str(made)), cv2.imread(str(shown))), f"{shown} is not what it draws"
     predicts = sum(words[1] == "predict" for words in shipped)
     assert capsys.readouterr().out.count("box 0 [") == predicts

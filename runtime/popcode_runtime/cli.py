@@ -16,8 +16,10 @@ from .benchmark import MAX_BENCH_BATCH, benchmark_estimator, machine_description
 from .camera import parse_camera_matrix
 from .crop import MAX_IMAGE_PIXELS, read_image
 from .decoding import DECODERS
+from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import MAX_BOXES_PER_CALL, PoseEstimator
+from .files import check_picture_path, write_picture_atomic
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 
@@ -50,11 +52,15 @@ def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _predict(args: argparse.Namespace) -> int:
+    if args.draw:
+        check_picture_path(args.draw, "--draw")  # before the model runs: a typo costs a line, not the run
     estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
     image = read_image(args.image, args.max_pixels)
     K = parse_camera_matrix(args.K) if args.K else None
     predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
                                     top_k=args.top_k, translation=args.translation)
+    if args.draw:
+        write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, K))
     if args.json:
         print(json.dumps({"model": str(args.model), "image": str(args.image),
                           "predictions": [p.to_dict() for p in predictions]}, indent=2))
@@ -151,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="estimate the translation from the box too (needs --K)")
     predict.add_argument("--obj-id", type=int, action="append", metavar="ID",
                          help="object id of each box, in order (for models of several objects)")
+    predict.add_argument("--draw", metavar="PICTURE",
+                         help="also write the (grey) image with each estimate drawn (box, axes, hull outline with "
+                              "--translation, object id and confidence) to PICTURE (.png, .jpg, ...)")
     predict.add_argument("--json", action="store_true", help="print JSON instead of text")
     predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
     predict.add_argument("--max-pixels", type=int, default=MAX_IMAGE_PIXELS, metavar="N",

@@ -1,5 +1,8 @@
 """Files in and out: JSON read with errors that name the file, and atomic writes, so that a reader (a resumed
-run, or a render shard running beside this one) never sees half a file."""
+run, or another process writing beside this one) never sees half a file.
+
+The trainer writes its images, JSON and models through these functions too.
+"""
 
 from __future__ import annotations
 
@@ -11,9 +14,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .errors import PopcodeError
+from .checks import path as checked_path
+from .errors import PopcodeError, library_step
 
 MAX_JSON_BYTES = 1 << 28  # a BOP annotation or detections file larger than this is refused before it is parsed
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def require_folder(path: Path, what: str) -> Path:
@@ -40,21 +45,55 @@ def read_json(path: Path) -> Any:
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:
-    """Write to a temporary name in the same folder, then rename over ``path``."""
+    """Write to a temporary name in the same folder, then rename over ``path``; no temporary file is left behind."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temporary.write_bytes(data)
-    os.replace(temporary, path)
+    try:
+        temporary.write_bytes(data)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
     write_bytes_atomic(path, json.dumps(data, indent=1).encode())
 
 
+def check_writable_file(value: str | os.PathLike, what: str) -> Path:
+    """``value`` as a path that can be written atomically: its folder exists and is writable, it is not a folder.
+
+    Checked before long work starts, so a typo costs a line, not the run.
+    """
+    path = checked_path(value, what)
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise PopcodeError(f"{what} {path} is a folder, not a file")
+    if not folder.is_dir():
+        raise PopcodeError(f"{what} {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PopcodeError(f"{what} {path}: folder {folder} is not writable")
+    return path
+
+
+def check_picture_path(value: str | os.PathLike, what: str = "picture path") -> Path:
+    """``value`` as a writable image file whose suffix names a format OpenCV writes (PNG, JPEG, ...)."""
+    path = check_writable_file(value, what)
+    if path.suffix.lower() not in PICTURE_SUFFIXES or not cv2.haveImageWriter(str(path)):
+        raise PopcodeError(f"{what} {path}: unknown image format {path.suffix!r}; use one of "
+                           f"{', '.join(PICTURE_SUFFIXES)}")
+    return path
+
+
+def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray) -> Path:
+    """Encode a BGR (or grey) uint8/uint16 image in the format its suffix names and write it atomically."""
+    path = check_picture_path(path)
+    with library_step(f"encode {path.name} as {path.suffix.lstrip('.').upper()}"):
+        ok, encoded = cv2.imencode(path.suffix.lower(), np.ascontiguousarray(image_bgr))
+    if not ok:
+        raise PopcodeError(f"cannot encode {path.name} as {path.suffix.lstrip('.').upper()}")
+    write_bytes_atomic(path, encoded.tobytes())
+    return path
+
+
 def write_png_atomic(path: Path, image: np.ndarray) -> None:
     """PNG of a grey ``(H, W)`` or RGB ``(H, W, 3)`` uint8/uint16 image."""
-    if image.ndim == 3:
-        image = image[..., ::-1]  # OpenCV writes BGR
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image))
-    if not ok:
-        raise PopcodeError(f"cannot encode {path.name} as PNG")
-    write_bytes_atomic(path, encoded.tobytes())
+    write_picture_atomic(path, image[..., ::-1] if image.ndim == 3 else image)  # OpenCV writes BGR

@@ -70,9 +70,12 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     sample = next(s for s in json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]
                   if s["obj_id"] == 3)
     box = ",".join(f"{v:g}" for v in sample["box"])
+    picture = tmp_path / "estimate.png"
     result = subprocess.run([str(popcode), "predict", str(shipped), str(MODELS / "samples" / sample["image"]),
-                             "--box", box, "--obj-id", "3", "--top-k", "2", "--json"], capture_output=True, text=True)
+                             "--box", box, "--obj-id", "3", "--top-k", "2", "--json", "--draw", str(picture)],
+                            capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+    assert cv2.imread(str(picture)).shape == (128, 128, 3)  # the picture of the estimate, drawn by the runtime alone
     R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
     R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c
     assert np.allclose(R_venv, R_here, atol=1e-5)
