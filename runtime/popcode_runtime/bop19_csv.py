@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from .errors import PopcodeError
+from .files import write_bytes_atomic
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
@@ -36,23 +37,29 @@ def _numbers(values: np.ndarray) -> str:
     return " ".join(repr(float(v)) for v in np.asarray(values, dtype=np.float64).reshape(-1))
 
 
-def write_bop19_results(path: str | Path, estimates: Iterable[PoseEstimate]) -> None:
-    """Write estimates to a BOP19 results CSV (header line, then one line per estimate)."""
-    lines = [HEADER]
-    for est in estimates:
-        if np.shape(est.R_m2c) != (3, 3) or np.size(est.t_m2c_mm) != 3:
-            raise PopcodeError(
-                f"estimate for scene {est.scene_id} image {est.im_id} object {est.obj_id}: "
-                f"R must be 3x3 and t 3 numbers, got {np.shape(est.R_m2c)} and {np.shape(est.t_m2c_mm)}"
-            )
-        lines.append(
-            f"{est.scene_id},{est.im_id},{est.obj_id},{float(est.score)!r},"
-            f"{_numbers(est.R_m2c)},{_numbers(est.t_m2c_mm)},{float(est.time_s)!r}"
+def format_estimate(est: PoseEstimate) -> str:
+    """One line of a results file (no newline)."""
+    if np.shape(est.R_m2c) != (3, 3) or np.size(est.t_m2c_mm) != 3:
+        raise PopcodeError(
+            f"estimate for scene {est.scene_id} image {est.im_id} object {est.obj_id}: "
+            f"R must be 3x3 and t 3 numbers, got {np.shape(est.R_m2c)} and {np.shape(est.t_m2c_mm)}"
         )
-    Path(path).write_text("\n".join(lines) + "\n")
+    return (f"{est.scene_id},{est.im_id},{est.obj_id},{float(est.score)!r},"
+            f"{_numbers(est.R_m2c)},{_numbers(est.t_m2c_mm)},{float(est.time_s)!r}")
 
 
-def _parse_line(line: str, where: str) -> PoseEstimate:
+def write_bop19_results(path: str | Path, estimates: Iterable[PoseEstimate]) -> None:
+    """Write estimates to a BOP19 results CSV (header line, then one line per estimate), atomically."""
+    write_bop19_lines(path, [format_estimate(est) for est in estimates])
+
+
+def write_bop19_lines(path: str | Path, lines: Iterable[str]) -> None:
+    """The header and formatted estimate lines as a results file, written atomically."""
+    write_bytes_atomic(Path(path), ("\n".join([HEADER, *lines]) + "\n").encode())
+
+
+def parse_estimate(line: str, where: str) -> PoseEstimate:
+    """One line of a results file; a malformed one raises with ``where`` (file and line) named."""
     fields = line.split(",")
     if len(fields) != 7:
         raise PopcodeError(f"{where}: expected 7 comma-separated fields ({HEADER}), found {len(fields)}")
@@ -72,11 +79,13 @@ def _parse_line(line: str, where: str) -> PoseEstimate:
 def read_bop19_results(path: str | Path) -> list[PoseEstimate]:
     """Read a BOP19 results CSV; a malformed line raises with its line number."""
     path = Path(path)
+    if not path.is_file():
+        raise PopcodeError(f"results file not found: {path}" if not path.exists() else f"{path} is not a file")
     lines = path.read_text().splitlines()
     if not lines or lines[0].strip() != HEADER:
         raise PopcodeError(f"{path}: the first line must be the header {HEADER!r}")
     return [
-        _parse_line(line.strip(), f"{path}:{number}")
+        parse_estimate(line.strip(), f"{path}:{number}")
         for number, line in enumerate(lines[1:], start=2)
         if line.strip()
     ]

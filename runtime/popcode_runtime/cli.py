@@ -1,4 +1,4 @@
-"""The ``popcode`` command: predict, info and bench on an ONNX popcode model."""
+"""The ``popcode`` command: predict, info and bench on an ONNX popcode model; run over a BOP split."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import __version__
+from . import __version__, run_command
 from .benchmark import MAX_BENCH_BATCH, benchmark_estimator, machine_description
 from .camera import parse_camera_matrix
 from .crop import MAX_IMAGE_PIXELS, read_image
@@ -184,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
     _add_runtime_options(bench)
     bench.set_defaults(handler=_bench)
+    run_command.register(commands, _add_runtime_options)
     return parser
 
 

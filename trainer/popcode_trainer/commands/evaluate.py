@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "model per object group). With --translation, full 6-D poses too: the translation fitted to "
                     "each box as the runtime does it.")
     parser.add_argument("models", nargs="+", type=Path, metavar="MODEL",
-                        help="a training checkpoint (.pt, run with torch) or an ONNX model (run with the runtime)")
+                        help="a training checkpoint (.pt, run with torch), an ONNX model (run with the runtime) or a "
+                             "BOP19 results file (.csv, e.g. from popcode run --gt-boxes; scored rotation-only)")
     parser.add_argument("--split", dest="splits", action="append", required=True, type=Path, metavar="DIR",
                         help="BOP split folder with scene folders (repeatable)")
     parser.add_argument("--models-dir", type=Path, required=True,

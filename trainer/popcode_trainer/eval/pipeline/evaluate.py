@@ -22,7 +22,9 @@ from popcode_runtime.errors import PopcodeError
 
 from ..metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
 from ..metrics.recall import InstanceErrors, Thresholds, metric_scores
-from .models import Estimates, Method, predict_rotations
+from .estimates import Estimates
+from .models import Method
+from .results_file import ResultsMethod
 from .split import EvalSplit, restrict_to_objects
 from .split_metrics import SplitMetrics
 from .translation import FullPose, full_pose
@@ -64,14 +66,16 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
                         model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds)
 
 
-def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True,
+def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,
                    translation: bool = False) -> MethodResult:
-    """Predict every instance of the split with the method's models, then score (6-D too with ``translation``)."""
-    estimates = predict_rotations(method, metrics.split.instances, progress)
-    result = evaluate_rotations(method.name, estimates.R_m2c, metrics, tuple(str(m.path) for m in method.models),
+    """Estimate every instance of the split with the method (run its models, or read its results file), then
+    score (6-D too with ``translation``, for model files)."""
+    split = metrics.split
+    estimates = method.estimate(split.instances, split.models_info, progress)
+    result = evaluate_rotations(method.name, estimates.R_m2c, metrics, method.paths,
                                 1000.0 * estimates.seconds_per_crop, method.object_points() if translation else None)
-    thresholds = {m.confidence_threshold_deg for m in method.models}
-    return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors, thresholds))
+    return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
+                                                                        method.confidence_thresholds_deg))
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,
@@ -88,13 +92,14 @@ def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: I
         lambda mask: metric_scores(errors.select(mask), metrics.diameters_mm, metrics.thresholds)["MSSD"])
 
 
-def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable[int] | None) -> EvalSplit:
+def _shared_split(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
+                  obj_ids: Iterable[int] | None) -> EvalSplit:
     """The instances every method can estimate, so that all rows of a table score the same instances.
 
     With ``obj_ids`` every method must know each of them; without, objects some
     method lacks are left out with a warning.
     """
-    known = [set(method.model_of()) for method in methods]
+    known = [method.known_objects() for method in methods]
     if obj_ids is not None:
         wanted = set(obj_ids)
         for method, objects in zip(methods, known, strict=True):
@@ -113,7 +118,7 @@ def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable
     return restrict_to_objects(split, shared)
 
 
-def evaluate_models(methods: Sequence[Method], split: EvalSplit, thresholds: Thresholds | None = None,
+def evaluate_models(methods: Sequence[Method | ResultsMethod], split: EvalSplit, thresholds: Thresholds | None = None,
                     vsd: bool | None = None, obj_ids: Iterable[int] | None = None,
                     progress: bool = True, translation: bool = False) -> list[MethodResult]:
     """Every method on the same split instances, sharing object models and depth renderers.

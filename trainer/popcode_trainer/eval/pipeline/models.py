@@ -24,6 +24,8 @@ from popcode_runtime.estimator import PoseEstimator
 
 from ...data.bop import Instance
 from ...torch_engine import checkpoint_estimator
+from .estimates import Estimates
+from .results_file import RESULTS_SUFFIX, ResultsMethod, read_results_method
 from .split import rows_by_image
 from .translation import object_points
 
@@ -64,7 +66,8 @@ def load_model(path: str | Path, decoder: str = "argmax") -> RotationModel:
     if not path.is_file():
         raise PopcodeError(f"model file not found: {path}")
     if path.suffix not in (".onnx", ".pt"):
-        raise PopcodeError(f"{path}: a model is a training checkpoint (.pt) or an ONNX file (.onnx)")
+        raise PopcodeError(f"{path}: a model is a training checkpoint (.pt) or an ONNX file (.onnx); results "
+                           f"are a BOP19 results file ({RESULTS_SUFFIX})")
     try:  # every model is opened, and its decoder checked, before the first prediction
         if path.suffix == ".onnx":
             return RotationModel(path, PoseEstimator(path, decoder=decoder))
@@ -97,15 +100,22 @@ class Method:
         """Object id -> the points its model's metadata gives the runtime to fit a box."""
         return {obj_id: points for model in self.models for obj_id, points in object_points(model.objects).items()}
 
+    @property
+    def paths(self) -> tuple[str, ...]:
+        return tuple(str(model.path) for model in self.models)
 
-@dataclass(frozen=True)
-class Estimates:
-    """A method's rotations of a split's instances, with what it says about each."""
+    @property
+    def confidence_thresholds_deg(self) -> set[float | None]:
+        """The threshold of each model's calibrated confidence (None for a model without a calibrator)."""
+        return {model.confidence_threshold_deg for model in self.models}
 
-    R_m2c: np.ndarray  # (N, 3, 3)
-    confidence: np.ndarray  # (N,) calibrated P(error < threshold); NaN where the model has no calibrator
-    score: np.ndarray  # (N,) the representation's raw score (peak activation, ...)
-    seconds_per_crop: float  # crop + network + decoding
+    def known_objects(self) -> set[int]:
+        return set(self.model_of())
+
+    def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
+                 progress: bool = True) -> Estimates:
+        """Run the models on every instance (``models_info`` is not needed: the models carry their objects)."""
+        return predict_rotations(self, instances, progress)
 
 
 def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True) -> Estimates:
@@ -133,16 +143,25 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
 
 
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,
-                       decoder: str = "argmax") -> list[Method]:
-    """Methods from model files; models given the same name form one method (one table row).
+                       decoder: str = "argmax") -> list[Method | ResultsMethod]:
+    """Methods from model files and BOP19 results files (``.csv``); model files given the same name form one
+    method (one table row), a results file is a method of its own.
 
     Without names each file is its own method, named after the file.
     """
     if names and len(names) != len(paths):
         raise PopcodeError(f"{len(names)} names for {len(paths)} models: give one --name per model, or none")
     grouped: dict[str, list[RotationModel]] = {}
+    results: dict[str, ResultsMethod] = {}
     for index, path in enumerate(paths):
         name = names[index] if names else Path(path).stem
-        grouped.setdefault(name, []).append(load_model(path, decoder))
-    return [Method(name, tuple(models)) for name, models in grouped.items()]
-
+        if Path(path).suffix == RESULTS_SUFFIX:
+            if name in results or name in grouped:
+                raise PopcodeError(f"{path}: a results file is a method of its own; give it a name no other file has")
+            results[name] = read_results_method(Path(path), name)
+        elif name in results:
+            raise PopcodeError(f"{path}: the name {name!r} is a results file's; give the model another")
+        else:
+            grouped.setdefault(name, []).append(load_model(path, decoder))
+    methods = {name: Method(name, tuple(models)) for name, models in grouped.items()} | results
+    return [methods[name] for name in dict.fromkeys(names or [Path(p).stem for p in paths])]

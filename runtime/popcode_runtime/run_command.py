@@ -1,0 +1,88 @@
+"""The ``popcode run`` command line: a BOP split and a detector's boxes (or its own) -> a BOP19 results file."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from .batch import file_digest, run_detections
+from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, split_images
+from .decoding import DECODERS
+from .detections import ground_truth_boxes, read_detections
+from .errors import PopcodeError
+from .estimator import PoseEstimator
+from .files import check_writable_file, require_folder
+
+DEFAULT_OUT = "results.csv"
+
+
+def register(commands: argparse._SubParsersAction, add_runtime_options: Callable[[argparse.ArgumentParser], None],
+             ) -> None:
+    run = commands.add_parser(
+        "run", help="poses for every detection of a BOP split -> BOP19 results CSV",
+        description="Read a BOP split's images and a detector's boxes (the BOP challenge's default-detections "
+                    "JSON) or the split's own boxes, estimate the rotation of each box in one batch per image, fit "
+                    "the translation to the box with the image's cam_K, and write a BOP19 results CSV "
+                    "(scene_id,im_id,obj_id,score,R,t,time). Detections of objects no model knows are skipped and "
+                    "counted. An interrupted run resumes where it stopped when given the same command.")
+    run.add_argument("models", nargs="+", type=Path, metavar="MODEL",
+                     help="popcode ONNX model(s); each detection goes to the model that knows its object")
+    run.add_argument("--split", type=Path, required=True, metavar="DIR",
+                     help="BOP split folder (scene folders with rgb/ or gray/ images and scene_camera.json)")
+    source = run.add_mutually_exclusive_group(required=True)
+    source.add_argument("--detections", type=Path, metavar="JSON",
+                        help="detections in the BOP challenge's format: a list of {scene_id, image_id, category_id, "
+                             "bbox, score, time}")
+    source.add_argument("--gt-boxes", action="store_true",
+                        help="use the split's own boxes (scene_gt_info.json): the paper's protocol")
+    run.add_argument("--box-kind", choices=BOX_KINDS, default="bbox_obj",
+                     help="with --gt-boxes: which box of scene_gt_info.json (default bbox_obj)")
+    run.add_argument("--min-visib-fract", type=float, default=BOP19_MIN_VISIB_FRACT, metavar="F",
+                     help=f"with --gt-boxes: leave out instances less visible (default, as BOP19: "
+                          f"{BOP19_MIN_VISIB_FRACT})")
+    run.add_argument("--out", type=Path, default=Path(DEFAULT_OUT), metavar="CSV",
+                     help=f"results file to write (default {DEFAULT_OUT}; <CSV>.partial while running)")
+    run.add_argument("--max-images", type=int, metavar="N", help="only the first N images with detections")
+    run.add_argument("--decoder", choices=DECODERS, default="argmax",
+                     help="argmax: the paper's winning neuron (default); refined: sub-neuron estimate")
+    run.add_argument("--draw", type=Path, metavar="DIR",
+                     help="also write a picture of each image's estimates into DIR (<scene_id>_<im_id>.png)")
+    run.add_argument("--quiet", action="store_true", help="no progress line")
+    add_runtime_options(run)
+    run.set_defaults(handler=handle)
+
+
+def _fingerprint(args: argparse.Namespace) -> str:
+    """What the results depend on: the models' and detections' bytes and the options."""
+    parts = {"models": [file_digest(path) for path in args.models], "decoder": args.decoder,
+             "detections": file_digest(args.detections) if args.detections else
+             {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def handle(args: argparse.Namespace) -> int:
+    if args.max_images is not None and args.max_images < 1:
+        raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
+    if not 0.0 <= args.min_visib_fract <= 1.0:
+        raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
+    check_writable_file(args.out, "--out")
+    if args.draw is not None:
+        require_folder(args.draw, "--draw folder")
+    require_folder(args.split, "split folder")
+    estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
+                  for path in args.models]
+    detections = read_detections(args.detections) if args.detections else \
+        ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
+    summary = run_detections(estimators, [str(path) for path in args.models], split_images(args.split), detections,
+                             args.out, _fingerprint(args), args.max_images, not args.quiet, args.draw)
+    skipped = sum(summary.skipped.values())
+    resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
+    print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "
+          f"{summary.seconds:.1f} s")
+    if skipped:
+        print(f"skipped {skipped} detections of objects no model knows: "
+              + ", ".join(f"object {obj_id} x{count}" for obj_id, count in summary.skipped.items()))
+    return 0
