@@ -36,6 +36,23 @@ REQUIRES = (
 )
 
 
+def _samples_split(folder: Path) -> tuple[Path, Path]:
+    """The shipped samples as a one-scene BOP split (images and cameras) and their boxes as BOP detections."""
+    samples = json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]
+    (folder / "000001" / "gray").mkdir(parents=True)
+    cameras, detections = {}, []
+    for im_id, sample in enumerate(samples):
+        image = cv2.imread(str(MODELS / "samples" / sample["image"]), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(folder / "000001" / "gray" / f"{im_id:06d}.png"), image)
+        fx, fy, cx, cy = sample["K"]
+        cameras[str(im_id)] = {"cam_K": [fx, 0, cx, 0, fy, cy, 0, 0, 1], "depth_scale": 1.0}
+        detections.append({"scene_id": 1, "image_id": im_id, "category_id": sample["obj_id"], "bbox": sample["box"],
+                           "score": 1.0, "time": 0.0})
+    (folder / "000001" / "scene_camera.json").write_text(json.dumps(cameras))
+    (folder / "detections.json").write_text(json.dumps(detections))
+    return folder, folder / "detections.json"
+
+
 @pytest.mark.slow
 def test_runtime_installs_and_predicts_without_torch(tmp_path):
     env_dir = tmp_path / "env"
@@ -79,6 +96,17 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
     R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c
     assert np.allclose(R_venv, R_here, atol=1e-5)
+
+    # popcode run over a BOP split of the shipped samples and their boxes as detections, with the runtime alone.
+    split, detections = _samples_split(tmp_path / "split")
+    results = tmp_path / "results.csv"
+    result = subprocess.run([str(popcode), "run", str(MODELS / "builtin-parts-1-2.onnx"), str(shipped), "--split",
+                             str(split), "--detections", str(detections), "--out", str(results), "--quiet"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    lines = results.read_text().splitlines()
+    assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time" and [line.split(",")[2] for line in lines[1:]] == \
+        [str(obj_id) for obj_id in range(1, 7)]
 
     failing = subprocess.run([str(popcode), "info", str(tmp_path / "missing.onnx")], capture_output=True, text=True)
     assert failing.returncode == 2 and "not found" in failing.stderr and "Traceback" not in failing.stderr
