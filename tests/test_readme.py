@@ -91,7 +91,8 @@ def test_bench_commands_parse(module: str, options: str) -> None:
 
 
 def test_shipped_model_commands_run(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
-    shipped = [words for words in COMMANDS if words[0] == "popcode" and words[2].startswith("models/")]
+    shipped = [words for words in COMMANDS if words[0] == "popcode" and words[2].startswith("models/")
+               and not any(w.startswith(("runs/", "data/")) for w in words)]  # those need the reader's own data
     assert len(shipped) >= 3
     for words in shipped:
         args = [str(ROOT / w) if REPO_PATH.match(w) else w for w in words[1:]]
