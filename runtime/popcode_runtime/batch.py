@@ -73,6 +73,12 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _done_key(line: str) -> ImageKey | None:
+    """The image a whole ``#done scene_id im_id`` line closes; None for any other line (a torn mark too)."""
+    fields = line[len(DONE_MARK):].split() if line.startswith(DONE_MARK) else []
+    return (int(fields[0]), int(fields[1])) if len(fields) == 2 and all(f.isdigit() for f in fields) else None
+
+
 class PartialResults:
     """``<out>.partial``: the estimate lines of finished images, each image closed by a ``#done`` line.
 
@@ -98,13 +104,13 @@ class PartialResults:
                                "options; remove it to start again, or rerun the command that made it")
         pending: list[str] = []
         for line in text[1:]:
-            if line.startswith(DONE_MARK):
-                scene_id, im_id = (int(v) for v in line[len(DONE_MARK):].split())
+            key = _done_key(line)
+            if key is not None:
                 self.lines += [*pending, line]
-                self.done.add((scene_id, im_id))
+                self.done.add(key)
                 pending = []
             elif line:
-                pending.append(line)  # lines of an image that was not closed are dropped
+                pending.append(line)  # lines of an image that was not closed (or a torn mark) are dropped
 
     def add(self, key: ImageKey, estimates: Sequence[PoseEstimate]) -> None:
         """Append one image's estimates and its closing mark, flushed to disk."""

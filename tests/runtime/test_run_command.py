@@ -92,7 +92,7 @@ def test_an_interrupted_run_resumes_from_the_last_finished_image(split: Path, tm
     partial = out.with_name("results.csv.partial")
     assert not out.exists() and partial.read_text().count("#done") == 4
     with partial.open("a") as handle:
-        handle.write("3,0,3,1.0,1 0 0")  # a torn line of an image that never finished
+        handle.write("3,0,3,1.0,1 0 0\n#done 3")  # the torn tail of an image that never finished
     capsys.readouterr()
     assert _run(split, out, "--gt-boxes") == 0
     assert "8 images (4 done by an earlier run)" in capsys.readouterr().out
