@@ -134,7 +134,8 @@ class _SceneRenderer:
         self._renderer.delete()
 
 
-def add_random_lights(pyrender: Any, scene: Any, rng: np.random.Generator) -> list[Any]:
+def add_random_lights(pyrender: Any, scene: Any, rng: np.random.Generator,
+                      intensity_range: tuple[float, float] = (1.0, 4.0)) -> list[Any]:
     """One to three white directional lights from the camera's side (camera at the origin); returns their nodes."""
     nodes = []
     for _ in range(rng.integers(1, 4)):
@@ -143,7 +144,7 @@ def add_random_lights(pyrender: Any, scene: Any, rng: np.random.Generator) -> li
         direction[2] = -abs(direction[2]) - 0.5
         pose = np.eye(4)
         pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
-        light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(1.0, 4.0))
+        light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(*intensity_range))
         nodes.append(scene.add(light, pose=pose))
     return nodes
 

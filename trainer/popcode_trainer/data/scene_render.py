@@ -51,6 +51,7 @@ IMAGES_PER_SCENE_FOLDER = 1000
 BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tolerance
 DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
 MAX_CAMERA_TRIES = 10
+SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
 
 
 @dataclass(frozen=True)
@@ -267,7 +268,7 @@ class _SceneRenderer:
         colour_scene.add(_textured_quad(pyrender, content.ground_side_mm, texture, rng.uniform(2.0, 8.0)),
                          pose=world_gl)
         depth_scene.add(_depth_mesh(pyrender, ground), pose=world_gl)
-        add_random_lights(pyrender, colour_scene, rng)
+        add_random_lights(pyrender, colour_scene, rng, SCENE_LIGHT_INTENSITY)
         corners_c = _corners_in_camera(content, meshes, poses_c)
         near_mm, far_mm = max(corners_c.min(), 1.0), corners_c.max()
         self._near_far_mm = (near_mm, far_mm)
