@@ -186,6 +186,10 @@ def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys:
                  "--size", "48", "40", "--parts", "60", "60", "--bin-size-mm", "80", "--quiet"])
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "do not fit into a bin" in lines[0]
+    for mixed in (["--images", "2", "--sensor", "webcam"], ["--scenes", "2", "--random-position"]):
+        assert main(["render", "--objects", str(tiny_models), "--out", str(tmp_path / "mixed"), *mixed]) == 2
+        assert "only with" in capsys.readouterr().err
+    assert not (tmp_path / "mixed").exists()
     flat = _write_models(tmp_path / "flat", {1: trimesh.creation.box(extents=(10.0, 10.0, 10.0))})
     (flat / "obj_000001.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
                                          "property float y\nproperty float z\nelement face 0\n"
@@ -194,6 +198,6 @@ def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys:
         render_scene_split(flat, tmp_path / "flat_split", SceneSettings(scenes=1, width=32, height=32),
                            progress=False)
     for bad in ({"parts": (0, 2)}, {"parts": (3, 2)}, {"fill_range": (0.0, 1.0)}, {"max_tilt_deg": 90.0},
-                {"sensor": "fisheye"}, {"scenes": 0}):
+                {"sensor": "fisheye"}, {"scenes": 0}, {"width": 100_000}):
         with pytest.raises(PopcodeError):
             SceneSettings(**{"scenes": 1, **bad})

@@ -14,6 +14,7 @@ from ..data.sensor import SENSOR_PRESETS
 
 SINGLE_OBJECT_SIZE = (128, 128)
 SCENE_SIZE = (720, 540)
+SCENE_OPTIONS = ("parts", "distractors", "bin", "bin_size_mm", "sensor")  # SceneSettings fields; None: its default
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", nargs=2, type=int, metavar=("W", "H"),
                         help=f"image size px (default {SINGLE_OBJECT_SIZE} with --images, {SCENE_SIZE} with --scenes)")
     parser.add_argument("--shard", default="0/1", help="render part i of n (default 0/1: everything)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the same seed renders the same images (default 0; another one for a test split)")
     parser.add_argument("--obj-ids", nargs="+", type=int, help="objects to render (default: all)")
     colour = parser.add_mutually_exclusive_group()
     colour.add_argument("--gray", dest="gray", action="store_true", default=True, help="grey images (default)")
@@ -41,21 +43,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--random-position", action="store_true", help="place objects anywhere in the image")
     parser.add_argument("--fixed-distance", action="store_true", help="keep every object at one distance")
     scenes = parser.add_argument_group("scenes (with --scenes)")
-    scenes.add_argument("--parts", nargs=2, type=int, default=(4, 10), metavar=("MIN", "MAX"),
+    scenes.add_argument("--parts", nargs=2, type=int, metavar=("MIN", "MAX"),
                         help="target parts per image, drawn from the models with repeats (default 4 10)")
-    scenes.add_argument("--distractors", nargs=2, type=int, default=(0, 3), metavar=("MIN", "MAX"),
+    scenes.add_argument("--distractors", nargs=2, type=int, metavar=("MIN", "MAX"),
                         help="boxes, cylinders, capsules and spheres per image that are not targets (default 0 3)")
-    scenes.add_argument("--no-bin", dest="bin", action="store_false", help="parts on an open table, no bin walls")
-    scenes.add_argument("--bin-size-mm", type=float, default=0.0,
+    scenes.add_argument("--no-bin", dest="bin", action="store_false", default=None,
+                        help="parts on an open table, no bin walls")
+    scenes.add_argument("--bin-size-mm", type=float,
                         help="side of the bin (default: from the largest part and the most objects per image)")
-    scenes.add_argument("--sensor", choices=sorted(SENSOR_PRESETS), default="none",
+    scenes.add_argument("--sensor", choices=sorted(SENSOR_PRESETS),
                         help="camera effects (noise, blur, exposure, gamma, JPEG) resembling a camera kind "
                              "(default none; see the README)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(handler=run)
 
 
+def _check_mode_options(args: argparse.Namespace) -> None:
+    """Options of the other mode are refused, not ignored."""
+    if args.scenes is None:
+        scene_options = [f"--{name.replace('_', '-')}" for name in SCENE_OPTIONS if getattr(args, name) is not None]
+        if scene_options:
+            raise PopcodeError(f"only with --scenes, not with --images: {', '.join(scene_options)}")
+    elif args.random_position or args.fixed_distance:
+        raise PopcodeError("only with --images, not with --scenes: --random-position, --fixed-distance")
+
+
 def run(args: argparse.Namespace) -> int:
+    _check_mode_options(args)
     if args.out.is_file():
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
     if args.objects == "builtin":
@@ -66,8 +80,6 @@ def run(args: argparse.Namespace) -> int:
             raise PopcodeError(f"--objects: no such models folder {models_dir} (or use 'builtin')")
     if args.scenes is not None:
         return _run_scenes(args, models_dir)
-    if args.sensor != "none":
-        raise PopcodeError("--sensor applies to --scenes renders only")
     width, height = args.size or SINGLE_OBJECT_SIZE
     settings = RenderSettings(args.images, width=width, height=height, seed=args.seed, gray=args.gray,
                               random_position=args.random_position, random_distance=not args.fixed_distance)
@@ -78,12 +90,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_scenes(args: argparse.Namespace, models_dir: Path) -> int:
-    if args.random_position or args.fixed_distance:
-        raise PopcodeError("--random-position and --fixed-distance apply to --images renders only")
     width, height = args.size or SCENE_SIZE
-    settings = SceneSettings(args.scenes, width=width, height=height, seed=args.seed, gray=args.gray,
-                             parts=tuple(args.parts), distractors=tuple(args.distractors), bin=args.bin,
-                             bin_size_mm=args.bin_size_mm, sensor=args.sensor)
+    given = {name: tuple(value) if isinstance(value, list) else value
+             for name in SCENE_OPTIONS if (value := getattr(args, name)) is not None}
+    settings = SceneSettings(args.scenes, width=width, height=height, seed=args.seed, gray=args.gray, **given)
     stats = render_scene_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=parse_shard(args.shard),
                                progress=not args.quiet)
     if stats.images:

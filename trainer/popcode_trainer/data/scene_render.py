@@ -9,7 +9,9 @@ Annotations are computed as the BOP toolkit's ``calc_gt_masks`` and ``calc_gt_in
 them (:func:`instance_gt_info`): ``mask`` is the part rendered alone, ``mask_visib`` the pixels of
 that mask where the part is not more than ``visib_delta_mm`` behind the scene's depth,
 ``px_count_all`` counts the whole silhouette including what the image border cuts off, and the
-boxes of an instance with no visible pixel are ``[-1, -1, -1, -1]``.
+boxes of an instance with no visible pixel are ``[-1, -1, -1, -1]``. A draw in which no target is
+visible (rare: the camera aims at the bin) is drawn again, up to :data:`MAX_CAMERA_TRIES` times;
+after that it is written as it is, every instance with ``visib_fract`` 0, which readers skip.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ IMAGES_PER_SCENE_FOLDER = 1000
 BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tolerance
 DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
 MAX_CAMERA_TRIES = 10
+MAX_SIDE_PX = 4096  # the border-cut silhouettes are rendered 3x larger: within OpenGL's usual 16384 limit
 SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
 
 
@@ -73,9 +76,9 @@ class SceneSettings:
     sensor: str = "none"  # a name in sensor.SENSOR_PRESETS
 
     def __post_init__(self) -> None:
-        if self.scenes < 1 or self.width < 8 or self.height < 8:
-            raise PopcodeError(f"need at least 1 scene and 8x8 pixels, got {self.scenes} scenes at "
-                               f"{self.width}x{self.height}")
+        if self.scenes < 1 or not 8 <= self.width <= MAX_SIDE_PX or not 8 <= self.height <= MAX_SIDE_PX:
+            raise PopcodeError(f"need at least 1 scene and 8 to {MAX_SIDE_PX} pixels a side, got {self.scenes} "
+                               f"scenes at {self.width}x{self.height}")
         if not 1 <= self.parts[0] <= self.parts[1] or not 0 <= self.distractors[0] <= self.distractors[1]:
             raise PopcodeError(f"parts need 1 <= min <= max and distractors 0 <= min <= max, got parts "
                                f"{self.parts}, distractors {self.distractors}")
