@@ -296,9 +296,9 @@ class _SceneRenderer:
 
     def _whole_silhouette(self, node: Any, K: np.ndarray, alone_mm: np.ndarray) -> tuple[int, list]:
         """Pixel count and box of the whole silhouette: the BOP toolkit renders 3x larger to count what the border
-        cuts off; that is only needed when the silhouette touches the border."""
+        cuts off; that is only needed when the silhouette touches the border or lies outside the image."""
         mask = alone_mm > 0
-        if not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
+        if mask.any() and not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
             return int(mask.sum()), mask_box(mask)
         wide_K = K.copy()
         wide_K[:2, 2] += [self.width, self.height]
@@ -307,6 +307,8 @@ class _SceneRenderer:
         scene.add(self._camera(wide_K), pose=np.eye(4))
         self._wide_depth.scene = scene
         wide_mask = self._wide_depth.render() > 0
+        if not wide_mask.any():
+            return 0, [-1, -1, -1, -1]
         x, y, w, h = mask_box(wide_mask)
         return int(wide_mask.sum()), [x - self.width, y - self.height, w, h]
 
