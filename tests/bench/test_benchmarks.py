@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from onnx_models import linear_model, save
 
-from bench import agreement, budget_curve, latency, toy_orientation, training, translation
+from bench import agreement, budget_curve, latency, scene_render, toy_orientation, training, translation
 from popcode_runtime.metadata import ModelMetadata, Representation
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import random_rotations
@@ -178,3 +178,12 @@ def test_budget_curve_extends_one_run_and_resumes_from_its_scored_points(tmp_pat
     assert [line.split("|")[1].strip() for line in table if line.startswith("| ") and line[2].isdigit()] == \
         ["1", "2", "3"]
     assert budget_curve.main([*args, "--epochs", "2"]) == [first[1]]  # a scored budget alone: no training
+
+
+def test_scene_render_prints_speed_and_visibility_and_writes_the_picture(tmp_path: Path, capsys) -> None:
+    picture = tmp_path / "scene.jpg"
+    scene_render.main(["--scenes", "2", "--size", "64", "48", "--picture", str(picture)])
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["scenes"] == 2 and payload["instances"] > 0 and payload["scenes_per_s"] > 0
+    assert sum(payload["instances_per_visibility_bin"].values()) == payload["instances"]
+    assert picture.is_file() and picture.stat().st_size > 0

@@ -192,3 +192,26 @@ def test_an_interrupted_cache_build_leaves_no_file(split, tmp_path: Path) -> Non
         _dataset_of([dataclasses.replace(split.instances[1], image_path=tmp_path / "gone.png")],
                     cache_dir=tmp_path / "cache")
 
+
+
+def test_occlusion_is_off_by_default_and_hides_part_of_the_object_when_on(split) -> None:
+    rng_draws = [Augmentation().draw(np.random.default_rng([5, i]), True) for i in range(50)]
+    assert not any(draw.occlusion for draw in rng_draws)
+    on = Augmentation(occlusion_p=0.5)
+    draws = [on.draw(np.random.default_rng([5, i]), True) for i in range(DRAWS)]
+    assert _within_binomial(sum(draw.occlusion for draw in draws), 0.5)
+    # Switching occlusion on leaves every other draw as it was: the paper's augmentation is unchanged.
+    assert [dataclasses.replace(d, occlusion=False) for d in draws[:50]] == rng_draws
+    assert not any(on.draw(np.random.default_rng([5, i]), False).occlusion for i in range(50))
+    only_occlusion = Augmentation(brightness_p=0.0, background_p=0.0, noise_p=0.0, shift_p=0.0, occlusion_p=1.0,
+                                  occlusion_max_fraction=0.6)
+    plain = _dataset(split, augmentation=dataclasses.replace(only_occlusion, occlusion_p=0.0))
+    occluded = _dataset(split, augmentation=only_occlusion)
+    inner = slice(occluded.margin, occluded.margin + occluded.crop_size)
+    for index in range(0, len(split.instances), 3):
+        on_object = occluded.stored_crop(index)[1, inner, inner] == 255
+        changed = np.abs(occluded.crop(index) - plain.crop(index)) > 1e-6
+        hidden = changed[on_object].mean()
+        assert 0.0 < hidden < 0.9, f"instance {index}: {hidden:.2f} of the object hidden"
+    with pytest.raises(PopcodeError, match="occlusion_p"):
+        Augmentation(occlusion_p=1.5)

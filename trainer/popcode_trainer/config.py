@@ -48,6 +48,7 @@ class DataConfig:
     box: str = "bbox_obj"
     val_fraction: float = 0.1
     augment: bool = True
+    occlusion_p: float = 0.0  # rendered crops: probability of an occluder over part of the object (not the paper's)
     crop_size: int = CROP_SIZE
     num_workers: int = 2
 

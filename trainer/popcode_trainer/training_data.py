@@ -71,7 +71,7 @@ def build_training_data(config: Config, progress: bool = True) -> TrainingData:
                                           cfg.rotation_frame, cfg.num_hypotheses, code.sigma_from_symmetries,
                                           cfg.loss)
     train, val = split_by_image(instances, config.data.val_fraction, cfg.seed)
-    augmentation = Augmentation() if config.data.augment else None
+    augmentation = Augmentation(occlusion_p=config.data.occlusion_p) if config.data.augment else None
     size = config.data.crop_size
     cache = Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(

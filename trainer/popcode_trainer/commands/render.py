@@ -1,4 +1,4 @@
-"""``popcode-train render``: render objects into a BOP-format training split."""
+"""``popcode-train render``: single objects (``--images``) or cluttered scenes (``--scenes``) as a BOP split."""
 
 from __future__ import annotations
 
@@ -9,32 +9,67 @@ from popcode_runtime.errors import PopcodeError
 
 from ..data.objects import write_builtin_models
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, parse_shard, render_split
+from ..data.scene_render import SceneSettings, render_scene_split
+from ..data.sensor import SENSOR_PRESETS
+
+SINGLE_OBJECT_SIZE = (128, 128)
+SCENE_SIZE = (720, 540)
+SCENE_OPTIONS = ("parts", "distractors", "bin", "bin_size_mm", "sensor")  # SceneSettings fields; None: its default
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "render", help="render objects at uniformly random rotations into a BOP split",
+        "render", help="render single objects or cluttered scenes of them into a BOP split",
         description="Render objects at uniform random rotations with random lights and shade into a BOP-format "
-                    "split. Rerun the same command to complete an interrupted render; shards (--shard i/n) "
-                    "rendered into one folder, or copied together and rerun, form one split.")
+                    "split (--images: one object per image), or cluttered scenes of several parts and distractors "
+                    "dropped into a bin and seen from above (--scenes), with masks, visibility and depth as the "
+                    "BOP toolkit writes them. Rerun the same command to complete an interrupted render; shards "
+                    "(--shard i/n) rendered into one folder, or copied together and rerun, form one split.")
     parser.add_argument("--objects", required=True,
                         help="'builtin' (written to OUT/models) or a BOP models folder with models_info.json")
     parser.add_argument("--out", required=True, type=Path, help="split folder to write")
-    parser.add_argument("--images", required=True, type=int, help="images per object")
-    parser.add_argument("--size", nargs=2, type=int, default=(128, 128), metavar=("W", "H"), help="image size px")
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--images", type=int, help="single objects: images per object")
+    mode.add_argument("--scenes", type=int, help="cluttered scenes: number of images, each a new scene")
+    parser.add_argument("--size", nargs=2, type=int, metavar=("W", "H"),
+                        help=f"image size px (default {SINGLE_OBJECT_SIZE} with --images, {SCENE_SIZE} with --scenes)")
     parser.add_argument("--shard", default="0/1", help="render part i of n (default 0/1: everything)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the same seed renders the same images (default 0; another one for a test split)")
     parser.add_argument("--obj-ids", nargs="+", type=int, help="objects to render (default: all)")
     colour = parser.add_mutually_exclusive_group()
     colour.add_argument("--gray", dest="gray", action="store_true", default=True, help="grey images (default)")
     colour.add_argument("--rgb", dest="gray", action="store_false", help="colour images")
     parser.add_argument("--random-position", action="store_true", help="place objects anywhere in the image")
     parser.add_argument("--fixed-distance", action="store_true", help="keep every object at one distance")
+    scenes = parser.add_argument_group("scenes (with --scenes)")
+    scenes.add_argument("--parts", nargs=2, type=int, metavar=("MIN", "MAX"),
+                        help="target parts per image, drawn from the models with repeats (default 4 10)")
+    scenes.add_argument("--distractors", nargs=2, type=int, metavar=("MIN", "MAX"),
+                        help="boxes, cylinders, capsules and spheres per image that are not targets (default 0 3)")
+    scenes.add_argument("--no-bin", dest="bin", action="store_false", default=None,
+                        help="parts on an open table, no bin walls")
+    scenes.add_argument("--bin-size-mm", type=float,
+                        help="side of the bin (default: from the largest part and the most objects per image)")
+    scenes.add_argument("--sensor", choices=sorted(SENSOR_PRESETS),
+                        help="camera effects (noise, blur, exposure, gamma, JPEG) resembling a camera kind "
+                             "(default none; see the README)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(handler=run)
 
 
+def _check_mode_options(args: argparse.Namespace) -> None:
+    """Options of the other mode are refused, not ignored."""
+    if args.scenes is None:
+        scene_options = [f"--{name.replace('_', '-')}" for name in SCENE_OPTIONS if getattr(args, name) is not None]
+        if scene_options:
+            raise PopcodeError(f"only with --scenes, not with --images: {', '.join(scene_options)}")
+    elif args.random_position or args.fixed_distance:
+        raise PopcodeError("only with --images, not with --scenes: --random-position, --fixed-distance")
+
+
 def run(args: argparse.Namespace) -> int:
+    _check_mode_options(args)
     if args.out.is_file():
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
     if args.objects == "builtin":
@@ -43,9 +78,26 @@ def run(args: argparse.Namespace) -> int:
         models_dir = Path(args.objects)
         if not models_dir.is_dir():
             raise PopcodeError(f"--objects: no such models folder {models_dir} (or use 'builtin')")
-    settings = RenderSettings(args.images, width=args.size[0], height=args.size[1], seed=args.seed, gray=args.gray,
+    if args.scenes is not None:
+        return _run_scenes(args, models_dir)
+    width, height = args.size or SINGLE_OBJECT_SIZE
+    settings = RenderSettings(args.images, width=width, height=height, seed=args.seed, gray=args.gray,
                               random_position=args.random_position, random_distance=not args.fixed_distance)
     render_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=parse_shard(args.shard),
                  progress=not args.quiet)
+    print(f"split written to {args.out} (models: {models_dir})")
+    return 0
+
+
+def _run_scenes(args: argparse.Namespace, models_dir: Path) -> int:
+    width, height = args.size or SCENE_SIZE
+    given = {name: tuple(value) if isinstance(value, list) else value
+             for name in SCENE_OPTIONS if (value := getattr(args, name)) is not None}
+    settings = SceneSettings(args.scenes, width=width, height=height, seed=args.seed, gray=args.gray, **given)
+    stats = render_scene_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=parse_shard(args.shard),
+                               progress=not args.quiet)
+    if stats.images:
+        print(f"rendered {stats.images} scenes with {stats.instances} target instances in {stats.seconds:.1f} s: "
+              f"{stats.images / stats.seconds:.2f} scenes/s, {stats.instances / stats.seconds:.1f} instances/s")
     print(f"split written to {args.out} (models: {models_dir})")
     return 0

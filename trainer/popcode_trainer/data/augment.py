@@ -3,6 +3,10 @@
 Rendered crops: brightness +-0.2 (p 0.5) and a background (p 0.7). All crops: Gaussian noise
 sigma 0.02 (p 0.5) and a shift of up to +-5 crop pixels (p 0.9). What fires is drawn first
 (:meth:`Augmentation.draw`), so the probabilities can be checked without images.
+
+Not the paper's, off by default: an occluder (``occlusion_p``) pasted over part of a rendered
+crop, so single-object renders teach what a cluttered bin shows (parts hiding parts); a scene
+split (``popcode-train render --scenes``) has real occlusion instead.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ class AugmentationDraw:
     background: bool
     noise: bool
     shift_crop_px: tuple[float, float]  # (dx, dy) in pixels of the output crop
+    occlusion: bool = False
 
 
 @dataclass(frozen=True)
@@ -40,17 +45,27 @@ class Augmentation:
     noise_p: float = 0.5
     max_shift_crop_px: float = 5.0
     shift_p: float = 0.9
+    occlusion_p: float = 0.0  # rendered crops: an occluder hides part of the object
+    occlusion_max_fraction: float = 0.6  # of the object's visible pixels, at most (on average about half of it)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.occlusion_p <= 1.0 or not 0.0 < self.occlusion_max_fraction <= 1.0:
+            raise PopcodeError(f"occlusion_p must lie in [0, 1] and occlusion_max_fraction in (0, 1], got "
+                               f"{self.occlusion_p}, {self.occlusion_max_fraction}")
 
     def draw(self, rng: np.random.Generator, rendered: bool) -> AugmentationDraw:
-        """Decide what fires for one sample; brightness and background only for rendered images."""
+        """Decide what fires for one sample; brightness, background and occlusion only for rendered images."""
         fire = rng.random(4) < [self.brightness_p, self.background_p, self.noise_p, self.shift_p]
         brightness = rng.uniform(-self.brightness_delta, self.brightness_delta)
         shift = rng.uniform(-self.max_shift_crop_px, self.max_shift_crop_px, size=2)
+        # Drawn only when switched on, so that the paper's augmentation draws exactly what it always drew.
+        occlusion = self.occlusion_p > 0 and rng.random() < self.occlusion_p
         return AugmentationDraw(
             brightness=float(brightness) if rendered and fire[0] else 0.0,
             background=bool(rendered and fire[1]),
             noise=bool(fire[2]),
             shift_crop_px=(float(shift[0]), float(shift[1])) if fire[3] else (0.0, 0.0),
+            occlusion=bool(rendered and occlusion),
         )
 
 
@@ -70,6 +85,36 @@ def procedural_texture(rng: np.random.Generator, size: int) -> np.ndarray:
     low, high = texture.min(), texture.max()
     contrast = rng.uniform(0.3, 1.0)
     return (texture - low) / max(high - low, 1e-6) * contrast + rng.uniform(0.0, 1.0 - contrast)
+
+
+def occluder_alpha(rng: np.random.Generator, object_alpha: np.ndarray, max_fraction: float) -> np.ndarray:
+    """Alpha ``(S, S)`` in [0, 1] of a random convex occluder over part of the object (``object_alpha`` > 0.5).
+
+    A polygon of 3 to 8 corners grown from a point on the object's edge until it hides a random share
+    of up to about ``max_fraction`` of the object's pixels: like a part lying across it.
+    """
+    size = object_alpha.shape[0]
+    ys, xs = np.nonzero(object_alpha > 0.5)
+    if len(xs) == 0:
+        return np.zeros_like(object_alpha, dtype=np.float32)
+    target = rng.uniform(0.1, max_fraction)
+    centre = np.array([xs.mean(), ys.mean()])
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    direction = np.array([np.cos(angle), np.sin(angle)])
+    reach = np.abs((np.stack([xs, ys], axis=1) - centre) @ direction).max()
+    count = int(rng.integers(3, 9))
+    # Corners spread around the middle (no gap of pi or more), so the polygon always contains it.
+    corners = rng.uniform(0.0, 2.0 * np.pi) + (np.arange(count) + rng.uniform(-0.15, 0.15, count)) * 2.0 * np.pi / count
+    radii = rng.uniform(0.6, 1.0, size=count)
+    middle = centre + direction * reach  # on the object's edge: it grows over the object from one side
+    alpha = np.zeros((size, size), np.float32)
+    for scale in np.linspace(0.05, 1.5, 32) * size:  # grow the occluder until it hides enough
+        points = middle + scale * radii[:, None] * np.stack([np.cos(corners), np.sin(corners)], axis=1)
+        alpha[:] = 0.0
+        cv2.fillConvexPoly(alpha, np.round(points * 16).astype(np.int32), 1.0, cv2.LINE_AA, shift=4)
+        if (alpha[ys, xs] > 0.5).mean() >= target:
+            break
+    return alpha
 
 
 class Backgrounds:

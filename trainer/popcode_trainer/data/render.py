@@ -84,7 +84,7 @@ def sample_pose(rng: np.random.Generator, vertices_mm: np.ndarray, diameter_mm: 
                        f"at fill {fill:.2f}; lower fill_range")
 
 
-def _mask_box(mask: np.ndarray) -> list[int]:
+def mask_box(mask: np.ndarray) -> list[int]:
     """The BOP box of a mask: first pixel and the distance to the last (the BOP toolkit's ``calc_2d_bbox``)."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
@@ -125,20 +125,28 @@ class _SceneRenderer:
         self._transient = [(scene, scene.add(item, pose=pose))
                            for scene, mesh in zip((self._scene, self._depth.scene), self._meshes[obj_id], strict=True)
                            for item, pose in ((mesh, gl_pose(R_m2c, t_m2c_mm)), (camera, np.eye(4)))]
-        for _ in range(rng.integers(1, 4)):
-            # Light travels along -z of its node: point it into the scene from the camera's side.
-            direction = rng.normal(size=3)
-            direction[2] = -abs(direction[2]) - 0.5
-            pose = np.eye(4)
-            pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
-            light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(1.0, 4.0))
-            self._transient.append((self._scene, self._scene.add(light, pose=pose)))
+        self._transient += [(self._scene, node) for node in add_random_lights(pyrender, self._scene, rng)]
         color, _ = self._renderer.render(self._scene)  # its depth is one multisample's, off the pixel centre
         return color, self._depth.render()
 
     def close(self) -> None:
         self._depth.delete()
         self._renderer.delete()
+
+
+def add_random_lights(pyrender: Any, scene: Any, rng: np.random.Generator,
+                      intensity_range: tuple[float, float] = (1.0, 4.0)) -> list[Any]:
+    """One to three white directional lights from the camera's side (camera at the origin); returns their nodes."""
+    nodes = []
+    for _ in range(rng.integers(1, 4)):
+        # Light travels along -z of its node: point it into the scene from the camera's side.
+        direction = rng.normal(size=3)
+        direction[2] = -abs(direction[2]) - 0.5
+        pose = np.eye(4)
+        pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
+        light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(*intensity_range))
+        nodes.append(scene.add(light, pose=pose))
+    return nodes
 
 
 def _scene_dir(out_dir: Path, obj_id: int) -> Path:
@@ -162,7 +170,7 @@ def _render_one(renderer: _SceneRenderer, scene_dir: Path, obj_id: int, im_id: i
                      np.clip(np.round(depth_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16))
     write_png_atomic(scene_dir / "mask_visib" / f"{stem}_000000.png", mask.astype(np.uint8) * 255)
     pixels = int(mask.sum())
-    box = _mask_box(mask)  # the whole object is in view, so the visible and full boxes agree
+    box = mask_box(mask)  # the whole object is in view, so the visible and full boxes agree
     record = {
         "scene_gt": [{"cam_R_m2c": R_m2c.ravel().tolist(), "cam_t_m2c": t_m2c_mm.tolist(), "obj_id": obj_id}],
         "scene_gt_info": [{"bbox_obj": box, "bbox_visib": box, "px_count_all": pixels, "px_count_valid": pixels,
@@ -172,7 +180,7 @@ def _render_one(renderer: _SceneRenderer, scene_dir: Path, obj_id: int, im_id: i
     write_json_atomic(scene_dir / RECORDS_FOLDER / f"{stem}.json", record)  # last: marks the image done
 
 
-def _finalize_scene(scene_dir: Path) -> None:
+def finalize_scene(scene_dir: Path) -> None:
     """Rebuild the scene's BOP JSON files from every image record present."""
     tables: dict[str, dict[str, Any]] = {"scene_gt": {}, "scene_gt_info": {}, "scene_camera": {}}
     for record_path in sorted((scene_dir / RECORDS_FOLDER).glob("*.json")):
@@ -183,7 +191,7 @@ def _finalize_scene(scene_dir: Path) -> None:
         write_json_atomic(scene_dir / f"{name}.json", table)
 
 
-def _check_settings(out_dir: Path, settings: dict[str, Any]) -> None:
+def check_settings(out_dir: Path, settings: dict[str, Any]) -> None:
     marker = out_dir / RENDER_MARKER
     if marker.is_file():
         previous = read_json(marker)
@@ -218,7 +226,7 @@ def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSe
                            f"(it lists {sorted(models_info)})")
     shard_index, shard_count = shard
     out_dir.mkdir(parents=True, exist_ok=True)
-    _check_settings(out_dir, {**asdict(settings), "fill_range": list(settings.fill_range),
+    check_settings(out_dir, {**asdict(settings), "fill_range": list(settings.fill_range),
                               "obj_ids": obj_ids})
     todo = []
     for obj_index, obj_id in enumerate(obj_ids):
@@ -231,7 +239,7 @@ def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSe
         _render_todo(models_dir, out_dir, models_info, todo, settings, progress)
     for obj_id in obj_ids:
         if (_scene_dir(out_dir, obj_id) / RECORDS_FOLDER).is_dir():
-            _finalize_scene(_scene_dir(out_dir, obj_id))
+            finalize_scene(_scene_dir(out_dir, obj_id))
     return out_dir
 
 

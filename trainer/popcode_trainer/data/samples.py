@@ -22,7 +22,7 @@ from torch.utils.data import Dataset
 
 from popcode_runtime.errors import PopcodeError
 
-from .augment import Augmentation, AugmentationDraw, Backgrounds
+from .augment import Augmentation, AugmentationDraw, Backgrounds, occluder_alpha
 from .bop import Instance
 from .crop_cache import CropCache, crop_with_margin, margin_for_shift
 
@@ -32,6 +32,11 @@ PAPER_AUGMENTATION = Augmentation()
 BACKGROUNDS_PER_EPOCH = 256
 
 TargetsFn = Callable[[Sequence[Instance]], np.ndarray]
+
+
+def _require_mask(instance: Instance, augmentation: str) -> None:
+    if instance.mask_visib_path is None:
+        raise PopcodeError(f"{instance.image_path}: the {augmentation} augmentation needs its mask_visib image")
 
 
 class CropDataset(Dataset):
@@ -102,11 +107,16 @@ class CropDataset(Dataset):
             return crop
         crop = crop + augment.brightness
         if augment.background:
-            if instance.mask_visib_path is None:
-                raise PopcodeError(f"{instance.image_path}: the background augmentation needs its mask_visib image")
+            _require_mask(instance, "background")
             # Compositing the cropped mask as alpha equals pasting before the crop, with soft edges.
             alpha = stored[1, rows, cols].astype(np.float32) / 255.0
             crop = alpha * crop + (1.0 - alpha) * self._background(rng)
+        if augment.occlusion:
+            _require_mask(instance, "occlusion")
+            alpha = occluder_alpha(rng, stored[1, rows, cols].astype(np.float32) / 255.0,
+                                   self.augmentation.occlusion_max_fraction)
+            occluder = self._background(rng) * rng.uniform(0.3, 1.0) + rng.uniform(0.0, 0.4)
+            crop = alpha * occluder + (1.0 - alpha) * crop
         if augment.noise:
             crop = crop + self.augmentation.noise_sigma * rng.standard_normal(crop.shape, dtype=np.float32)
         return np.clip(crop, 0.0, 1.0).astype(np.float32)

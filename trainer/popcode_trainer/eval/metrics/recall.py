@@ -237,3 +237,25 @@ def group_scores(
         else:
             raise PopcodeError(f"average must be 'instances' or 'objects', not {average!r}")
     return result
+
+
+VISIBILITY_BINS: tuple[tuple[str, float, float], ...] = (
+    (">= 0.9", 0.9, math.inf), ("0.6-0.9", 0.6, 0.9), ("0.3-0.6", 0.3, 0.6), ("0.1-0.3", 0.1, 0.3))
+"""``(label, low, high)``: an instance with ``low <= visib_fract < high`` falls into the bin (BOP19 tests >= 0.1)."""
+
+
+def visibility_scores(
+    errors: InstanceErrors, visib_fract: np.ndarray, diameters_mm: Mapping[int, float],
+    thresholds: Thresholds | None = None,
+) -> dict[str, dict[str, float]]:
+    """Scores (:func:`metric_scores`, pooled over instances) per bin of :data:`VISIBILITY_BINS`, each with its
+    instance count under ``"instances"``; a bin without instances has NaN scores."""
+    visib_fract = np.asarray(visib_fract, dtype=np.float64)
+    if visib_fract.shape != np.shape(errors.obj_id):
+        raise PopcodeError(f"{len(visib_fract)} visibilities for {len(errors.obj_id)} instances")
+    result = {}
+    for label, low, high in VISIBILITY_BINS:
+        chosen = (visib_fract >= low) & (visib_fract < high)
+        result[label] = {**metric_scores(errors.select(chosen), diameters_mm, thresholds),
+                         "instances": float(chosen.sum())}
+    return result

@@ -47,6 +47,7 @@ class MethodResult:
     full_pose: FullPose | None = None  # when asked for: translation from the box, 6-D scores
     thresholds: Thresholds = field(default_factory=Thresholds)  # those every score was computed with
     confidence: ConfidenceEvaluation | None = None  # how well the per-estimate score predicts a small error
+    by_visibility: dict[str, dict[str, float]] = field(default_factory=dict)  # visib_fract bin -> scores, count
 
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
@@ -63,7 +64,8 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
     per_object, groups = metrics.scores(errors)
     pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
     return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups, metrics.tightest(errors),
-                        model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds)
+                        model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds,
+                        by_visibility=metrics.by_visibility(errors))
 
 
 def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,

@@ -29,6 +29,7 @@ from ..metrics.recall import (
     group_scores,
     scores_per_object,
     tightest_recalls,
+    visibility_scores,
 )
 from .instance_errors import ObjectModel, compute_instance_errors
 from .split import EvalSplit
@@ -115,6 +116,11 @@ class SplitMetrics:
         """Scores per object and per ambiguity group (the paper's Tables III and IV)."""
         return (scores_per_object(errors, self.diameters_mm, self.thresholds),
                 group_scores(errors, self.diameters_mm, self.ambiguous, self.thresholds))
+
+    def by_visibility(self, errors: InstanceErrors) -> dict[str, dict[str, float]]:
+        """Scores per ``visib_fract`` bin (``recall.VISIBILITY_BINS``), each with its instance count."""
+        visib_fract = np.array([inst.visib_fract for inst in self.split.instances])
+        return visibility_scores(errors, visib_fract, self.diameters_mm, self.thresholds)
 
     def tightest(self, errors: InstanceErrors) -> dict[str, dict[str, float]]:
         """Recall at each metric's tightest threshold alone, per ambiguity group."""

@@ -21,13 +21,20 @@ from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
 from popcode_runtime.errors import PopcodeError
 
 from ..metrics.pose_errors import rotation_error_deg, translation_error_mm
-from ..metrics.recall import METRICS, InstanceErrors, Thresholds, ambiguous_objects, tightest_thresholds
+from ..metrics.recall import (
+    METRICS,
+    VISIBILITY_BINS,
+    InstanceErrors,
+    Thresholds,
+    ambiguous_objects,
+    tightest_thresholds,
+)
 from ..pipeline.evaluate import MethodResult
 from ..pipeline.split import EvalSplit
 from ..pipeline.translation import relative_translation_error, translation_summary
 from .confidence import RELIABILITY_PNG, confidence_markdown, plot_reliability
 from .markdown import markdown_table
-from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown
+from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown, visibility_markdown
 
 ERRORS_CSV = "errors_{name}.csv"
 BOP19_CSV = "{name}_bop19.csv"
@@ -129,6 +136,7 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
         f"Objects with ambiguity: {ambiguous or 'none'}; instances: {len(split.instances)}.",
         ambiguity_markdown({r.name: r.groups for r in results}),
         *tightest_markdown(results),
+        *visibility_section(results),
         "## Scores per object (paper Table III)",
     ]
     present = [m for m in METRICS if any(m in s for r in results for s in r.per_object.values())]
@@ -140,6 +148,16 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
         parts.append(confidence)
     parts += ["## Timing", timing_markdown(results)]
     return "\n\n".join(parts) + "\n"
+
+
+def visibility_section(results: Sequence[MethodResult]) -> list[str]:
+    """Scores per visibility bin: only for a split with occlusion (some instance less than 90 % visible)."""
+    if all(inst.visib_fract >= VISIBILITY_BINS[0][1] for inst in results[0].split.instances):
+        return []
+    return ["## Scores by visibility (visib_fract of the ground truth)",
+            "Occluded instances, and those the image border cuts, binned by the visible fraction of the object; "
+            "instances below 0.1 are not evaluated (BOP19).",
+            visibility_markdown({r.name: r.by_visibility for r in results})]
 
 
 def translation_rows(results: Sequence[MethodResult]) -> dict[str, dict[str, float]]:
@@ -176,7 +194,8 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
     methods: dict[str, Any] = {}
     for r in results:
         methods[r.name] = {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
-                           "tightest": r.tightest, "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s,
+                           "tightest": r.tightest, "by_visibility": r.by_visibility,
+                           "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s,
                            "confidence": None if r.confidence is None else r.confidence.to_dict()}
         if r.full_pose is not None:
             methods[r.name]["full_pose"] = {

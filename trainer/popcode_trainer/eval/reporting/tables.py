@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ..metrics.recall import GROUPS, METRICS
+from ..metrics.recall import GROUPS, METRICS, VISIBILITY_BINS
 from ..pipeline.translation import SUMMARY_COLUMNS
 from .markdown import markdown_table
 
@@ -60,6 +60,19 @@ def ambiguity_markdown(groups_by_method: Mapping[str, Mapping[str, Scores]]) -> 
     for group in GROUPS:
         section = {method: groups[group] for method, groups in groups_by_method.items() if group in groups}
         sections.append(f"**{group}**\n\n{methods_markdown(section)}")
+    return "\n\n".join(sections)
+
+
+def visibility_markdown(visibility_by_method: Mapping[str, Mapping[str, Scores]]) -> str:
+    """One section per ``visib_fract`` bin (with its instance count), methods as rows, metrics as columns."""
+    sections = []
+    for label, _, _ in VISIBILITY_BINS:
+        section = {method: {k: v for k, v in bins[label].items() if k != "instances"}
+                   for method, bins in visibility_by_method.items() if label in bins}
+        if not section:
+            continue
+        count = int(next(iter(visibility_by_method.values()))[label]["instances"])
+        sections.append(f"**visib_fract {label}** ({count} instances)\n\n{methods_markdown(section)}")
     return "\n\n".join(sections)
 
 

@@ -1,0 +1,462 @@
+"""Cluttered scenes as a BOP split: several parts (with repeats) and distractors in a bin, seen from above.
+
+Image ``k`` of a render is scene folder ``k // 1000``, image ``k % 1000`` (as BlenderProc's
+``train_pbr``), belongs to shard ``k % n`` and draws everything (parts, their poses, distractors,
+bin, textures, lights, camera, sensor) from a generator seeded by ``(seed, k)``: any shard split
+renders the same images. Records, atomic writes and resume work as in :mod:`.render`.
+
+Annotations are computed as the BOP toolkit's ``calc_gt_masks`` and ``calc_gt_info`` compute
+them (:func:`instance_gt_info`): ``mask`` is the part rendered alone, ``mask_visib`` the pixels of
+that mask where the part is not more than ``visib_delta_mm`` behind the scene's depth,
+``px_count_all`` counts the whole silhouette including what the image border cuts off, and the
+boxes of an instance with no visible pixel are ``[-1, -1, -1, -1]``. A draw in which no target is
+visible (rare: the camera aims at the bin) is drawn again, up to :data:`MAX_CAMERA_TRIES` times;
+after that it is written as it is, every instance with ``visib_fract`` 0, which readers skip.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import trimesh
+from tqdm import tqdm
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import write_json_atomic, write_png_atomic
+
+from ..eval.metrics.visibility import depth_to_distance, visible_mask_gt
+from .augment import procedural_texture
+from .bop import load_models_info, model_path
+from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
+from .meshes import load_mesh
+from .objects import write_builtin_models
+from .render import (
+    BUILTIN_MODELS_FOLDER,
+    DEPTH_SCALE_MM,
+    RECORDS_FOLDER,
+    add_random_lights,
+    camera_matrix,
+    check_settings,
+    finalize_scene,
+    mask_box,
+)
+from .scene_layout import PlacedObject, drop_objects, look_at_camera, model_to_camera, surface_points_mm
+from .sensor import apply_sensor_effects, sensor_preset
+
+IMAGES_PER_SCENE_FOLDER = 1000
+BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tolerance
+DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
+MAX_CAMERA_TRIES = 10
+MAX_SIDE_PX = 4096  # the border-cut silhouettes are rendered 3x larger: within OpenGL's usual 16384 limit
+SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """What a scene split is rendered with; stored in the split so a rerun cannot mix settings."""
+
+    scenes: int
+    width: int = 720
+    height: int = 540
+    seed: int = 0
+    gray: bool = True
+    parts: tuple[int, int] = (4, 10)  # targets per image, drawn uniformly, repeats allowed
+    distractors: tuple[int, int] = (0, 3)  # primitives that are not targets
+    bin: bool = True  # walls around the pile; False: parts lie on an open table
+    bin_size_mm: float = 0.0  # side of the bin; 0: from the largest part and the most parts per image
+    fill_range: tuple[float, float] = (0.7, 1.2)  # bin side / min(width, height) in px; above 1 the border cuts
+    max_tilt_deg: float = 35.0  # camera axis from the vertical
+    visib_delta_mm: float = BOP_VISIB_DELTA_MM
+    sensor: str = "none"  # a name in sensor.SENSOR_PRESETS
+
+    def __post_init__(self) -> None:
+        if self.scenes < 1 or not 8 <= self.width <= MAX_SIDE_PX or not 8 <= self.height <= MAX_SIDE_PX:
+            raise PopcodeError(f"need at least 1 scene and 8 to {MAX_SIDE_PX} pixels a side, got {self.scenes} "
+                               f"scenes at {self.width}x{self.height}")
+        if not 1 <= self.parts[0] <= self.parts[1] or not 0 <= self.distractors[0] <= self.distractors[1]:
+            raise PopcodeError(f"parts need 1 <= min <= max and distractors 0 <= min <= max, got parts "
+                               f"{self.parts}, distractors {self.distractors}")
+        if self.parts[1] + self.distractors[1] > 200:
+            raise PopcodeError(f"at most 200 objects per image, got up to {self.parts[1] + self.distractors[1]}")
+        if not 0.1 <= self.fill_range[0] <= self.fill_range[1] <= 3.0:
+            raise PopcodeError(f"fill_range must satisfy 0.1 <= low <= high <= 3, got {self.fill_range}")
+        if not 0.0 <= self.max_tilt_deg <= 70.0 or self.bin_size_mm < 0 or self.visib_delta_mm <= 0:
+            raise PopcodeError(f"need 0 <= max_tilt_deg <= 70, bin_size_mm >= 0 and visib_delta_mm > 0, got {self}")
+        sensor_preset(self.sensor)
+
+
+def instance_gt_info(depth_alone_mm: np.ndarray, depth_scene_mm: np.ndarray, K: np.ndarray, delta_mm: float,
+                     px_count_all: int | None = None, bbox_obj: list[int] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """``mask``, ``mask_visib`` ``(H, W)`` bool and the ``scene_gt_info`` entry of one instance.
+
+    ``depth_alone_mm``: the instance rendered alone; ``depth_scene_mm``: the whole scene (0 where
+    nothing is). ``px_count_all`` and ``bbox_obj`` of the whole silhouette, when the border cuts it,
+    come from a larger rendering; by default they are the in-image mask's.
+    """
+    mask = depth_alone_mm > 0
+    mask_visib = visible_mask_gt(depth_to_distance(depth_scene_mm, K), depth_to_distance(depth_alone_mm, K),
+                                 delta_mm)
+    px_count_all = int(mask.sum()) if px_count_all is None else int(px_count_all)
+    px_count_visib = int(mask_visib.sum())
+    info = {
+        "bbox_obj": (mask_box(mask) if bbox_obj is None else list(bbox_obj)) if px_count_visib else [-1] * 4,
+        "bbox_visib": mask_box(mask_visib),
+        "px_count_all": px_count_all,
+        "px_count_valid": int((depth_scene_mm[mask] > 0).sum()),
+        "px_count_visib": px_count_visib,
+        "visib_fract": px_count_visib / px_count_all if px_count_all else 0.0,
+    }
+    return mask, mask_visib, info
+
+
+def _distractor_mesh(rng: np.random.Generator, size_mm: float) -> trimesh.Trimesh:
+    """A random box, cylinder, capsule or sphere of about ``size_mm``: clutter that is no target."""
+    kind = int(rng.integers(4))
+    scale = size_mm * rng.uniform(0.25, 0.7, size=3)
+    if kind == 0:
+        return trimesh.creation.box(extents=scale)
+    if kind == 1:
+        return trimesh.creation.cylinder(radius=scale[0] / 2, height=scale[2], sections=24)
+    if kind == 2:
+        return trimesh.creation.capsule(radius=scale[0] / 3, height=scale[2], count=[12, 12])
+    return trimesh.creation.icosphere(subdivisions=2, radius=scale[0] / 2)
+
+
+def _textured_quad(pyrender: Any, side_mm: float, texture_rgb: np.ndarray, repeats: float) -> Any:
+    """A square of ``side_mm`` in the plane z = 0, facing +z, with a tiled texture."""
+    half = side_mm / 2.0
+    positions = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], np.float32)
+    uv = np.array([[0, 0], [repeats, 0], [repeats, repeats], [0, repeats]], np.float32)
+    material = pyrender.MetallicRoughnessMaterial(
+        baseColorTexture=pyrender.Texture(source=texture_rgb, source_channels="RGB"),
+        metallicFactor=0.0, roughnessFactor=0.9)
+    primitive = pyrender.Primitive(positions=positions, normals=np.tile([0.0, 0.0, 1.0], (4, 1)).astype(np.float32),
+                                   texcoord_0=uv, indices=np.array([[0, 1, 2], [0, 2, 3]]), material=material)
+    return pyrender.Mesh([primitive])
+
+
+def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+    """A procedural texture between two random colours, ``(size, size, 3)`` uint8."""
+    weight = np.clip(procedural_texture(rng, size), 0.0, 1.0)[..., None]
+    colours = rng.uniform(0.05, 0.95, size=(2, 3))
+    return np.round(255 * (weight * colours[0] + (1 - weight) * colours[1])).astype(np.uint8)
+
+
+def _random_material(pyrender: Any, rng: np.random.Generator) -> Any:
+    """Mostly grey plastic or metal like T-LESS parts, sometimes coloured."""
+    colour = np.full(3, rng.uniform(0.3, 0.9)) if rng.random() < 0.6 else rng.uniform(0.15, 0.9, size=3)
+    return pyrender.MetallicRoughnessMaterial(baseColorFactor=[*colour, 1.0], metallicFactor=rng.uniform(0.0, 0.5),
+                                              roughnessFactor=rng.uniform(0.3, 0.9))
+
+
+def _bin_walls(side_mm: float, height_mm: float) -> list[trimesh.Trimesh]:
+    thickness = 0.03 * side_mm
+    offset = (side_mm + thickness) / 2.0
+    walls = []
+    for axis in (0, 1):
+        for sign in (-1.0, 1.0):
+            extents = [side_mm + 2 * thickness, side_mm + 2 * thickness, height_mm]
+            extents[axis] = thickness
+            centre = [0.0, 0.0, height_mm / 2.0]
+            centre[axis] = sign * offset
+            walls.append(trimesh.creation.box(extents=extents,
+                                              transform=trimesh.transformations.translation_matrix(centre)))
+    return walls
+
+
+@dataclass
+class _SceneContent:
+    """One image's world: targets and distractors at rest, bin walls and ground, camera and appearance."""
+
+    targets: list[PlacedObject]
+    distractors: list[PlacedObject]
+    distractor_meshes: dict[int, trimesh.Trimesh]
+    walls: list[trimesh.Trimesh]
+    ground_side_mm: float
+    R_w2c: np.ndarray
+    t_w2c_mm: np.ndarray
+
+
+class _Layouts:
+    """Draws the world of image ``k`` from its generator: which parts, where they rest, where the camera is."""
+
+    def __init__(self, meshes: dict[int, trimesh.Trimesh], settings: SceneSettings) -> None:
+        self.settings = settings
+        self.obj_ids = sorted(meshes)
+        self.points_mm = {obj_id: surface_points_mm(mesh) for obj_id, mesh in meshes.items()}
+        self.diameters_mm = {obj_id: float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+                             for obj_id, mesh in meshes.items()}
+        largest_mm = max(self.diameters_mm.values())
+        crowd = settings.parts[1] + settings.distractors[1]
+        self.side_mm = settings.bin_size_mm or largest_mm * max(2.0, 0.7 * np.sqrt(crowd))
+        self.wall_mm = 0.5 * largest_mm
+        self.max_height_mm = self.wall_mm + 2.0 * largest_mm
+
+    def draw(self, rng: np.random.Generator, K: np.ndarray) -> _SceneContent:
+        settings = self.settings
+        targets = [int(obj_id) for obj_id in rng.choice(self.obj_ids, size=int(rng.integers(*settings.parts,
+                                                                                            endpoint=True)))]
+        distractor_meshes = {DISTRACTOR_KEY_BASE - i: _distractor_mesh(rng, np.median(list(self.diameters_mm.values())))
+                             for i in range(int(rng.integers(*settings.distractors, endpoint=True)))}
+        points = {**self.points_mm, **{key: surface_points_mm(mesh, seed=int(rng.integers(2**31)))
+                                       for key, mesh in distractor_meshes.items()}}
+        keys = [*targets, *distractor_meshes]
+        order = rng.permutation(len(keys))  # distractors may lie under or over the parts
+        placed = drop_objects(rng, [keys[i] for i in order], points, self.side_mm, self.max_height_mm)
+        fill = rng.uniform(*settings.fill_range)
+        distance_mm = K[0, 0] * self.side_mm / (fill * min(settings.width, settings.height))
+        target_w_mm = np.array([*rng.uniform(-0.15, 0.15, size=2) * self.side_mm, 0.0])
+        R_w2c, t_w2c_mm = look_at_camera(rng, target_w_mm, distance_mm, np.deg2rad(settings.max_tilt_deg))
+        return _SceneContent(
+            targets=[p for p in placed if p.key >= 0], distractors=[p for p in placed if p.key < 0],
+            distractor_meshes=distractor_meshes, walls=_bin_walls(self.side_mm, self.wall_mm) if settings.bin else [],
+            ground_side_mm=6.0 * self.side_mm, R_w2c=R_w2c, t_w2c_mm=t_w2c_mm)
+
+
+def _depth_mesh(pyrender: Any, mesh: trimesh.Trimesh) -> Any:
+    """Positions and triangles only: what a depth pass needs, cheap to make per image."""
+    return pyrender.Mesh([pyrender.Primitive(positions=np.asarray(mesh.vertices, np.float32),
+                                             indices=np.asarray(mesh.faces))])
+
+
+class _SceneRenderer:
+    """Colour and depth of a whole scene, and the depth of each target alone (in and around the image).
+
+    Each pyrender renderer keeps its own meshes (a mesh's GL buffers belong to one renderer), and
+    all three share the OpenGL context of one offscreen renderer (see :class:`.gl.CentreSampledDepth`).
+    """
+
+    def __init__(self, width: int, height: int) -> None:
+        self.pyrender = import_pyrender()
+        self.width, self.height = width, height
+        self._offscreen = offscreen(width, height)
+        self._depth = CentreSampledDepth(self._offscreen, width, height)
+        self._wide_depth = CentreSampledDepth(self._offscreen, 3 * width, 3 * height)
+        self._near_far_mm = (1.0, 2.0)  # of the current image
+
+    def render(self, content: _SceneContent, meshes: dict[int, trimesh.Trimesh], K: np.ndarray,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[tuple[int, list]]]:
+        """Colour ``(H, W, 3)`` uint8, scene depth [mm], each target's depth alone, and its whole silhouette's
+        pixel count and box (from a 3x larger image when the border cuts it)."""
+        pyrender = self.pyrender
+        meshes = {**meshes, **content.distractor_meshes}
+        colour_scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=np.full(3, rng.uniform(0.05, 0.3)))
+        depth_scene = pyrender.Scene()
+        poses_c = []  # (trimesh, GL pose) of everything but the ground
+        for placed in [*content.targets, *content.distractors]:
+            R_m2c, t_m2c_mm = model_to_camera(placed, content.R_w2c, content.t_w2c_mm)
+            poses_c.append((meshes[placed.key], gl_pose(R_m2c, t_m2c_mm)))
+        wall_material = _random_material(pyrender, rng)
+        world_gl = gl_pose(content.R_w2c, content.t_w2c_mm)
+        for wall in content.walls:
+            poses_c.append((wall, world_gl))
+        target_nodes = []
+        for index, (mesh, pose) in enumerate(poses_c):
+            material = wall_material if index >= len(content.targets) + len(content.distractors) else \
+                _random_material(pyrender, rng)
+            colour_scene.add(pyrender.Mesh.from_trimesh(mesh, material=material, smooth=False), pose=pose)
+            node = depth_scene.add(_depth_mesh(pyrender, mesh), pose=pose)
+            if index < len(content.targets):
+                target_nodes.append(node)
+        texture = _random_texture(rng)
+        ground = trimesh.creation.box(extents=[content.ground_side_mm, content.ground_side_mm, 1.0],
+                                      transform=trimesh.transformations.translation_matrix([0.0, 0.0, -0.5]))
+        colour_scene.add(_textured_quad(pyrender, content.ground_side_mm, texture, rng.uniform(2.0, 8.0)),
+                         pose=world_gl)
+        depth_scene.add(_depth_mesh(pyrender, ground), pose=world_gl)
+        add_random_lights(pyrender, colour_scene, rng, SCENE_LIGHT_INTENSITY)
+        corners_c = _corners_in_camera(content, meshes, poses_c)
+        near_mm, far_mm = max(corners_c.min(), 1.0), corners_c.max()
+        self._near_far_mm = (near_mm, far_mm)
+        camera = self._camera(K)
+        for scene in (colour_scene, depth_scene):
+            scene.add(camera, pose=np.eye(4))
+        colour, _ = self._offscreen.render(colour_scene)
+        self._depth.scene = depth_scene
+        depth_scene_mm = self._depth.render()
+        alone_mm, whole = [], []
+        for node in target_nodes:
+            for other in depth_scene.mesh_nodes:
+                other.mesh.is_visible = other is node
+            alone = self._depth.render()
+            alone_mm.append(alone)
+            whole.append(self._whole_silhouette(node, K, alone))
+        return colour, depth_scene_mm, alone_mm, whole
+
+    def _camera(self, K: np.ndarray) -> Any:
+        near_mm, far_mm = self._near_far_mm
+        return pyrender_camera(self.pyrender, K, (far_mm - near_mm) / 2.0 + 1.0, (far_mm + near_mm) / 2.0)
+
+    def _whole_silhouette(self, node: Any, K: np.ndarray, alone_mm: np.ndarray) -> tuple[int, list]:
+        """Pixel count and box of the whole silhouette: the BOP toolkit renders 3x larger to count what the border
+        cuts off; that is only needed when the silhouette touches the border or lies outside the image."""
+        mask = alone_mm > 0
+        if mask.any() and not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
+            return int(mask.sum()), mask_box(mask)
+        wide_K = K.copy()
+        wide_K[:2, 2] += [self.width, self.height]
+        scene = self.pyrender.Scene()
+        scene.add(_depth_mesh(self.pyrender, _node_trimesh(node)), pose=node.matrix)
+        scene.add(self._camera(wide_K), pose=np.eye(4))
+        self._wide_depth.scene = scene
+        wide_mask = self._wide_depth.render() > 0
+        if not wide_mask.any():
+            return 0, [-1, -1, -1, -1]
+        x, y, w, h = mask_box(wide_mask)
+        return int(wide_mask.sum()), [x - self.width, y - self.height, w, h]
+
+    def close(self) -> None:
+        self._wide_depth.delete()
+        self._depth.delete()
+        self._offscreen.delete()
+
+
+def _node_trimesh(node: Any) -> trimesh.Trimesh:
+    primitive = node.mesh.primitives[0]
+    return trimesh.Trimesh(primitive.positions, primitive.indices, process=False)
+
+
+def _corners_in_camera(content: _SceneContent, meshes: dict[int, trimesh.Trimesh],
+                       poses_c: list[tuple[trimesh.Trimesh, np.ndarray]]) -> np.ndarray:
+    """Camera z [mm] of every object's bounding box corners and of the ground's: the near and far planes."""
+    half = content.ground_side_mm / 2.0
+    ground_w = np.array([[sx * half, sy * half, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    depths = [(ground_w @ content.R_w2c.T + content.t_w2c_mm)[:, 2]]
+    for mesh, pose_gl in poses_c:
+        corners = trimesh.bounds.corners(mesh.bounds)
+        depths.append(-(corners @ pose_gl[:3, :3].T + pose_gl[:3, 3])[:, 2])  # GL looks along -z
+    return np.concatenate(depths)
+
+
+def _folders(gray: bool) -> tuple[str, ...]:
+    return ("gray" if gray else "rgb", "depth", "mask", "mask_visib", RECORDS_FOLDER)
+
+
+def _location(k: int) -> tuple[int, int]:
+    """Scene folder and image id of the render's image ``k``."""
+    return k // IMAGES_PER_SCENE_FOLDER, k % IMAGES_PER_SCENE_FOLDER
+
+
+def _render_image(renderer: _SceneRenderer, layouts: _Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
+                  k: int, settings: SceneSettings) -> int:
+    """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
+    rng = np.random.default_rng([settings.seed, k])
+    K = camera_matrix(settings.width, settings.height)
+    for _ in range(MAX_CAMERA_TRIES):  # a draw that shows no target (rare) is drawn again
+        content = layouts.draw(rng, K)
+        colour, depth_scene_mm, alone_mm, whole = renderer.render(content, meshes, K, rng)
+        results = [instance_gt_info(alone, depth_scene_mm, K, settings.visib_delta_mm, count, box)
+                   for alone, (count, box) in zip(alone_mm, whole, strict=True)]
+        if any(info["px_count_visib"] for _, _, info in results):
+            break
+    scene_id, im_id = _location(k)
+    scene_dir = out_dir / f"{scene_id:06d}"
+    stem = f"{im_id:06d}"
+    effects = sensor_preset(settings.sensor)
+    if effects is not None:
+        image = apply_sensor_effects(colour, rng, effects, settings.gray)
+    else:
+        image = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY) if settings.gray else colour
+    write_png_atomic(scene_dir / ("gray" if settings.gray else "rgb") / f"{stem}.png", image)
+    write_png_atomic(scene_dir / "depth" / f"{stem}.png",
+                     np.clip(np.round(depth_scene_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16))
+    scene_gt = []
+    for gt_index, (placed, (mask, mask_visib, _)) in enumerate(zip(content.targets, results, strict=True)):
+        write_png_atomic(scene_dir / "mask" / f"{stem}_{gt_index:06d}.png", mask.astype(np.uint8) * 255)
+        write_png_atomic(scene_dir / "mask_visib" / f"{stem}_{gt_index:06d}.png", mask_visib.astype(np.uint8) * 255)
+        R_m2c, t_m2c_mm = model_to_camera(placed, content.R_w2c, content.t_w2c_mm)
+        scene_gt.append({"cam_R_m2c": R_m2c.ravel().tolist(), "cam_t_m2c": t_m2c_mm.tolist(), "obj_id": placed.key})
+    record = {
+        "scene_gt": scene_gt,
+        "scene_gt_info": [info for _, _, info in results],
+        "scene_camera": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE_MM,
+                         "cam_R_w2c": content.R_w2c.ravel().tolist(), "cam_t_w2c": content.t_w2c_mm.tolist()},
+    }
+    write_json_atomic(scene_dir / RECORDS_FOLDER / f"{stem}.json", record)  # last: marks the image done
+    return len(scene_gt)
+
+
+@dataclass(frozen=True)
+class SceneRenderStats:
+    """What one call rendered, for the speed report."""
+
+    images: int
+    instances: int
+    seconds: float
+
+
+def load_scene_meshes(models_dir: Path, obj_ids: Sequence[int]) -> dict[int, trimesh.Trimesh]:
+    """Every part's mesh, checked: a mesh without volume in any direction cannot be dropped into a bin."""
+    meshes = {}
+    for obj_id in obj_ids:
+        path = model_path(models_dir, obj_id)
+        mesh = load_mesh(path)
+        extent_mm = np.ptp(np.asarray(mesh.vertices), axis=0)
+        if not np.isfinite(extent_mm).all() or extent_mm.max() <= 0:
+            raise PopcodeError(f"model {path} has degenerate bounds (extent {extent_mm.tolist()} mm)")
+        meshes[obj_id] = mesh
+    return meshes
+
+
+def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: SceneSettings,
+                       obj_ids: Sequence[int] | None = None, shard: tuple[int, int] = (0, 1),
+                       progress: bool = True) -> SceneRenderStats:
+    """Render this shard's missing scene images of ``obj_ids`` (default: every model) into the BOP split ``out_dir``."""
+    models_dir, out_dir = Path(models_dir), Path(out_dir)
+    models_info = load_models_info(models_dir)
+    obj_ids = sorted(models_info) if obj_ids is None else sorted({int(obj_id) for obj_id in obj_ids})
+    unknown = [obj_id for obj_id in obj_ids if obj_id not in models_info]
+    if unknown or not obj_ids:
+        raise PopcodeError(f"object ids {unknown or '[]'} are not in {models_dir / 'models_info.json'} "
+                           f"(it lists {sorted(models_info)})")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    check_settings(out_dir, {**_plain(asdict(settings)), "obj_ids": obj_ids, "kind": "scenes"})
+    shard_index, shard_count = shard
+    todo = [k for k in range(shard_index, settings.scenes, shard_count)
+            if not (out_dir / f"{_location(k)[0]:06d}" / RECORDS_FOLDER / f"{_location(k)[1]:06d}.json").is_file()]
+    start, instances = time.perf_counter(), 0
+    if todo:
+        meshes = load_scene_meshes(models_dir, obj_ids)  # every mesh read and checked before GL starts
+        layouts = _Layouts(meshes, settings)
+        for scene_id in sorted({_location(k)[0] for k in todo}):
+            for folder in _folders(settings.gray):
+                (out_dir / f"{scene_id:06d}" / folder).mkdir(parents=True, exist_ok=True)
+        renderer = _SceneRenderer(settings.width, settings.height)
+        try:
+            for k in tqdm(todo, desc="render scenes", unit="img", disable=not progress):
+                instances += _render_image(renderer, layouts, meshes, out_dir, k, settings)
+        finally:
+            renderer.close()
+    seconds = time.perf_counter() - start
+    for scene_id in range(_location(settings.scenes - 1)[0] + 1):
+        if (out_dir / f"{scene_id:06d}" / RECORDS_FOLDER).is_dir():
+            finalize_scene(out_dir / f"{scene_id:06d}")
+    return SceneRenderStats(len(todo), instances, seconds)
+
+
+def _plain(settings: dict[str, Any]) -> dict[str, Any]:
+    return {key: list(value) if isinstance(value, tuple) else value for key, value in settings.items()}
+
+
+def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tuple[int, int] = (720, 540),
+                                seed: int = 1015, sensor: str = "industrial", progress: bool = False,
+                                obj_ids: Sequence[int] | None = None, **settings: Any) -> Path:
+    """A cluttered test split of the built-in parts (models in ``out_dir/models``) with a fixed seed; for the demo.
+
+    ``obj_ids`` picks the parts that appear as targets (default: all six); ``settings`` are further
+    :class:`SceneSettings` fields. The seed differs from the training renders' so no test scene
+    repeats a training one. Rerunning completes an interrupted render. Returns ``out_dir``.
+    """
+    out_dir = Path(out_dir)
+    models_dir = write_builtin_models(out_dir / BUILTIN_MODELS_FOLDER)
+    scene_settings = SceneSettings(scenes, width=size[0], height=size[1], seed=seed, sensor=sensor, **settings)
+    render_scene_split(models_dir, out_dir, scene_settings, obj_ids=obj_ids, progress=progress)
+    return out_dir
+
