@@ -20,7 +20,7 @@ from popcode_trainer.pipeline import PipelineSize, small_config
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
-                                       batch_size=4), ("population_code", "single_variable"))
+                                       batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2)
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -49,6 +49,9 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     for name in methods:
         assert 0.0 <= summary["confidence"][name]["mssd_at_coverage"]["0.5"] <= 1.0
     assert "### Confidence" in report
+    assert "## Clean and cluttered test splits" in report  # the two methods side by side on both splits
+    assert set(summary["cluttered_scores"]) == {"population_code", "single_variable"}
+    assert all(0.0 <= s["groups"]["All objects"]["MSSD"] <= 1.0 for s in summary["cluttered_scores"].values())
     # 3 models x 2 batches x 2 stages, each with a positive median
     assert len(summary["latency"]) == 12
     assert all(record["median_ms"] > 0 for record in summary["latency"])

@@ -26,6 +26,7 @@ from .config import Config, DataConfig
 from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
 from .data.render import BUILTIN_MODELS_FOLDER
+from .data.scene_render import render_cluttered_test_split
 from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
 from .eval.pipeline.evaluate import MethodResult, evaluate_models
 from .eval.pipeline.models import Method, load_model
@@ -44,6 +45,7 @@ from .pipeline import (
 )
 
 BASELINE = Representation.SINGLE_VARIABLE
+CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
 LATENCY_BATCHES = (1, 8)
 
 
@@ -56,13 +58,13 @@ class DemoSize:
 
 
 DEMO_SIZES = {
-    "quick": DemoSize(PipelineSize(1000, 40, small_config(epochs=20, n_axes=642, n_angles=36), (POPCODE, BASELINE)),
-                      "about 15 minutes on a 2-core CPU"),
-    "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=40, n_axes=642, n_angles=36), (POPCODE, BASELINE)),
-                       "a few hours on a 2-core CPU, minutes on a GPU"),
+    "quick": DemoSize(PipelineSize(1000, 40, small_config(epochs=20, n_axes=642, n_angles=36), (POPCODE, BASELINE),
+                                   cluttered_test_scenes=40), "about 15 minutes on a 2-core CPU"),
+    "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=40, n_axes=642, n_angles=36), (POPCODE, BASELINE),
+                                    cluttered_test_scenes=100), "a few hours on a 2-core CPU, minutes on a GPU"),
     # The paper's defaults (Config()), with data-loader workers for a GPU.
-    "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE)),
-                      "the paper's code, network and schedule; for a GPU"),
+    "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE),
+                                   cluttered_test_scenes=200), "the paper's code, network and schedule; for a GPU"),
 }
 
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
@@ -70,6 +72,8 @@ DEMO_SIZES = {
 SECONDS_PER_RENDERED_IMAGE = 0.008
 SECONDS_PER_TRAINING_SAMPLE = 0.0035
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
+SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
+CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 
@@ -117,8 +121,10 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int) -> S
             stages.append((_train_stage(representation, obj_ids),
                            samples * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))))
     methods = len(size.representations) + 2  # + refined decoder + quantised model
-    stages += [("evaluate", methods * objects * size.test_images_per_object * SECONDS_PER_EVALUATED_INSTANCE),
-               ("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
+    stages += [("evaluate", methods * objects * size.test_images_per_object * SECONDS_PER_EVALUATED_INSTANCE)]
+    if size.cluttered_test_scenes:
+        stages.append(("cluttered test split", size.cluttered_test_scenes * SECONDS_PER_CLUTTERED_SCENE))
+    stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
     return StagePlan(stages)
 
 
@@ -149,6 +155,18 @@ def demo_methods(models: TrainedModels) -> list[Method]:
     methods += [Method(name, tuple(load_model(p) for p in paths))
                 for name, paths in models.by_representation.items() if name != POPCODE]
     return methods
+
+
+def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path) -> list[MethodResult]:
+    """The population code and the baseline on a cluttered split (rendered once, fixed seed): rotation metrics
+    without the depth-based ones, scored per visibility bin."""
+    split_dir = render_cluttered_test_split(out_dir / "test_cluttered", size.cluttered_test_scenes,
+                                            seed=size.config.train.seed + CLUTTERED_SEED_OFFSET, progress=True)
+    split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER)
+    methods = [m for m in demo_methods(models) if m.name in CLUTTERED_METHODS]
+    results = evaluate_models(methods, split, vsd=False)
+    write_report(results, out_dir / "eval_cluttered")
+    return results
 
 
 def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, Any]]:
@@ -226,12 +244,17 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
         results = evaluate_models(demo_methods(models), split, translation=True)
         write_report(results, out_dir / "eval")
+    cluttered: list[MethodResult] = []
+    if size.cluttered_test_scenes:
+        with stages.stage("cluttered test split"):
+            cluttered = evaluate_cluttered(size, models, out_dir)
     with stages.stage("latency"):
         latency = measure_latency(models, latency_iterations)
     with stages.stage("figures"):
         run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
         figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
-    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done))
+    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
+                  cluttered)
     summary = write_outputs(run)
     print(f"\ndone in {_minutes(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
     return summary

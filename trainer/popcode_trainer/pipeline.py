@@ -42,14 +42,15 @@ class PipelineSize:
     ``config`` holds the code, network and training settings every model of
     the run starts from (its data splits, objects, representation and output
     folder are filled in per model by :func:`training_config`); the rest is
-    what a ``Config`` does not describe: how many images to render and which
-    representations to train.
+    what a ``Config`` does not describe: how many images (and cluttered test
+    scenes) to render and which representations to train.
     """
 
     train_images_per_object: int
     test_images_per_object: int
     config: Config
     representations: tuple[str, ...] = ALL_REPRESENTATIONS
+    cluttered_test_scenes: int = 0  # a second, cluttered test split (parts in a bin, occlusion, sensor effects)
 
     def with_epochs(self, epochs: int) -> PipelineSize:
         """The same run trained for ``epochs`` epochs."""
