@@ -61,11 +61,11 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
 
 
 def evaluate_model(method: Method, metrics: SplitMetrics, progress: bool = True,
-                   translation: bool = False) -> MethodResult:
-    """Predict every instance of the split with the method's models, then score (6-D too with ``translation``)."""
+                   points_mm: Mapping[int, np.ndarray] | None = None) -> MethodResult:
+    """Predict every instance of the split with the method's models, then score (6-D too with ``points_mm``)."""
     R_est, model_s_per_crop = predict_rotations(method, metrics.split.instances, progress)
     return evaluate_rotations(method.name, R_est, metrics, tuple(str(m.path) for m in method.models),
-                              1000.0 * model_s_per_crop, method.object_points() if translation else None)
+                              1000.0 * model_s_per_crop, points_mm)
 
 
 def _shared_split(methods: Sequence[Method], split: EvalSplit, obj_ids: Iterable[int] | None) -> EvalSplit:
@@ -103,8 +103,11 @@ def evaluate_models(methods: Sequence[Method], split: EvalSplit, thresholds: Thr
     """
     if not methods:
         raise PopcodeError("no models to evaluate")
+    # Every model's object points before the first prediction: a model without them fails now, not after hours.
+    points_mm = [method.object_points() if translation else None for method in methods]
     metrics = SplitMetrics(_shared_split(methods, split, obj_ids), thresholds, vsd)
     try:
-        return [evaluate_model(method, metrics, progress, translation) for method in methods]
+        return [evaluate_model(method, metrics, progress, points) for method, points in zip(methods, points_mm,
+                                                                                            strict=True)]
     finally:
         metrics.close()

@@ -88,7 +88,13 @@ class Method:
 
     def object_points(self) -> dict[int, np.ndarray]:
         """Object id -> the points its model's metadata gives the runtime to fit a box."""
-        return {obj_id: points for model in self.models for obj_id, points in object_points(model.objects).items()}
+        points_mm: dict[int, np.ndarray] = {}
+        for model in self.models:
+            try:
+                points_mm.update(object_points(model.objects))
+            except PopcodeError as error:
+                raise PopcodeError(f"{model.path}: no points to fit a box to: {error}") from error
+        return points_mm
 
 
 def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True,
