@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import os
 import sys
 import types
 import typing
@@ -105,6 +106,7 @@ class Config:
 
 
 SECTIONS: dict[str, type] = {"data": DataConfig, "code": CodeConfig, "network": NetworkConfig, "train": TrainConfig}
+PATH_SETTINGS = (("data", "splits"), ("data", "models_dir"), ("train", "out_dir"))  # (section, key)
 
 
 def _plain(value: Any) -> Any:
@@ -203,8 +205,21 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, key, value
 
 
+def _absolute(value: Any, base: Path) -> Any:
+    """A path setting (a string or a list of them) made absolute against ``base``; anything else as it is."""
+    if isinstance(value, str):
+        return os.path.normpath(base / value) if value else value
+    if isinstance(value, list):
+        return [_absolute(item, base) for item in value]
+    return value
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
-    """Read a TOML config (or the defaults when ``path`` is None) and apply overrides."""
+    """Read a TOML config (or the defaults when ``path`` is None) and apply overrides.
+
+    Relative paths (:data:`PATH_SETTINGS`) in the file are relative to the file's folder, those of an override
+    to the current folder; both are stored absolute, so export and evaluate find the data from anywhere.
+    """
     data: dict[str, dict[str, Any]] = {}
     if path is not None:
         path = Path(path)
@@ -214,10 +229,14 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             data = tomllib.loads(path.read_text())
         except tomllib.TOMLDecodeError as error:
             raise PopcodeError(f"{path} is not valid TOML: {error}") from error
+        for section, key in PATH_SETTINGS:
+            table = data.get(section)
+            if isinstance(table, dict) and key in table:
+                table[key] = _absolute(table[key], path.parent.absolute())
     for text in overrides:
         section, key, value = parse_override(text)
         table = data.setdefault(section, {})
         if not isinstance(table, dict):
             raise PopcodeError(f"config section [{section}] must be a table")
-        table[key] = value
+        table[key] = _absolute(value, Path.cwd()) if (section, key) in PATH_SETTINGS else value
     return Config.from_dict(data)
