@@ -227,8 +227,8 @@ def read_bop_split(
     split_dir, models_dir = Path(split_dir), Path(models_dir)
     if box not in _BOX_KINDS:
         raise PopcodeError(f"box must be one of {list(_BOX_KINDS)}, got {box!r}")
-    if not 0.0 <= min_visib_fract <= 1.0:  # NaN too: it would compare False and keep every instance
-        raise PopcodeError(f"min_visib_fract must lie in [0, 1], got {min_visib_fract}")
+    if not 0.0 <= min_visib_fract < float("inf"):  # NaN too: it compares False and would keep every instance
+        raise PopcodeError(f"min_visib_fract must be a number >= 0, got {min_visib_fract}")
     require_folder(split_dir, "split folder")
     require_folder(models_dir, "models folder")
     models_info = load_models_info(models_dir)
