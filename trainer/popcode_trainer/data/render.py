@@ -39,6 +39,9 @@ BUILTIN_MODELS_FOLDER = "models"
 DEPTH_SCALE_MM = 0.1  # depth png value * 0.1 = mm: 0.1 mm steps up to 6.5 m
 
 
+MAX_RENDER_SIDE = 8192  # px; Mesa's framebuffers stop at 16384, and BOP images are at most 2560 px wide
+
+
 def camera_matrix(width: int, height: int) -> np.ndarray:
     """The renderer's pinhole camera: focal length 1.2 x width (about 45 degrees across), centred."""
     focal_px = 1.2 * width
@@ -61,6 +64,9 @@ class RenderSettings:
     def __post_init__(self) -> None:
         if self.images_per_object < 1 or self.width < 8 or self.height < 8:
             raise PopcodeError(f"need at least 1 image per object and 8x8 pixels, got {self}")
+        if max(self.width, self.height) > MAX_RENDER_SIDE:
+            raise PopcodeError(f"images of {self.width}x{self.height} px: at most {MAX_RENDER_SIDE} px a side "
+                               f"(OpenGL's framebuffers and each image held in memory)")
         low, high = self.fill_range
         if not 0.05 <= low <= high <= 0.9:
             raise PopcodeError(f"fill_range must satisfy 0.05 <= low <= high <= 0.9, got {self.fill_range}")
