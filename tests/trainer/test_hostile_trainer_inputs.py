@@ -203,6 +203,8 @@ CASES = [
      "--count must be at least 1"),
     ("preview-count-negative", lambda f: ["preview", "--split", str(f), "--out", str(f / "p.png"), "--count", "-1"],
      "--count must be at least 1"),
+    ("preview-out-is-a-folder", lambda f: ["preview", "--split", str(f / "split"), "--models", str(f / "bar_2fold"),
+                                           "--out", str(f / "a_folder")], "a_folder is a folder; give the path of"),
     ("preview-split-is-a-file", lambda f: ["preview", "--split", str(f / "keys.pt"), "--out", str(f / "p.png")],
      "is a file, not a folder"),
     ("render-symmetry-wrong-4fold", lambda f: _render(f, "flange_4fold"),
