@@ -56,6 +56,17 @@ def test_a_model_trained_on_other_crops_exports_with_their_size(tmp_path: Path) 
     assert len(estimator.predict(np.zeros((100, 120), np.float32), [(10, 10, 40, 30)])) == 1
 
 
+def test_a_run_without_validation_exports_a_model_the_runtime_reads(tmp_path: Path) -> None:
+    """No validation split: the best error is inf, which JSON (so the runtime) cannot hold; exported as null."""
+    config = tiny_config(tmp_path / "run", epochs=1)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    train(config, rep, train_set, None)
+    crops = np.stack([val_set[i]["image"].numpy() for i in range(4)])
+    export_checkpoint(tmp_path / "run" / LAST_CHECKPOINT, tmp_path / "m.onnx", crops)
+    assert PoseEstimator(tmp_path / "m.onnx").metadata.training["best_val_error_deg"] is None
+
+
 def optimised_op_types(path: Path, out: Path) -> list[str]:
     """Op types of the graph onnxruntime's CPU provider runs after its optimisations."""
     options = ort.SessionOptions()

@@ -179,6 +179,7 @@ CASES = [
     ("export-pickled", lambda f: _export(f, checkpoint="pickled.pt"), "not a trusted popcode checkpoint"),
     ("export-npz", lambda f: _export(f, checkpoint="arrays.npz"), "cannot read checkpoint"),
     ("export-out-folder", lambda f: _export(f, out="a_folder"), "is a folder"),
+    ("export-out-is-the-checkpoint", lambda f: _export(f, out="keys.pt"), "is the checkpoint itself"),
     ("export-out-nowhere", lambda f: _export(f, out="no/such/model.onnx"), "does not exist"),
     ("export-crops-nan", lambda f: _export(f, "--crops", str(f / "nan_crops.npy"), "--quantize", "int8"), "NaN"),
     ("export-crops-3d", lambda f: _export(f, "--crops", str(f / "flat_crops.npy")), "must be float [N >= 1"),
