@@ -76,7 +76,10 @@ SPLITS = {
     "split_scaled_pose": ((128, 128), (2 * np.eye(3)).ravel().tolist(), [10, 10, 40, 40], 64.0),
     "split_image_small_for_box": ((48, 48), np.eye(3).ravel().tolist(), [60, 60, 40, 40], 24.0),
     "split_image_small_for_camera": ((32, 32), np.eye(3).ravel().tolist(), [10, 10, 20, 20], 64.0),
+    "split_box_huge": ((128, 128), np.eye(3).ravel().tolist(), [0, 0, 1e9, 1e9], 64.0),
+    "split_focal_zero": ((128, 128), np.eye(3).ravel().tolist(), [10, 10, 40, 40], 64.0),
 }
+FOCAL_PX = {"split_focal_zero": 0.0}  # cam_K's fx and fy; 500 px elsewhere
 
 
 def _write_models(folder: Path, name: str) -> None:
@@ -116,7 +119,9 @@ def _write_split(folder: Path, name: str) -> None:
     pose = {"obj_id": 1, "cam_R_m2c": R, "cam_t_m2c": [0, 0, 500]}
     (scene / "scene_gt.json").write_text(json.dumps({"0": [pose]}))
     (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": box, "visib_fract": 1.0}]}))
-    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, centre, 0, 500, centre, 0, 0, 1]}}))
+    focal = FOCAL_PX.get(name, 500.0)
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [focal, 0, centre, 0, focal, centre, 0, 0,
+                                                                         1]}}))
 
 
 def _render(files: Path, models: str) -> list[str]:
@@ -266,6 +271,14 @@ CASES = [
                                                    "train.batch_size=1"], "BatchNorm needs two crops per rank"),
     ("render-size-huge", lambda f: ["render", "--objects", "builtin", "--images", "1", "--out", str(f / "r"),
                                     "--size", "100000", "100000"], "at most 8192 px a side"),
+    ("train-split-box-huge", lambda f: _train(f, split="split_box_huge"),
+     "scene 0, image 0, object 0 (scene_gt_info.json): box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x"),
+    ("train-split-focal-zero", lambda f: _train(f, split="split_focal_zero"),
+     "scene_camera.json: 'cam_K' in image 0: not a valid camera matrix (focal lengths must be positive"),
+    ("evaluate-split-box-huge", lambda f: ["evaluate", str(f / "box_fit/hull.onnx"), "--split",
+                                           str(f / "split_box_huge"), "--models-dir", str(f / "bar_2fold"),
+                                           "--out", str(f / "eval")],
+     "000000.png: box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x the 128x128 image"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),

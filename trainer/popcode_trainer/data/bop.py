@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.camera import parse_camera_matrix
+from popcode_runtime.crop import check_box
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import symmetry_transforms
 
@@ -94,6 +96,14 @@ def _field(entry: Any, key: str, path: Path, where: str, size: int | None = None
     return array
 
 
+def _camera(values: np.ndarray, path: Path, where: str) -> np.ndarray:
+    """A row-major ``cam_K`` checked as the runtime checks a camera (positive focal lengths, last row 0 0 1)."""
+    try:
+        return parse_camera_matrix(values)
+    except PopcodeError as error:
+        raise PopcodeError(f"{path}: 'cam_K' in {where}: {error}") from error
+
+
 def _rotation(values: np.ndarray, path: Path, where: str) -> np.ndarray:
     """A row-major ``cam_R_m2c`` as a 3x3 rotation; a scaled, skewed or mirrored matrix is corrupt ground truth."""
     R = values.reshape(3, 3)
@@ -115,6 +125,10 @@ def check_image_matches(instance: Instance, width: int, height: int) -> None:
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
         raise PopcodeError(f"{instance.image_path} is {width}x{height} px but the box {list(instance.box)} of {where} "
                            "(scene_gt_info.json) lies outside it: the images do not match the annotations")
+    try:
+        check_box(instance.box, (height, width))  # the runtime's bounds: a huge box would allocate without bound
+    except PopcodeError as error:
+        raise PopcodeError(f"{instance.image_path}, {where} (scene_gt_info.json): {error}") from error
     cx, cy = instance.K[0, 2], instance.K[1, 2]
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise PopcodeError(f"{instance.image_path} is {width}x{height} px but cam_K of image {instance.im_id} "
@@ -174,7 +188,7 @@ def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visi
         if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
             raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of objects")
         camera = scene_camera[im_id]
-        K = _field(camera, "cam_K", camera_path, f"image {im_id}", size=9).reshape(3, 3)
+        K = _camera(_field(camera, "cam_K", camera_path, f"image {im_id}", size=9), camera_path, f"image {im_id}")
         depth_scale = float(camera.get("depth_scale", 1.0))
         stem = f"{im_id:06d}"
         for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):

@@ -118,8 +118,11 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
             if not chosen:
                 continue
             started = time.perf_counter()
-            R_est[chosen] = model.predict(image, [instances[i].box for i in chosen], instances[chosen[0]].K,
-                                          [instances[i].obj_id for i in chosen])
+            try:
+                R_est[chosen] = model.predict(image, [instances[i].box for i in chosen], instances[chosen[0]].K,
+                                              [instances[i].obj_id for i in chosen])
+            except PopcodeError as error:  # a box or camera of the split the runtime refuses: name the image
+                raise PopcodeError(f"{image_path}: {error}") from error
             model_s += time.perf_counter() - started
     return R_est, model_s / max(len(instances), 1)
 
