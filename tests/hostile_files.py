@@ -40,11 +40,20 @@ def _with_props(props: dict[str, str]) -> onnx.ModelProto:
     return model
 
 
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
 def _png_header(width: int, height: int) -> bytes:
     """A PNG signature and IHDR claiming ``width x height`` (no pixel data follows)."""
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
-    return b"\x89PNG\r\n\x1a\n" + chunk
+    return b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+
+
+def _png_claiming(width: int, height: int) -> bytes:
+    """A well-formed PNG (IHDR, a tiny IDAT, IEND) claiming ``width x height``: OpenCV reads the header, then checks
+    its own pixel limit before it decodes."""
+    return (_png_header(width, height) + _png_chunk(b"IDAT", zlib.compress(b"\x00" * 64))
+            + _png_chunk(b"IEND", b""))
 
 
 def _jpeg_header(width: int, height: int) -> bytes:
@@ -106,4 +115,5 @@ def write_hostile_files(folder: Path) -> Path:
     (folder / "truncated.png").write_bytes((folder / "scene.png").read_bytes()[:60])
     (folder / "huge.png").write_bytes(_png_header(100_000, 100_000) + b"\x00" * 64)
     (folder / "huge.jpg").write_bytes(_jpeg_header(60_000, 60_000) + b"\x00" * 64)
+    (folder / "over_opencv_limit.png").write_bytes(_png_claiming(40_000, 30_000))  # 1.2e9 > 2^30 pixels
     return folder

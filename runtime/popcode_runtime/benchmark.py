@@ -20,6 +20,7 @@ from .estimator import PoseEstimator
 
 BENCH_IMAGE_SHAPE = (540, 720)  # T-LESS Primesense resolution, (H, W)
 MAX_BENCH_BATCH = 1024  # a batch's crops and outputs are held at once
+MAX_BENCH_ITERATIONS, MAX_BENCH_WARMUP = 10_000, 1_000  # per row: a benchmark ends in bounded time
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,8 @@ def benchmark_estimator(
     """End-to-end and inference-only latency for each batch size."""
     for batch in batch_sizes:
         integer(batch, "batch size", 1, MAX_BENCH_BATCH)
+    warmup = integer(warmup, "warmup calls", 0, MAX_BENCH_WARMUP)
+    iterations = integer(iterations, "timed calls (iterations)", 1, MAX_BENCH_ITERATIONS)
     rng = np.random.default_rng(seed)
     K = [1075.65, 1073.90, 360.0, 270.0]  # any valid camera; only allocentric models use it
     results = []

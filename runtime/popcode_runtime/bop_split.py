@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .camera import parse_camera_matrix
 from .errors import PopcodeError
 from .files import read_json, require_folder
 
@@ -77,8 +78,13 @@ def image_folder(scene_dir: Path) -> Path:
 
 
 def camera_matrix(camera: Any, path: Path, im_id: int) -> np.ndarray:
-    """``cam_K`` of one ``scene_camera.json`` entry as 3x3."""
-    return json_field(camera, "cam_K", path, f"image {im_id}", size=9).reshape(3, 3)
+    """``cam_K`` of one ``scene_camera.json`` entry as 3x3, checked as the runtime checks a camera (positive focal
+    lengths, last row 0 0 1): a corrupt camera is named here, not trained or evaluated on."""
+    values = json_field(camera, "cam_K", path, f"image {im_id}", size=9)
+    try:
+        return parse_camera_matrix(values)
+    except PopcodeError as error:
+        raise PopcodeError(f"{path}: 'cam_K' in image {im_id}: {error}") from error
 
 
 @dataclass(frozen=True)

@@ -194,6 +194,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
     if args.command == "predict" and len(args.box) > MAX_BOXES_PER_CALL:
         parser.error(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
+    if args.command == "predict" and args.code and not args.json:
+        parser.error("--code prints the raw network output in the JSON; add --json")
     if args.command == "predict" and args.max_pixels < 1:
         parser.error(f"--max-pixels must be positive, got {args.max_pixels}")
     if getattr(args, "batch", None) is None and args.command == "bench":

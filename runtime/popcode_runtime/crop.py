@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .checks import integer
 from .checks import path as checked_path
 from .errors import PopcodeError, library_step
 from .image_size import image_size
@@ -41,6 +42,7 @@ def read_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
     before OpenCV decodes (and allocates) them.
     """
     path = checked_path(path, "image path")
+    max_pixels = integer(max_pixels, "max_pixels", 1)
     if not path.is_file():
         raise PopcodeError(f"image file not found: {path}")
     with library_step(f"read the header of image {path}"):

@@ -25,7 +25,7 @@ from .translation import object_points_mm
 FORMAT_VERSION = 1
 INPUT_NAME = "image"
 OUTPUT_NAME = "code"
-MAX_INPUT_SIZE = 1024  # crop side [px]; a batch of crops is N x size^2 floats
+MIN_INPUT_SIZE, MAX_INPUT_SIZE = 8, 1024  # crop side [px]; a batch of crops is N x size^2 floats
 MAX_HYPOTHESES = 1024
 MAX_OBJECTS = 10000
 MAX_DISCRETE_SYMMETRIES = 1000
@@ -84,7 +84,7 @@ class ModelMetadata:
         object.__setattr__(self, "rotation_frame", RotationFrame(self.rotation_frame))
         if not isinstance(self.code, CodeLayout):
             raise PopcodeError(f"metadata code must be a CodeLayout, got {type(self.code).__name__}")
-        object.__setattr__(self, "input_size", integer(self.input_size, "input size", 8, MAX_INPUT_SIZE))
+        object.__setattr__(self, "input_size", integer(self.input_size, "input size", MIN_INPUT_SIZE, MAX_INPUT_SIZE))
         object.__setattr__(self, "crop_padding", number(self.crop_padding, "input crop_padding", MIN_CROP_PADDING,
                                                         MAX_CROP_PADDING))
         object.__setattr__(self, "num_hypotheses", integer(self.num_hypotheses, "num_hypotheses", 0, MAX_HYPOTHESES))

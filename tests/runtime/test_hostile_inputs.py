@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -48,14 +49,35 @@ def test_leading_minus_values_are_read_as_numbers(folder, capsys):
     assert json.loads(capsys.readouterr().out)["predictions"][0]["box"] == [-50.0, 8.0, 66.0, 58.0]
 
 
-def test_broken_pipe_is_quiet(folder, monkeypatch, capsys):
+@pytest.mark.parametrize("command", [["info", "{folder}/model.onnx", "--json"], ["info", "{folder}/model.onnx"],
+                                     ["predict", "{folder}/model.onnx", "{folder}/scene.png", "--box", "1,2,30,40",
+                                      "--json"]], ids=["info-json", "info", "predict-json"])
+def test_broken_pipe_is_quiet(command, folder, monkeypatch, capsys):
+    """``popcode ... | head``: the reader left, so the command stops without a traceback (exit 141, as SIGPIPE)."""
     class ClosedPipe(io.StringIO):
         def write(self, text):
             raise BrokenPipeError(32, "Broken pipe")
 
     monkeypatch.setattr("sys.stdout", ClosedPipe())
-    assert main(["info", str(folder / "model.onnx"), "--json"]) == 141
+    assert main([part.replace("{folder}", str(folder)) for part in command]) == 141
     assert capsys.readouterr().err == ""
+
+
+def test_one_estimator_shared_by_eight_threads_gives_the_serial_answers(folder):
+    """The runtime README promises that one PoseEstimator may serve several Python threads."""
+    estimator = PoseEstimator(folder / "model.onnx", threads=1)
+    image = cv2.imread(str(folder / "scene.png"), cv2.IMREAD_GRAYSCALE)
+    boxes = np.random.default_rng(8).uniform([0, 0, 10, 10], [120, 90, 60, 50], size=(40, 4)).tolist()
+    serial = [estimator.predict(image, [box], top_k=2)[0].R_m2c for box in boxes]  # the same calls, one thread
+
+    def one_at_a_time(worker: int) -> list[tuple[int, np.ndarray]]:
+        order = [(worker * 7 + step) % len(boxes) for step in range(25)]
+        return [(k, estimator.predict(image, [boxes[k]], top_k=2)[0].R_m2c) for k in order]
+
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        results = [pair for found in pool.map(one_at_a_time, range(8)) for pair in found]
+    assert len(results) == 200
+    assert all(np.array_equal(R, serial[k]) for k, R in results)
 
 
 def test_fixed_batch_model_runs_in_chunks_of_its_batch(folder, tmp_path):

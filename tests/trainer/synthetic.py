@@ -33,12 +33,12 @@ class RotatedPoints(Dataset):
     """``count`` crops with uniform random rotations; ``instances[i]`` has K and a box for allocentric targets."""
 
     def __init__(self, count: int, target_fn: Callable[[SimpleNamespace], np.ndarray], seed: int = 0,
-                 obj_id: int = 1) -> None:
+                 obj_id: int = 1, size: int = 128) -> None:
         rng = np.random.default_rng(seed)
         boxes = rng.uniform([100, 80, 60, 60], [400, 300, 120, 120], size=(count, 4))
         self.instances = [SimpleNamespace(obj_id=obj_id, R_m2c=R, K=K, box=tuple(box))
                           for R, box in zip(random_rotations(count, rng), boxes, strict=True)]
-        self.images = [draw(inst.R_m2c) for inst in self.instances]
+        self.images = [draw(inst.R_m2c, size) for inst in self.instances]
         self.targets = [np.asarray(target_fn(inst), np.float32) for inst in self.instances]
 
     def __len__(self) -> int:

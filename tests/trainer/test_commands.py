@@ -29,8 +29,21 @@ def test_defaults_are_the_papers() -> None:
 def test_overrides_are_typed(tmp_path: Path) -> None:
     path = write(tmp_path, '[train]\nlr = 1e-3\n[data]\nobj_ids = [5, 6]\nsplits = ["a", "b"]\n')
     config = load_config(path, ["train.epochs=3", "train.out_dir=runs/x", "network.hidden=[64, 32, 16]"])
-    assert config.train.epochs == 3 and config.train.out_dir == "runs/x" and config.train.lr == 1e-3
-    assert config.data.obj_ids == (5, 6) and config.network.hidden == (64, 32, 16)
+    assert config.train.epochs == 3 and config.train.out_dir == str(Path.cwd() / "runs" / "x")
+    assert config.train.lr == 1e-3 and config.data.obj_ids == (5, 6) and config.network.hidden == (64, 32, 16)
+
+
+def test_paths_in_a_config_are_relative_to_its_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The file's paths from its folder, --set paths from the current folder, both stored absolute (issue 19)."""
+    (tmp_path / "configs").mkdir()
+    path = tmp_path / "configs" / "run.toml"
+    path.write_text('[data]\nsplits = ["../data/a", "/abs/b"]\nmodels_dir = "models"\n[train]\nout_dir = "runs/x"\n')
+    monkeypatch.chdir(tmp_path.parent)
+    config = load_config(path, ['data.models_dir="elsewhere/models"'])
+    assert config.data.splits == (str(tmp_path / "data" / "a"), "/abs/b")
+    assert config.data.models_dir == str(tmp_path.parent / "elsewhere" / "models")
+    assert config.train.out_dir == str(tmp_path / "configs" / "runs" / "x")
+    assert load_config(path).data.models_dir == str(tmp_path / "configs" / "models")
 
 
 @pytest.mark.parametrize(("text", "overrides", "message"), [
@@ -76,5 +89,9 @@ def test_export_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
 
 
 def test_shipped_config_parses() -> None:
-    config = load_config(Path(__file__).parents[2] / "trainer" / "configs" / "paper.toml")
+    repository = Path(__file__).resolve().parents[2]
+    config = load_config(repository / "trainer" / "configs" / "paper.toml")
     assert config.data.obj_ids == (5, 6) and config == Config.from_dict(config.to_dict())
+    # The README's layout, from the repository root: data/tless/..., runs/tless_05_06_popcode/last.pt.
+    assert config.data.models_dir == str(repository / "data" / "tless" / "models")
+    assert config.train.out_dir == str(repository / "runs" / "tless_05_06_popcode")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import onnxruntime as ort
 import pytest
 import torch
 from symmetry_cases import CASES
-from synthetic import K, draw
+from synthetic import K, RotatedPoints, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
 from popcode_runtime.decoding import decode_output
@@ -37,6 +38,33 @@ def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarr
     train(config, rep, train_set, val_set, val_instances=val_set.instances)
     crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
     return tmp_path / "run" / LAST_CHECKPOINT, crops
+
+
+def test_a_model_trained_on_other_crops_exports_with_their_size(tmp_path: Path) -> None:
+    """data.crop_size travels into the metadata: export checks parity on such crops, the runtime crops at that size."""
+    config = tiny_config(tmp_path / "run", epochs=1)
+    config = dataclasses.replace(config, data=dataclasses.replace(config.data, crop_size=48))
+    rep = tiny_representation(config)
+    train_set, val_set = RotatedPoints(32, rep.target, seed=1, size=48), RotatedPoints(8, rep.target, seed=2, size=48)
+    train(config, rep, train_set, val_set, val_instances=val_set.instances)
+    crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
+    parity, = export_checkpoint(tmp_path / "run" / LAST_CHECKPOINT, tmp_path / "m.onnx", crops)
+    assert parity.max_abs_diff < 1e-4
+    estimator = PoseEstimator(tmp_path / "m.onnx")
+    assert estimator.metadata.input_size == 48
+    assert estimator.crops(np.zeros((100, 120), np.float32), [(10, 10, 40, 30)]).shape == (1, 1, 48, 48)
+    assert len(estimator.predict(np.zeros((100, 120), np.float32), [(10, 10, 40, 30)])) == 1
+
+
+def test_a_run_without_validation_exports_a_model_the_runtime_reads(tmp_path: Path) -> None:
+    """No validation split: the best error is inf, which JSON (so the runtime) cannot hold; exported as null."""
+    config = tiny_config(tmp_path / "run", epochs=1)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    train(config, rep, train_set, None)
+    crops = np.stack([val_set[i]["image"].numpy() for i in range(4)])
+    export_checkpoint(tmp_path / "run" / LAST_CHECKPOINT, tmp_path / "m.onnx", crops)
+    assert PoseEstimator(tmp_path / "m.onnx").metadata.training["best_val_error_deg"] is None
 
 
 def optimised_op_types(path: Path, out: Path) -> list[str]:

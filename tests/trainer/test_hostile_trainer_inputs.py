@@ -14,7 +14,9 @@ import torch
 import trimesh
 from hostile_cases import error_lines
 from hostile_files import write_hostile_files
+from onnx_models import linear_model, save
 
+from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_trainer.checkpoint import TRAINED_KEYS
 from popcode_trainer.cli import main
@@ -44,6 +46,29 @@ MODELS = {
                        {"symmetries_discrete": _about((1, 1, 0), 180)}),
 }
 
+_PLY = ("ply\nformat ascii 1.0\nelement vertex {count}\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face {faces}\nproperty list uchar int vertex_indices\nend_header\n{vertices}\n{triangles}\n")
+_BOX_INFO = {"diameter": 17.4, "min_x": -5, "min_y": -5, "min_z": -5, "size_x": 10, "size_y": 10, "size_z": 10}
+
+
+def _ply(vertices: str, triangles: str = "3 0 1 2\n3 0 2 3") -> str:
+    """An ASCII PLY of the given vertex lines and triangles, as a hand or a broken exporter writes it."""
+    return _PLY.format(count=len(vertices.splitlines()), faces=len(triangles.splitlines()), vertices=vertices,
+                       triangles=triangles)
+
+
+# models folder -> (obj_000001.ply text, models_info.json entry of object 1): meshes no renderer can use
+BROKEN_MODELS = {
+    "mesh_bad_index": (_ply("0 0 0\n10 0 0\n0 10 0", "3 0 1 7"), _BOX_INFO),
+    "mesh_nan_vertex": (_ply("0 0 0\n10 0 0\nnan 10 0\n0 0 10"), _BOX_INFO),
+    "mesh_inf_vertex": (_ply("0 0 0\n10 0 0\ninf 10 0\n0 0 10"), _BOX_INFO),
+    "mesh_one_point": (_ply("1 1 1\n1 1 1\n1 1 1\n1 1 1"), _BOX_INFO),
+    "mesh_on_a_line": (_ply("0 0 0\n5 0 0\n10 0 0\n20 0 0"), _BOX_INFO),
+    "mesh_off_centre": (_ply("1000 0 0\n1010 0 0\n1000 10 0\n1000 0 10"), _BOX_INFO),
+    "mesh_diameter_tiny": (_ply("-5 -5 -5\n5 -5 -5\n-5 5 -5\n-5 -5 5"), {**_BOX_INFO, "diameter": 1e-6}),
+    "mesh_not_ply": ("not a mesh\n", _BOX_INFO),
+}
+
 # split folder -> (image width and height [px], cam_R_m2c, bbox_obj, cx = cy [px]); "split" is right
 SPLITS = {
     "split": ((128, 128), np.eye(3).ravel().tolist(), [10, 10, 40, 40], 64.0),
@@ -51,7 +76,10 @@ SPLITS = {
     "split_scaled_pose": ((128, 128), (2 * np.eye(3)).ravel().tolist(), [10, 10, 40, 40], 64.0),
     "split_image_small_for_box": ((48, 48), np.eye(3).ravel().tolist(), [60, 60, 40, 40], 24.0),
     "split_image_small_for_camera": ((32, 32), np.eye(3).ravel().tolist(), [10, 10, 20, 20], 64.0),
+    "split_box_huge": ((128, 128), np.eye(3).ravel().tolist(), [0, 0, 1e9, 1e9], 64.0),
+    "split_focal_zero": ((128, 128), np.eye(3).ravel().tolist(), [10, 10, 40, 40], 64.0),
 }
+FOCAL_PX = {"split_focal_zero": 0.0}  # cam_K's fx and fy; 500 px elsewhere
 
 
 def _write_models(folder: Path, name: str) -> None:
@@ -60,6 +88,26 @@ def _write_models(folder: Path, name: str) -> None:
     mesh = build()
     mesh.export(folder / name / "obj_000001.ply")
     (folder / name / "models_info.json").write_text(json.dumps({"1": model_info(mesh, symmetries)}))
+
+
+def _write_broken_models(folder: Path, name: str) -> None:
+    text, info = BROKEN_MODELS[name]
+    (folder / name).mkdir()
+    (folder / name / "obj_000001.ply").write_text(text)
+    (folder / name / "models_info.json").write_text(json.dumps({"1": info}))
+
+
+def _write_box_fit_models(folder: Path) -> None:
+    """Two ONNX models of bar_2fold's object 1: one with hull points, one with neither hull points nor 3-D box."""
+    info = json.loads((folder / "bar_2fold" / "models_info.json").read_text())["1"]
+    layout = CodeLayout(n_axes=42, n_angles=12)
+    bias = PopulationCode(layout).encode(np.eye(3), symmetry_rotations(info))
+    hull = {**info, "hull_points_mm": [[x, y, z] for x in (-30, 30) for y in (-15, 15) for z in (-5, 5)]}
+    bare = {key: value for key, value in info.items() if not key.startswith(("min_", "size_"))}
+    (folder / "box_fit").mkdir()
+    for name, entry in (("hull", hull), ("bare", bare)):
+        metadata = ModelMetadata(representation=Representation.POPULATION_CODE, code=layout, objects={1: entry})
+        save(linear_model(bias, metadata=metadata), folder / "box_fit" / f"{name}.onnx")
 
 
 def _write_split(folder: Path, name: str) -> None:
@@ -71,7 +119,9 @@ def _write_split(folder: Path, name: str) -> None:
     pose = {"obj_id": 1, "cam_R_m2c": R, "cam_t_m2c": [0, 0, 500]}
     (scene / "scene_gt.json").write_text(json.dumps({"0": [pose]}))
     (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": box, "visib_fract": 1.0}]}))
-    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [500, 0, centre, 0, 500, centre, 0, 0, 1]}}))
+    focal = FOCAL_PX.get(name, 500.0)
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [focal, 0, centre, 0, focal, centre, 0, 0,
+                                                                         1]}}))
 
 
 def _render(files: Path, models: str) -> list[str]:
@@ -114,6 +164,9 @@ def files(tmp_path_factory) -> Path:
         _write_models(folder, name)
     for name in SPLITS:
         _write_split(folder, name)
+    for name in BROKEN_MODELS:
+        _write_broken_models(folder, name)
+    _write_box_fit_models(folder)
     return folder
 
 
@@ -131,6 +184,7 @@ CASES = [
     ("export-pickled", lambda f: _export(f, checkpoint="pickled.pt"), "not a trusted popcode checkpoint"),
     ("export-npz", lambda f: _export(f, checkpoint="arrays.npz"), "cannot read checkpoint"),
     ("export-out-folder", lambda f: _export(f, out="a_folder"), "is a folder"),
+    ("export-out-is-the-checkpoint", lambda f: _export(f, out="keys.pt"), "is the checkpoint itself"),
     ("export-out-nowhere", lambda f: _export(f, out="no/such/model.onnx"), "does not exist"),
     ("export-crops-nan", lambda f: _export(f, "--crops", str(f / "nan_crops.npy"), "--quantize", "int8"), "NaN"),
     ("export-crops-3d", lambda f: _export(f, "--crops", str(f / "flat_crops.npy")), "must be float [N >= 1"),
@@ -155,6 +209,8 @@ CASES = [
      "--count must be at least 1"),
     ("preview-count-negative", lambda f: ["preview", "--split", str(f), "--out", str(f / "p.png"), "--count", "-1"],
      "--count must be at least 1"),
+    ("preview-out-is-a-folder", lambda f: ["preview", "--split", str(f / "split"), "--models", str(f / "bar_2fold"),
+                                           "--out", str(f / "a_folder")], "a_folder is a folder; give the path of"),
     ("preview-split-is-a-file", lambda f: ["preview", "--split", str(f / "keys.pt"), "--out", str(f / "p.png")],
      "is a file, not a folder"),
     ("render-symmetry-wrong-4fold", lambda f: _render(f, "flange_4fold"),
@@ -176,6 +232,53 @@ CASES = [
      "is 48x48 px but the box [60.0, 60.0, 40.0, 40.0] of scene 0, image 0, object 0 (scene_gt_info.json)"),
     ("train-split-image-small-for-camera", lambda f: _train(f, split="split_image_small_for_camera"),
      "puts the principal point at (64, 64), outside it"),
+    *((f"render-{name.replace('_', '-')}", lambda f, name=name: _render(f, name), expect) for name, expect in (
+        ("mesh_bad_index", "a triangle names vertex 7, but the file has 3 vertices"),
+        ("mesh_nan_vertex", "vertex coordinates contain NaN or inf"),
+        ("mesh_inf_vertex", "vertex coordinates contain NaN or inf"),
+        ("mesh_one_point", "mesh_one_point/obj_000001.ply is degenerate: its 2 triangles have no area"),
+        ("mesh_on_a_line", "mesh_on_a_line/obj_000001.ply is degenerate"),
+        ("mesh_off_centre", "reaches 1010 mm from its origin, more than its diameter 17.4 mm"),
+        ("mesh_diameter_tiny", "more than its diameter 1e-06 mm in models_info.json"),
+        ("mesh_not_ply", "cannot load model"),
+    )),
+    ("render-objects-is-a-checkpoint", lambda f: ["render", "--objects", str(f / "keys.pt"), "--images", "1",
+                                                  "--out", str(f / "r")], "no such models folder"),
+    ("export-crops-nan-float-only", lambda f: _export(f, "--crops", str(f / "nan_crops.npy")),
+     "no agreement can be judged"),
+    ("evaluate-out-is-a-file", lambda f: ["evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"),
+                                          "--models-dir", str(f / "bar_2fold"), "--out", str(f / "keys.pt")],
+     "keys.pt is a file; give a folder for the report"),
+    ("evaluate-translation-without-box-fit-points", lambda f: [
+        "evaluate", str(f / "box_fit/hull.onnx"), str(f / "box_fit/bare.onnx"), "--split", str(f / "split"),
+        "--models-dir", str(f / "bar_2fold"), "--translation", "--out", str(f / "eval")],
+     "bare.onnx: no points to fit a box to: object 1: object metadata lacks 'min_x'"),
+    ("evaluate-min-visib-fract-nan", lambda f: [
+        "evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"), "--models-dir", str(f / "bar_2fold"),
+        "--min-visib-fract", "nan", "--out", str(f / "eval")], "min_visib_fract must be a number >= 0, got nan"),
+    ("train-min-visib-fract-nan", lambda f: [*_train(f), "--set", "data.min_visib_fract=nan"],
+     "data.min_visib_fract must be a finite number, got nan"),
+    ("train-lr-nan", lambda f: ["train", "--set", "train.lr=nan"], "train.lr must be a finite number, got nan"),
+    ("train-val-fraction-inf", lambda f: ["train", "--set", "data.val_fraction=inf"], "must be a finite number"),
+    ("train-seed-negative", lambda f: ["train", "--set", "train.seed=-1"], "train.seed must lie in [0, 2^63)"),
+    ("train-workers-negative", lambda f: ["train", "--set", "data.num_workers=-3"], "num_workers must be at least 0"),
+    ("train-crop-size-zero", lambda f: ["train", "--set", "data.crop_size=0"], "data.crop_size must lie in [8, 1024]"),
+    ("train-hypotheses-zero", lambda f: ["train", "--set", "train.num_hypotheses=0"], "num_hypotheses must be at"),
+    ("train-conv-too-wide", lambda f: ["train", "--set", "network.conv_channels=[100000, 4, 4]"], "at most 4096 wide"),
+    ("train-dense-too-large", lambda f: [*_train(f), "--set", "network.hidden=[100000000, 8, 8]"],
+     "dense parameters, more than the limit of 1,000,000,000"),
+    ("train-one-crop-per-batch-at-1x1", lambda f: [*_train(f), "--set", "data.crop_size=8", "--set",
+                                                   "train.batch_size=1"], "BatchNorm needs two crops per rank"),
+    ("render-size-huge", lambda f: ["render", "--objects", "builtin", "--images", "1", "--out", str(f / "r"),
+                                    "--size", "100000", "100000"], "at most 8192 px a side"),
+    ("train-split-box-huge", lambda f: _train(f, split="split_box_huge"),
+     "scene 0, image 0, object 0 (scene_gt_info.json): box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x"),
+    ("train-split-focal-zero", lambda f: _train(f, split="split_focal_zero"),
+     "scene_camera.json: 'cam_K' in image 0: not a valid camera matrix (focal lengths must be positive"),
+    ("evaluate-split-box-huge", lambda f: ["evaluate", str(f / "box_fit/hull.onnx"), "--split",
+                                           str(f / "split_box_huge"), "--models-dir", str(f / "bar_2fold"),
+                                           "--out", str(f / "eval")],
+     "000000.png: box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x the 128x128 image"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),
@@ -193,3 +296,16 @@ def test_popcode_train_refuses_in_one_line(argv, expect, files, monkeypatch):
     lines = error_lines(stderr.getvalue())
     assert code == 2 and len(lines) == 1 and expect.lower() in lines[0].lower(), stderr.getvalue()
     assert not list(files.glob("*.onnx")) and not list(files.glob(".*.tmp"))  # nothing half-written left behind
+
+
+def test_evaluate_checks_every_model_before_any_prediction(files, monkeypatch):
+    """A model that cannot serve --translation is named before the first image is predicted, not after hours."""
+    def predicted(*args, **kwargs):
+        raise AssertionError("a prediction ran before every model was checked")
+
+    monkeypatch.setattr("popcode_trainer.eval.pipeline.models.predict_rotations", predicted)
+    stderr = io.StringIO()
+    monkeypatch.setattr("sys.stderr", stderr)
+    argv = ["evaluate", str(files / "box_fit/hull.onnx"), str(files / "box_fit/bare.onnx"), "--split",
+            str(files / "split"), "--models-dir", str(files / "bar_2fold"), "--translation", "--out", str(files / "e")]
+    assert main(argv) == 2 and "bare.onnx: no points to fit a box to" in stderr.getvalue()

@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from popcode_runtime.errors import PopcodeError
 from popcode_trainer.network import (
     ColumnBlockOutputLayer,
     NetworkConfig,
@@ -77,3 +78,16 @@ def test_residual_blocks_pass_the_shortcut() -> None:
 def test_unknown_trunk_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown trunk 'vit'"):
         build_network(replace(TINY, trunk="vit"))
+
+
+@pytest.mark.parametrize(("base", "input_size", "kernel"), [(TINY, 13, 5), (TINY, 100, 4), (TINY, 128, 100),
+                                                             (TINY_RESIDUAL, 37, 5)])
+def test_the_hidden_layers_fit_the_trunk_for_any_crop_and_kernel(base, input_size: int, kernel: int) -> None:
+    """Odd crop sides and even kernels do not halve exactly: the first dense layer is sized by the conv arithmetic."""
+    config = replace(base, input_size=input_size, conv_kernel=kernel)
+    assert PopcodeNet(config)(torch.rand(2, 1, input_size, input_size)).shape == (2, 504)
+
+
+def test_a_network_too_large_to_hold_is_refused_before_it_is_allocated() -> None:
+    with pytest.raises(PopcodeError, match="more than the limit of 1,000,000,000"):
+        PopcodeNet(replace(TINY, hidden=(10**8, 32, 32)))

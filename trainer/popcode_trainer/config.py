@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
+import os
 import sys
 import types
 import typing
@@ -20,7 +22,7 @@ from typing import Any
 
 from popcode_runtime.crop import CROP_SIZE
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.metadata import MAX_INPUT_SIZE, MIN_INPUT_SIZE, Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
 from .network import TRUNKS, NetworkConfig
@@ -33,6 +35,7 @@ else:  # the same parser, from PyPI, before Python 3.11
 
 BOX_KINDS = ("bbox_obj", "bbox_visib")
 DEVICES = ("auto", "cpu", "cuda")
+MAX_CONV_CHANNELS = 4096  # the paper's widest is 256
 # Network fields that follow from the representation and the crop, not from the user.
 DERIVED_NETWORK_FIELDS = ("output_dim", "input_size")
 
@@ -106,6 +109,7 @@ class Config:
 
 
 SECTIONS: dict[str, type] = {"data": DataConfig, "code": CodeConfig, "network": NetworkConfig, "train": TrainConfig}
+PATH_SETTINGS = (("data", "splits"), ("data", "models_dir"), ("train", "out_dir"))  # (section, key)
 
 
 def _plain(value: Any) -> Any:
@@ -152,6 +156,8 @@ def _coerce(value: Any, hint: Any, name: str) -> Any:
             return None
         return _coerce(value, next(a for a in args if a is not type(None)), name)
     if hint is float and isinstance(value, int | float) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise PopcodeError(f"{name} must be a finite number, got {value!r}")
         return float(value)
     if hint is int and isinstance(value, int) and not isinstance(value, bool):
         return value
@@ -177,9 +183,17 @@ def _check_choices(config: Config) -> None:
                            f"{config.train.representation} has its own loss")
     if not 0.0 <= config.data.val_fraction < 1.0:
         raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
-    for key in ("epochs", "batch_size"):
+    for key in ("epochs", "batch_size", "num_hypotheses"):
         if getattr(config.train, key) < 1:
             raise PopcodeError(f"train.{key} must be at least 1")
+    if not 0 <= config.train.seed < 2**63:  # numpy's and torch's generators take no negative seed
+        raise PopcodeError(f"train.seed must lie in [0, 2^63), got {config.train.seed}")
+    if config.data.num_workers < 0:
+        raise PopcodeError(f"data.num_workers must be at least 0 (0: load in the main process), got "
+                           f"{config.data.num_workers}")
+    if not MIN_INPUT_SIZE <= config.data.crop_size <= MAX_INPUT_SIZE:
+        raise PopcodeError(f"data.crop_size must lie in [{MIN_INPUT_SIZE}, {MAX_INPUT_SIZE}] px (the runtime's "
+                           f"limits), got {config.data.crop_size}")
     if config.train.lr <= 0:
         raise PopcodeError("train.lr must be positive")
     network = config.network
@@ -189,6 +203,10 @@ def _check_choices(config: Config) -> None:
     for key in ("conv_kernel", "squeeze_channels"):
         if getattr(network, key) < 1:
             raise PopcodeError(f"network.{key} must be at least 1, got {getattr(network, key)}")
+    if max(*network.conv_channels, network.squeeze_channels) > MAX_CONV_CHANNELS:
+        raise PopcodeError(f"network.conv_channels and squeeze_channels must be at most {MAX_CONV_CHANNELS} wide "
+                           f"(each holds a crop-sized map per channel), got {list(network.conv_channels)}, "
+                           f"{network.squeeze_channels}")
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:
@@ -204,8 +222,21 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, key, value
 
 
+def _absolute(value: Any, base: Path) -> Any:
+    """A path setting (a string or a list of them) made absolute against ``base``; anything else as it is."""
+    if isinstance(value, str):
+        return os.path.normpath(base / value) if value else value
+    if isinstance(value, list):
+        return [_absolute(item, base) for item in value]
+    return value
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
-    """Read a TOML config (or the defaults when ``path`` is None) and apply overrides."""
+    """Read a TOML config (or the defaults when ``path`` is None) and apply overrides.
+
+    Relative paths (:data:`PATH_SETTINGS`) in the file are relative to the file's folder, those of an override
+    to the current folder; both are stored absolute, so export and evaluate find the data from anywhere.
+    """
     data: dict[str, dict[str, Any]] = {}
     if path is not None:
         path = Path(path)
@@ -215,10 +246,14 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             data = tomllib.loads(path.read_text())
         except tomllib.TOMLDecodeError as error:
             raise PopcodeError(f"{path} is not valid TOML: {error}") from error
+        for section, key in PATH_SETTINGS:
+            table = data.get(section)
+            if isinstance(table, dict) and key in table:
+                table[key] = _absolute(table[key], path.parent.absolute())
     for text in overrides:
         section, key, value = parse_override(text)
         table = data.setdefault(section, {})
         if not isinstance(table, dict):
             raise PopcodeError(f"config section [{section}] must be a table")
-        table[key] = value
+        table[key] = _absolute(value, Path.cwd()) if (section, key) in PATH_SETTINGS else value
     return Config.from_dict(data)

@@ -7,6 +7,7 @@ Only rank 0 writes files or prints progress.
 
 from __future__ import annotations
 
+import gc
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -55,11 +56,14 @@ def setup(requested_device: str) -> Context:
 
 
 def teardown(context: Context, finished: bool = False) -> None:
-    """Leave the process group. A ``finished`` run first waits for every rank: a rank that destroyed its
-    group while a peer was still writing its last checkpoint sometimes aborted at exit ("terminate called
-    without an active exception", SIGABRT; seen with gloo on CPU). A failed run does not wait, since its
-    peers may never arrive."""
+    """Leave the process group. A rank sometimes aborted at exit after a finished run ("terminate called
+    without an active exception", SIGABRT; gloo on CPU, under load): the DDP wrapper sits in reference
+    cycles, so its reducer and the gloo work it holds outlived the group until the interpreter's final
+    garbage collection, which cannot run them down safely. So the cycles are collected first, while the
+    group is alive; then a ``finished`` run waits for every rank (a failed one does not: its peers may
+    never arrive) and destroys the group."""
     if context.distributed and dist.is_initialized():
+        gc.collect()
         if finished:
             dist.barrier()
         dist.destroy_process_group()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import onnx
@@ -39,11 +40,12 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
     except (KeyError, TypeError, RuntimeError) as error:
         raise PopcodeError(f"{path} is not a popcode training checkpoint: {error}") from error
     config = state["config"]
+    best_deg = float(state["best_val_error_deg"])  # inf without a validation split: JSON has no inf, say None
     training = {
         "dataset": {"splits": config["data"]["splits"], "obj_ids": config["data"]["obj_ids"]},
         "epochs": int(state["epoch"]),
         "git_revision": state.get("git_revision", "unknown"),
-        "best_val_error_deg": float(state["best_val_error_deg"]),
+        "best_val_error_deg": best_deg if math.isfinite(best_deg) else None,
         "config": config,
     }
     if config["train"].get("loss", "mse") == "cross_entropy":  # trained on logits: deployed as a code

@@ -25,7 +25,10 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from popcode_runtime.errors import PopcodeError
+
 CONTRAST_EPS = 1e-3  # a flat crop (std 0) stays finite after normalisation
+MAX_DENSE_PARAMETERS = 10**9  # 16 GB with Adam's two moments and the gradient; the paper's network has 35.2 M
 
 
 @dataclass(frozen=True)
@@ -166,9 +169,22 @@ def _residual_stages(config: NetworkConfig) -> list[nn.Module]:
     return layers
 
 
-def trunk_stride(config: NetworkConfig) -> int:
-    """How much the trunk shrinks the crop's side."""
-    return 2 ** (len(config.conv_channels) + (config.trunk == "residual"))
+def feature_side(config: NetworkConfig) -> int:
+    """The side of the trunk's output for a crop of ``config.input_size``: each stride-2 conv (padding
+    ``kernel // 2``) maps ``s`` to ``(s + 2 (kernel // 2) - kernel) // 2 + 1``, which halves only even sides
+    and odd kernels exactly."""
+    kernels = [3] * (len(config.conv_channels) + 1) if config.trunk == "residual" else \
+        [config.conv_kernel] * len(config.conv_channels)
+    side = config.input_size
+    for kernel in kernels:
+        side = (side + 2 * (kernel // 2) - kernel) // 2 + 1
+    return side
+
+
+def dense_parameters(config: NetworkConfig) -> int:
+    """Weights and biases of the hidden layers and the output layer (the bulk of the network)."""
+    widths = [config.squeeze_channels * feature_side(config) ** 2, *config.hidden, config.output_dim]
+    return sum(fan_in * fan_out + fan_out for fan_in, fan_out in zip(widths[:-1], widths[1:], strict=True))
 
 
 class PopcodeNet(_CropNet):
@@ -182,8 +198,11 @@ class PopcodeNet(_CropNet):
         stages = _residual_stages(config) if config.trunk == "residual" else _paper_stages(config)
         squeeze = [nn.Conv2d(config.conv_channels[-1], config.squeeze_channels, 1), nn.GELU()]
         self.features = nn.Sequential(*stages, *squeeze)
-        side = config.input_size // trunk_stride(config)
-        flat = config.squeeze_channels * side * side
+        if dense_parameters(config) > MAX_DENSE_PARAMETERS:
+            raise PopcodeError(f"network of {dense_parameters(config):,} dense parameters, more than the limit of "
+                               f"{MAX_DENSE_PARAMETERS:,} (the paper's has 35 M): lower network.hidden, "
+                               f"network.squeeze_channels or the code size")
+        flat = config.squeeze_channels * feature_side(config) ** 2
         self.hidden = _mlp([flat, *config.hidden], nn.LeakyReLU(config.leaky_slope))
         self.head = OutputLayer(config.hidden[-1], config.output_dim)
 

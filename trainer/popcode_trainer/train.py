@@ -31,7 +31,7 @@ from popcode_runtime.metadata import RotationFrame
 
 from . import checkpoint, distributed
 from .config import Config
-from .network import NetworkConfig, build_network
+from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
 from .run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
 
@@ -175,6 +175,9 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     random.seed(cfg.seed)
 
     net_config = network_config(config, representation)
+    if rank_batch == 1 and feature_side(net_config) == 1:
+        raise PopcodeError(f"the trunk ends at 1x1 for data.crop_size {config.data.crop_size}, where BatchNorm needs "
+                           f"two crops per rank: raise train.batch_size or data.crop_size")
     model = build_network(net_config).to(context.device)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     use_amp = cfg.amp and context.device.type == "cuda"
@@ -253,7 +256,8 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                 "epoch": epoch + 1,
                 "config": config.to_dict(),
                 "network": dataclasses.asdict(net_config),
-                "metadata": representation.metadata.to_props(),
+                # The runtime crops at the size the network was trained on (data.crop_size), not the default.
+                "metadata": dataclasses.replace(representation.metadata, input_size=net_config.input_size).to_props(),
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "scaler": scaler.state_dict(),

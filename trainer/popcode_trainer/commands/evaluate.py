@@ -7,6 +7,7 @@ from pathlib import Path
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.decoding import DECODERS
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import require_folder
 
 from ..eval.pipeline.evaluate import evaluate_models
@@ -56,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
     for split_dir in args.splits:  # cheap checks first: folders, then every model with the options
         require_folder(split_dir, "split folder")
     require_folder(args.models_dir, "models folder")
+    if args.out.exists() and not args.out.is_dir():
+        raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
     methods = methods_from_paths(args.models, args.names, args.decoder)
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation)

@@ -88,6 +88,8 @@ def _percent(share: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.out.is_dir():
         raise PopcodeError(f"--out {args.out} is a folder; give the path of the .onnx file to write")
+    if args.out.resolve() == args.checkpoint.resolve():
+        raise PopcodeError(f"--out {args.out} is the checkpoint itself; give the path of the .onnx file to write")
     if not args.out.parent.is_dir():
         raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
     checkpoint.load_trained(args.checkpoint)  # refused here, before any crop is read

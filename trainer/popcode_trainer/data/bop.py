@@ -23,6 +23,7 @@ from popcode_runtime.bop_split import (
     json_field,
     scene_folders,
 )
+from popcode_runtime.crop import check_box
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import read_json, require_folder
 from popcode_runtime.symmetries import symmetry_transforms
@@ -92,6 +93,10 @@ def check_image_matches(instance: Instance, width: int, height: int) -> None:
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
         raise PopcodeError(f"{instance.image_path} is {width}x{height} px but the box {list(instance.box)} of {where} "
                            "(scene_gt_info.json) lies outside it: the images do not match the annotations")
+    try:
+        check_box(instance.box, (height, width))  # the runtime's bounds: a huge box would allocate without bound
+    except PopcodeError as error:
+        raise PopcodeError(f"{instance.image_path}, {where} (scene_gt_info.json): {error}") from error
     cx, cy = instance.K[0, 2], instance.K[1, 2]
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise PopcodeError(f"{instance.image_path} is {width}x{height} px but cam_K of image {instance.im_id} "
@@ -186,6 +191,8 @@ def read_bop_split(
     split_dir, models_dir = Path(split_dir), Path(models_dir)
     if box not in BOX_KINDS:
         raise PopcodeError(f"box must be one of {list(BOX_KINDS)}, got {box!r}")
+    if not 0.0 <= min_visib_fract < float("inf"):  # NaN too: it compares False and would keep every instance
+        raise PopcodeError(f"min_visib_fract must be a number >= 0, got {min_visib_fract}")
     scene_dirs = scene_folders(split_dir)
     require_folder(models_dir, "models folder")
     models_info = load_models_info(models_dir)

@@ -42,6 +42,19 @@ def _ascii_ply_vertices(path: Path) -> np.ndarray | None:
     return np.array([[float(row[c]) for c in columns] for row in rows], dtype=np.float64)
 
 
+def _check_geometry(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Refuse what trimesh loads without a word but OpenGL, sampling and the metrics cannot use."""
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise PopcodeError(f"model {path}: a triangle names vertex {int(faces.max())}, but the file has "
+                           f"{len(vertices)} vertices")
+    if not np.isfinite(vertices).all():
+        raise PopcodeError(f"model {path}: vertex coordinates contain NaN or inf")
+    corners = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    if not area > 0.0:
+        raise PopcodeError(f"model {path} is degenerate: its {len(faces)} triangles have no area")
+
+
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
     """A PLY/OBJ model (mm) as one triangle mesh; a clear error if it does not load.
 
@@ -56,6 +69,7 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
         raise PopcodeError(f"cannot load model {path}: {error}") from error
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise PopcodeError(f"model {path} has no triangles")
+    _check_geometry(path, np.asarray(loaded.vertices), np.asarray(loaded.faces))
     try:
         exact = _ascii_ply_vertices(path)
     except (ValueError, IndexError, UnicodeDecodeError) as error:

@@ -39,6 +39,9 @@ BUILTIN_MODELS_FOLDER = "models"
 DEPTH_SCALE_MM = 0.1  # depth png value * 0.1 = mm: 0.1 mm steps up to 6.5 m
 
 
+MAX_RENDER_SIDE = 8192  # px; Mesa's framebuffers stop at 16384, and BOP images are at most 2560 px wide
+
+
 def camera_matrix(width: int, height: int) -> np.ndarray:
     """The renderer's pinhole camera: focal length 1.2 x width (about 45 degrees across), centred."""
     focal_px = 1.2 * width
@@ -61,6 +64,9 @@ class RenderSettings:
     def __post_init__(self) -> None:
         if self.images_per_object < 1 or self.width < 8 or self.height < 8:
             raise PopcodeError(f"need at least 1 image per object and 8x8 pixels, got {self}")
+        if max(self.width, self.height) > MAX_RENDER_SIDE:
+            raise PopcodeError(f"images of {self.width}x{self.height} px: at most {MAX_RENDER_SIDE} px a side "
+                               f"(OpenGL's framebuffers and each image held in memory)")
         low, high = self.fill_range
         if not 0.05 <= low <= high <= 0.9:
             raise PopcodeError(f"fill_range must satisfy 0.05 <= low <= high <= 0.9, got {self.fill_range}")
@@ -243,12 +249,23 @@ def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSe
     return out_dir
 
 
+def _check_placeable(path: Path, obj_id: int, mesh: trimesh.Trimesh, diameter_mm: float) -> None:
+    """The camera distance comes from the declared diameter and aims at the model origin: a mesh reaching further
+    from its origin than its diameter (origin outside the part, or a wrong diameter) cannot be framed."""
+    reach_mm = float(np.linalg.norm(mesh.vertices, axis=1).max())
+    if reach_mm > diameter_mm * (1.0 + 1e-6):
+        raise PopcodeError(f"object {obj_id} ({path}): the mesh reaches {reach_mm:.4g} mm from its origin, more than "
+                           f"its diameter {diameter_mm:.4g} mm in models_info.json: the diameter is wrong or the "
+                           f"mesh is not centred on its origin")
+
+
 def _render_todo(models_dir: Path, out_dir: Path, models_info: dict[int, dict[str, Any]],
                  todo: list[tuple[int, int]], settings: RenderSettings, progress: bool) -> None:
     meshes: dict[int, trimesh.Trimesh] = {}
     for obj_id in dict.fromkeys(obj_id for obj_id, _ in todo):  # every mesh read and checked before GL starts
         path = model_path(models_dir, obj_id)
         meshes[obj_id] = load_mesh(path)
+        _check_placeable(path, obj_id, meshes[obj_id], float(models_info[obj_id]["diameter"]))
         check_object_symmetries(path, models_info[obj_id], obj_id, meshes[obj_id])
     renderer = _SceneRenderer(settings.width, settings.height)
     vertices: dict[int, np.ndarray] = {}

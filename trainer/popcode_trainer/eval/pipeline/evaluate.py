@@ -69,13 +69,13 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
 
 
 def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,
-                   translation: bool = False) -> MethodResult:
+                   points_mm: Mapping[int, np.ndarray] | None = None) -> MethodResult:
     """Estimate every instance of the split with the method (run its models, or read its results file), then
-    score (6-D too with ``translation``, for model files)."""
+    score (6-D too with ``points_mm``, the object points of model files)."""
     split = metrics.split
     estimates = method.estimate(split.instances, split.models_info, progress)
     result = evaluate_rotations(method.name, estimates.R_m2c, metrics, method.paths,
-                                1000.0 * estimates.seconds_per_crop, method.object_points() if translation else None)
+                                1000.0 * estimates.seconds_per_crop, points_mm)
     return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
                                                                         method.confidence_thresholds_deg))
 
@@ -130,8 +130,11 @@ def evaluate_models(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
     """
     if not methods:
         raise PopcodeError("no models to evaluate")
+    # Every model's object points before the first prediction: a model without them fails now, not after hours.
+    points_mm = [method.object_points() if translation else None for method in methods]
     metrics = SplitMetrics(_shared_split(methods, split, obj_ids), thresholds, vsd)
     try:
-        return [evaluate_model(method, metrics, progress, translation) for method in methods]
+        return [evaluate_model(method, metrics, progress, points) for method, points in zip(methods, points_mm,
+                                                                                            strict=True)]
     finally:
         metrics.close()

@@ -98,7 +98,13 @@ class Method:
 
     def object_points(self) -> dict[int, np.ndarray]:
         """Object id -> the points its model's metadata gives the runtime to fit a box."""
-        return {obj_id: points for model in self.models for obj_id, points in object_points(model.objects).items()}
+        points_mm: dict[int, np.ndarray] = {}
+        for model in self.models:
+            try:
+                points_mm.update(object_points(model.objects))
+            except PopcodeError as error:
+                raise PopcodeError(f"{model.path}: no points to fit a box to: {error}") from error
+        return points_mm
 
     @property
     def paths(self) -> tuple[str, ...]:
@@ -135,9 +141,12 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
             if not chosen:
                 continue
             started = time.perf_counter()
-            R_est[chosen], confidence[chosen], score[chosen] = model.predict(
-                image, [instances[i].box for i in chosen], instances[chosen[0]].K,
-                [instances[i].obj_id for i in chosen])
+            try:
+                R_est[chosen], confidence[chosen], score[chosen] = model.predict(
+                    image, [instances[i].box for i in chosen], instances[chosen[0]].K,
+                    [instances[i].obj_id for i in chosen])
+            except PopcodeError as error:  # a box or camera of the split the runtime refuses: name the image
+                raise PopcodeError(f"{image_path}: {error}") from error
             model_s += time.perf_counter() - started
     return Estimates(R_est, confidence, score, model_s / max(len(instances), 1))
 

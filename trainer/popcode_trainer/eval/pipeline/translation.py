@@ -36,7 +36,13 @@ SUMMARY_COLUMNS = {
 
 def object_points(objects: Mapping[int, Mapping[str, Any]]) -> dict[int, np.ndarray]:
     """Object id -> the points ``(P, 3)`` [mm] the runtime fits to a box (hull points, else box corners)."""
-    return {int(obj_id): object_points_mm(info) for obj_id, info in objects.items()}
+    points_mm = {}
+    for obj_id, info in objects.items():
+        try:
+            points_mm[int(obj_id)] = object_points_mm(info)
+        except PopcodeError as error:
+            raise PopcodeError(f"object {obj_id}: {error}") from error
+    return points_mm
 
 
 def translations_from_boxes(R_m2c: np.ndarray, instances: Sequence[Instance],

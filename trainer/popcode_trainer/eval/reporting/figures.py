@@ -8,6 +8,7 @@ metric's error is plotted against the angle, each normalised to be dimensionless
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from matplotlib.figure import Figure
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 from popcode_runtime.population_code import CodeLayout, check_code
 from popcode_runtime.rotations import axis_angle_to_matrix
@@ -85,12 +87,17 @@ def sensitivity_curves(
 
 
 def save_figure(figure: Figure, path: str | Path) -> Path:
-    """Lay the figure out (unless it has its own layout engine), write it as a PNG and return the path."""
+    """Lay the figure out (unless it has its own layout engine), write it as a PNG at exactly ``path``, atomically,
+    and return the path (matplotlib itself would add ``.png`` to a folder's name and write there)."""
+    path = Path(path)
+    if path.is_dir():
+        raise PopcodeError(f"{path} is a folder; give the path of the PNG to write")
     if figure.get_layout_engine() is None:
         figure.tight_layout()
-    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path)
+    png = io.BytesIO()
+    figure.savefig(png, format="png")
+    write_bytes_atomic(path, png.getvalue())
     return path
 
 
