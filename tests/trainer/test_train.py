@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from tiny import tiny_config, tiny_data, tiny_representation
@@ -13,6 +14,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_trainer import checkpoint
 from popcode_trainer.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.schedule import learning_rate
 from popcode_trainer.train import train
 
 
@@ -92,3 +94,14 @@ def test_a_fresh_start_drops_rows_of_a_run_killed_before_its_first_checkpoint(tm
     train(config, rep, train_set)
     with (tmp_path / METRICS_FILE).open() as handle:
         assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1]
+
+
+def test_learning_rate_schedules_warm_up_and_decay() -> None:
+    assert learning_rate(1e-3, "constant", 7.3, 20) == 1e-3
+    assert learning_rate(1e-3, "constant", 0.5, 20, warmup_epochs=1.0) == pytest.approx(5e-4)
+    cosine = [learning_rate(1e-3, "cosine", e, 20, warmup_epochs=1.0) for e in np.linspace(0, 20, 81)]
+    peak = int(np.argmax(cosine))
+    assert cosine[0] == 0.0 and cosine[peak] == pytest.approx(1e-3) and cosine[-1] == pytest.approx(0.0, abs=1e-12)
+    assert all(a <= b for a, b in zip(cosine[:peak], cosine[1 : peak + 1], strict=True))  # warm-up rises
+    assert all(a >= b for a, b in zip(cosine[peak:-1], cosine[peak + 1 :], strict=True))  # then decays
+    assert learning_rate(1e-3, "cosine", 10.5, 20, warmup_epochs=1.0) == pytest.approx(5e-4)  # half-way: half

@@ -27,6 +27,7 @@ from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_
 
 from .network import TRUNKS, NetworkConfig
 from .representations import LOSSES
+from .schedule import SCHEDULES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -77,6 +78,8 @@ class TrainConfig:
     epochs: int = 80
     batch_size: int = 64  # global: split evenly over torchrun ranks
     lr: float = 2e-4
+    schedule: str = "constant"  # learning rate over the run: "constant" (the paper's) or "cosine" (schedule.py)
+    warmup_epochs: float = 0.0  # linear warm-up from 0 to lr over this many epochs (any schedule)
     seed: int = 0
     out_dir: str = "runs/popcode"
     device: str = "auto"
@@ -177,6 +180,7 @@ def _check_choices(config: Config) -> None:
     _choice("train.device", config.train.device, DEVICES)
     _choice("data.box", config.data.box, BOX_KINDS)
     _choice("network.trunk", config.network.trunk, TRUNKS)
+    _choice("train.schedule", config.train.schedule, SCHEDULES)
     _choice("train.loss", config.train.loss, LOSSES)
     if config.train.loss != "mse" and config.train.representation != Representation.POPULATION_CODE:
         raise PopcodeError(f"train.loss = {config.train.loss!r} applies to the population code; "
@@ -196,6 +200,9 @@ def _check_choices(config: Config) -> None:
                            f"limits), got {config.data.crop_size}")
     if config.train.lr <= 0:
         raise PopcodeError("train.lr must be positive")
+    if not 0.0 <= config.train.warmup_epochs <= config.train.epochs:
+        raise PopcodeError(f"train.warmup_epochs must lie in [0, train.epochs = {config.train.epochs}], got "
+                           f"{config.train.warmup_epochs}")
     network = config.network
     for key in ("conv_channels", "hidden"):
         if min(getattr(network, key)) < 1:

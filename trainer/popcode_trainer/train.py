@@ -34,6 +34,7 @@ from .config import Config
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
 from .run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from .schedule import learning_rate
 
 
 @dataclass(frozen=True)
@@ -223,6 +224,8 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         for step, batch in enumerate(bar):
             image = batch["image"].to(context.device, non_blocking=True)
             target = batch["target"].to(context.device, non_blocking=True)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(cfg.lr, cfg.schedule, epoch + step / steps, cfg.epochs, cfg.warmup_epochs)
             with torch.autocast(context.device.type, enabled=use_amp):
                 output = trained(image)
             loss = representation.loss(output.float(), target, (epoch + step / steps) / cfg.epochs)
