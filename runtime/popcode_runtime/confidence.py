@@ -27,6 +27,7 @@ from .rotations import matrix_to_axis_angle
 FEATURES = ("peak", "margin", "concentration")
 DEFAULT_THRESHOLD_DEG = 10.0
 RIVAL_RADIUS_SIGMAS = 2.5  # in code space, neurons further than this from every equivalent peak are rival poses
+NEAR_POSE_BUDGET = 1 << 22  # float32 distances held at once (16 MiB), whatever the batch and the symmetries
 
 
 @dataclass(frozen=True)
@@ -104,34 +105,40 @@ def code_features(layout: CodeLayout, codes: np.ndarray, symmetries: np.ndarray,
     - ``margin``: the peak minus the strongest neuron of any other pose;
     - ``concentration``: the share of the positive activation that sits on the winning pose.
     """
-    codes = check_code(codes, layout.size).astype(np.float64, copy=False)
+    codes = check_code(codes, layout.size).astype(np.float32, copy=False)
     symmetries = np.asarray(symmetries, np.float64)
-    radius = math.radians(rival_radius_deg)
-    winners = PopulationCode(layout).preferred_rotations(np.argmax(codes, axis=1)) if len(codes) else None
     features = np.empty((len(codes), len(FEATURES)))
-    for n, code in enumerate(codes):
-        near = _near_pose(layout, winners[n] @ symmetries, radius)
-        top = code.max()
-        rival = code[~near].max() if not near.all() else -np.inf
-        positive = np.maximum(code, 0.0)
-        total = positive.sum()
-        features[n] = (top, top - rival if np.isfinite(rival) else top,
-                       positive[near].sum() / total if total > 0 else 0.0)
+    if not len(codes):
+        return features
+    radius = math.radians(rival_radius_deg)
+    winners = PopulationCode(layout).preferred_rotations(np.argmax(codes, axis=1))
+    per_chunk = max(1, NEAR_POSE_BUDGET // (2 * len(symmetries) * layout.size))  # bounds the distance array
+    for start in range(0, len(codes), per_chunk):
+        chunk = slice(start, start + per_chunk)
+        part = codes[chunk]
+        near = _near_poses(layout, winners[chunk, None] @ symmetries[None], radius)
+        top = part.max(axis=1)
+        rival = np.where(near, -np.inf, part).max(axis=1)
+        positive = np.maximum(part, 0.0)
+        total = positive.sum(axis=1)
+        features[chunk, 0] = top
+        features[chunk, 1] = np.where(np.isfinite(rival), top - rival, top)
+        features[chunk, 2] = np.divide((positive * near).sum(axis=1), total, out=np.zeros(len(part)),
+                                       where=total > 0)
     return features
 
 
-def _near_pose(layout: CodeLayout, equivalents: np.ndarray, radius_rad: float) -> np.ndarray:
-    """``(D,)`` bool: neurons within ``radius_rad`` of any of the rotations ``(K, 3, 3)`` in code space."""
+def _near_poses(layout: CodeLayout, equivalents: np.ndarray, radius_rad: float) -> np.ndarray:
+    """``(N, D)`` bool: the neurons within ``radius_rad`` of any of each code's rotations ``(N, K, 3, 3)``."""
+    count, k = equivalents.shape[:2]
     if layout.axis_only:
-        directions = equivalents @ np.asarray(layout.symmetry_axis)  # (K, 3)
-        return (directions @ layout.axes.T).max(axis=0) >= math.cos(radius_rad)
-    axes, angles = matrix_to_axis_angle(equivalents)
-    axes = np.concatenate([axes, -axes])  # each rotation sits in the code twice: (r, phi) and (-r, 2 pi - phi)
-    angles = np.concatenate([angles, 2.0 * np.pi - angles])
-    dtheta2 = np.arccos(np.clip(axes @ layout.axes.T, -1.0, 1.0)) ** 2  # (2K, n_axes)
-    dphi2 = np.angle(np.exp(1j * (angles[:, None] - layout.angles_rad[None]))) ** 2  # (2K, m)
-    near = np.zeros((layout.n_axes, layout.n_angles), bool)
-    candidates = np.flatnonzero((dtheta2 < radius_rad**2).any(axis=0))  # only axes inside some cap can be near
-    distance2 = dtheta2[:, candidates, None] + dphi2[:, None, :]  # (2K, candidates, m)
-    near[candidates] = distance2.min(axis=0) < radius_rad**2
-    return near.reshape(-1)
+        directions = equivalents @ np.asarray(layout.symmetry_axis)  # (N, K, 3)
+        return (directions @ layout.axes.T).max(axis=1) >= math.cos(radius_rad)
+    axes, angles = matrix_to_axis_angle(equivalents.reshape(-1, 3, 3))
+    axes, angles = axes.reshape(count, k, 3), angles.reshape(count, k)
+    axes = np.concatenate([axes, -axes], axis=1)  # each rotation sits in the code twice: (r, phi), (-r, 2 pi - phi)
+    angles = np.concatenate([angles, 2.0 * np.pi - angles], axis=1)
+    dtheta2 = (np.arccos(np.clip(axes @ layout.axes.T, -1.0, 1.0)) ** 2).astype(np.float32)  # (N, 2K, n_axes)
+    dphi2 = (np.angle(np.exp(1j * (angles[..., None] - layout.angles_rad))) ** 2).astype(np.float32)  # (N, 2K, m)
+    distance2 = dtheta2[..., None] + dphi2[:, :, None, :]  # (N, 2K, n_axes, m)
+    return (distance2.min(axis=1) < radius_rad**2).reshape(count, -1)

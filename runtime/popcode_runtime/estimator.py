@@ -108,6 +108,8 @@ class PoseEstimator:
         check_decoder(decoder, metadata)
         self.engine, self.metadata, self.decoder = engine, metadata, decoder
         self.last_timings = Timings(0.0, 0.0, 0.0)
+        # parsed once: the confidence and the hypotheses of every box need the object's symmetry rotations
+        self._symmetries = {obj_id: symmetry_rotations(info) for obj_id, info in metadata.objects.items()}
 
     @property
     def providers(self) -> list[str]:
@@ -249,8 +251,8 @@ class PoseEstimator:
             info = meta.objects.get(ids[i], {})
             hypotheses = None
             if top_k > 1:
-                found = find_hypotheses(PopulationCode(meta.code), output[i], symmetry_rotations(info), top_k=top_k,
-                                        refine=self.decoder == "refined")
+                found = find_hypotheses(PopulationCode(meta.code), output[i], self._symmetry_rotations(ids[i]),
+                                        top_k=top_k, refine=self.decoder == "refined")
                 hypotheses = [replace(h, R_m2c=to_camera(h.R_m2c, i), equivalent=to_camera(h.equivalent, i))
                               for h in found]
             t = translation_from_box(R[i], box, camera, object_points_mm(info)) if translation else None
@@ -271,11 +273,14 @@ class PoseEstimator:
             return confidence
         for obj_id in {i for i in ids if i is not None}:
             rows = [row for row, i in enumerate(ids) if i == obj_id]
-            features = code_features(meta.code, output[rows], symmetry_rotations(meta.objects[obj_id]),
-                                     calibrator.rival_radius_deg)
+            features = code_features(meta.code, output[rows], self._symmetries[obj_id], calibrator.rival_radius_deg)
             for row, value in zip(rows, calibrator.probability(features), strict=True):
                 confidence[row] = float(value)
         return confidence
+
+    def _symmetry_rotations(self, obj_id: int | None) -> np.ndarray:
+        """The object's symmetry rotations (identity alone for an object not named)."""
+        return self._symmetries[obj_id] if obj_id is not None else np.eye(3)[None]
 
     def _to_camera_frame(self, boxes: Sequence[Sequence[float]], camera: np.ndarray | None):
         """A function ``(R, which_boxes) -> R`` in the camera frame (identity for egocentric models)."""

@@ -226,7 +226,7 @@ def test_predict_draw_writes_the_picture_of_the_estimates(tmp_path: Path, index:
     printed = json.loads(capsys.readouterr().out)["predictions"]
     estimator = PoseEstimator(model)
     predictions = [prediction(np.array(p["R_m2c"]), obj_id=p["obj_id"], t_mm=np.array(p["t_m2c_mm"]),
-                              box=tuple(p["box"]), score=p["score"]) for p in printed]
+                              box=tuple(p["box"]), score=p["score"], confidence=p["confidence"]) for p in printed]
     np.testing.assert_array_equal(picture, draw_predictions(image, predictions, estimator.metadata,
                                                             SAMPLES[index]["K"]))
     assert (picture.max(axis=2) != picture.min(axis=2)).sum() > 100  # coloured lines on a grey image

@@ -64,3 +64,18 @@ def test_samples_are_estimated_up_to_symmetry(decoder: str) -> None:
     # With the true rotation the box fit is within 1 % (bench/translation.py); a rotation tens of degrees
     # off changes the silhouette, so the translation is asked to be within 10 % of the distance.
     assert np.median(distance_errors) < 0.1, distance_errors
+
+
+def test_shipped_models_carry_a_calibrated_confidence() -> None:
+    """Every shipped model reports P(error < its threshold) from its calibrator, a probability per sample."""
+    owners = shipped_models()
+    for path in set(owners.values()):
+        calibrator = PoseEstimator(path).metadata.confidence
+        assert calibrator is not None and calibrator.threshold_deg == 10.0, path.name
+        assert calibrator.fitted_on["held_out_instances"] >= 100, path.name
+    confidences = []
+    for sample in samples():
+        estimator = PoseEstimator(owners[sample["obj_id"]])
+        image = read_image(SAMPLES.parent / sample["image"])
+        confidences.append(estimator.predict(image, [sample["box"]], obj_ids=[sample["obj_id"]])[0].confidence)
+    assert all(0.0 <= c <= 1.0 for c in confidences) and len(set(confidences)) == len(confidences)
