@@ -94,6 +94,7 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     assert result.returncode == 0, result.stderr
     assert cv2.imread(str(picture)).shape == (128, 128, 3)  # the picture of the estimate, drawn by the runtime alone
     R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
+    assert 0.0 <= json.loads(result.stdout)["predictions"][0]["confidence"] <= 1.0  # the shipped calibrator
     R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c
     assert np.allclose(R_venv, R_here, atol=1e-5)
 
