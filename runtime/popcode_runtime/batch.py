@@ -164,8 +164,9 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
     uncalibrated = sorted(key for key in by_image if images[key].K is None)
     if uncalibrated:
         scene_id, im_id = uncalibrated[0]
-        raise PopcodeError(f"scene {scene_id} image {im_id} has no cam_K in its scene_camera.json (and "
-                           f"{len(uncalibrated) - 1} more): the translation from the box needs the camera")
+        more = f" (and {len(uncalibrated) - 1} more images)" if len(uncalibrated) > 1 else ""
+        raise PopcodeError(f"scene {scene_id} image {im_id} has no cam_K in its scene_camera.json{more}: the "
+                           "translation from the box needs the camera")
 
 
 def _estimates(key: ImageKey, answered: list[tuple[Detection, Prediction]], detector_s: float,
