@@ -35,7 +35,10 @@ class Calibrator:
     """``P(rotation error up to symmetry < threshold_deg) = sigmoid(bias + weights . features)``.
 
     ``weights`` (one per name in :data:`FEATURES`) are non-negative: the
-    confidence is monotone in every feature. ``rival_radius_deg`` is the radius
+    confidence is monotone in every feature. They are fitted for the argmax
+    decoder; ``refined`` holds ``(weights, bias)`` fitted for the refined
+    decoder, whose estimates are right more often from the same code (None:
+    the argmax fit serves both). ``rival_radius_deg`` is the radius
     :func:`code_features` used when the calibrator was fitted; it must be the
     same at run time. ``fitted_on`` says what it was fitted on (for people).
     """
@@ -45,32 +48,37 @@ class Calibrator:
     weights: tuple[float, ...]
     bias: float
     fitted_on: dict[str, Any] = field(default_factory=dict)
+    refined: tuple[tuple[float, ...], float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "threshold_deg", number(self.threshold_deg, "confidence threshold_deg", 0.0, 180.0))
         object.__setattr__(self, "rival_radius_deg",
                            number(self.rival_radius_deg, "confidence rival_radius_deg", 0.0, 180.0))
         object.__setattr__(self, "bias", number(self.bias, "confidence bias"))
-        if isinstance(self.weights, (str, bytes)) or not isinstance(self.weights, Sequence) \
-                or len(self.weights) != len(FEATURES):
-            raise PopcodeError(f"confidence weights must be {len(FEATURES)} numbers ({', '.join(FEATURES)}), "
-                               f"got {self.weights!r}")
-        weights = tuple(number(w, f"confidence weight of {name}", 0.0) for w, name in zip(self.weights, FEATURES,
-                                                                                          strict=True))
-        object.__setattr__(self, "weights", weights)
+        object.__setattr__(self, "weights", _weights(self.weights, "confidence"))
+        if self.refined is not None:
+            if isinstance(self.refined, (str, bytes)) or not isinstance(self.refined, Sequence) \
+                    or len(self.refined) != 2:
+                raise PopcodeError(f"confidence refined must be (weights, bias), got {self.refined!r}")
+            object.__setattr__(self, "refined", (_weights(self.refined[0], "confidence refined"),
+                                                 number(self.refined[1], "confidence refined bias")))
         mapping(self.fitted_on, "confidence fitted_on")
         if self.threshold_deg == 0.0 or self.rival_radius_deg == 0.0:
             raise PopcodeError("confidence threshold_deg and rival_radius_deg must be positive")
 
-    def probability(self, features: np.ndarray) -> np.ndarray:
-        """Confidence ``(N,)`` in [0, 1] for features ``(N, len(FEATURES))``."""
-        logits = self.bias + np.asarray(features, np.float64) @ np.asarray(self.weights)
+    def probability(self, features: np.ndarray, decoder: str = "argmax") -> np.ndarray:
+        """Confidence ``(N,)`` in [0, 1] for features ``(N, len(FEATURES))`` of codes decoded by ``decoder``."""
+        weights, bias = self.refined if decoder == "refined" and self.refined else (self.weights, self.bias)
+        logits = bias + np.asarray(features, np.float64) @ np.asarray(weights)
         return 0.5 * (1.0 + np.tanh(0.5 * logits))  # the logistic function, without overflow warnings
 
     def to_dict(self) -> dict[str, Any]:
-        return {"threshold_deg": self.threshold_deg, "rival_radius_deg": self.rival_radius_deg,
+        data = {"threshold_deg": self.threshold_deg, "rival_radius_deg": self.rival_radius_deg,
                 "features": list(FEATURES), "weights": list(self.weights), "bias": self.bias,
                 "fitted_on": dict(self.fitted_on)}
+        if self.refined is not None:
+            data["refined"] = {"weights": list(self.refined[0]), "bias": self.refined[1]}
+        return data
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Calibrator:
@@ -81,8 +89,21 @@ class Calibrator:
         missing = [key for key in ("threshold_deg", "rival_radius_deg", "weights", "bias") if key not in data]
         if missing:
             raise PopcodeError(f"model metadata 'popcode.confidence' lacks {', '.join(missing)}")
+        refined = data.get("refined")
+        if refined is not None:
+            refined = mapping(refined, "model metadata 'popcode.confidence' refined")
+            if "weights" not in refined or "bias" not in refined:
+                raise PopcodeError("model metadata 'popcode.confidence' refined needs weights and bias")
+            refined = (refined["weights"], refined["bias"])
         return cls(data["threshold_deg"], data["rival_radius_deg"], data["weights"], data["bias"],
-                   dict(data.get("fitted_on", {})))
+                   dict(data.get("fitted_on", {})), refined)
+
+
+def _weights(values: Any, what: str) -> tuple[float, ...]:
+    """One non-negative number per feature (the confidence never falls when a feature improves)."""
+    if isinstance(values, (str, bytes)) or not isinstance(values, Sequence) or len(values) != len(FEATURES):
+        raise PopcodeError(f"{what} weights must be {len(FEATURES)} numbers ({', '.join(FEATURES)}), got {values!r}")
+    return tuple(number(w, f"{what} weight of {name}", 0.0) for w, name in zip(values, FEATURES, strict=True))
 
 
 def default_rival_radius_deg(layout: CodeLayout) -> float:

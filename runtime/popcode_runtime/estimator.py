@@ -274,7 +274,7 @@ class PoseEstimator:
         for obj_id in {i for i in ids if i is not None}:
             rows = [row for row, i in enumerate(ids) if i == obj_id]
             features = code_features(meta.code, output[rows], self._symmetries[obj_id], calibrator.rival_radius_deg)
-            for row, value in zip(rows, calibrator.probability(features), strict=True):
+            for row, value in zip(rows, calibrator.probability(features, self.decoder), strict=True):
                 confidence[row] = float(value)
         return confidence
 

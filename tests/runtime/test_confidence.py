@@ -70,6 +70,8 @@ def test_calibrator_is_monotone_bounded_and_refuses_negative_weights() -> None:
     ({"threshold_deg": 0.0}, "must be positive"),
     ({"threshold_deg": float("nan")}, "NaN"),
     ({"weights": None}, "weights"),
+    ({"refined": {"weights": [1.0, 1.0, 1.0]}}, "refined needs weights and bias"),
+    ({"refined": {"weights": [1.0, -1.0, 1.0], "bias": 0.0}}, "refined weight of margin"),
 ])
 def test_a_broken_calibrator_in_the_metadata_is_refused_at_load(tmp_path, entry: dict, message: str) -> None:
     meta = ModelMetadata(Representation.POPULATION_CODE, LAYOUT, {1: CASES["none"]}, confidence=_calibrator())
@@ -99,3 +101,22 @@ def test_the_model_reports_its_calibrated_confidence_and_none_without_a_calibrat
     features = code_features(LAYOUT, prediction.code[None], symmetry_rotations(CASES["two_fold"]), RADIUS_DEG)
     assert prediction.confidence == pytest.approx(float(_calibrator().probability(features)[0]))
     assert with_calibrator.metadata.confidence == _calibrator()  # survives the ONNX metadata round trip
+
+
+def test_the_refined_decoder_has_its_own_fit_and_falls_back_to_argmax_without_one(tmp_path) -> None:
+    features = np.array([[0.9, 0.5, 0.8], [0.2, 0.05, 0.3]])
+    both = Calibrator(10.0, RADIUS_DEG, (1.0, 2.0, 3.0), -3.0, refined=((0.5, 0.0, 4.0), -1.0))
+    np.testing.assert_allclose(both.probability(features, "refined"),
+                               Calibrator(10.0, RADIUS_DEG, (0.5, 0.0, 4.0), -1.0).probability(features))
+    np.testing.assert_allclose(both.probability(features, "argmax"), _calibrator().probability(features))
+    np.testing.assert_allclose(_calibrator().probability(features, "refined"), _calibrator().probability(features))
+    meta = ModelMetadata(Representation.POPULATION_CODE, LAYOUT, {1: CASES["none"]}, confidence=both)
+    assert ModelMetadata.from_props(meta.to_props()).confidence == both  # survives the metadata round trip
+    code = _code(axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), 1.0))
+    model = save(linear_model(code, metadata=meta), tmp_path / "m.onnx")
+    image, box = np.full((200, 200), 0.5, np.float32), [50.0, 50.0, 80.0, 80.0]
+    by_decoder = {d: PoseEstimator(model, decoder=d).predict(image, [box], return_code=True)[0] for d in
+                  ("argmax", "refined")}
+    features = code_features(LAYOUT, by_decoder["refined"].code[None], np.eye(3)[None], RADIUS_DEG)
+    assert by_decoder["refined"].confidence == pytest.approx(float(both.probability(features, "refined")[0]))
+    assert by_decoder["argmax"].confidence == pytest.approx(float(both.probability(features, "argmax")[0]))

@@ -92,6 +92,7 @@ out_dir = "{tmp_path / 'run'}"
     estimator = PoseEstimator(model)
     calibrator = estimator.metadata.confidence
     assert calibrator is not None and calibrator.threshold_deg == 30.0
+    assert calibrator.refined is not None  # a second fit for the refined decoder, on the same held-out codes
 
     test = render_builtin_split(tmp_path / "test", images_per_object=64, obj_ids=[OBJ_ID], seed=7)
     instances = read_bop_split(test, test / "models").instances

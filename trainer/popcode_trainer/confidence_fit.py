@@ -29,7 +29,7 @@ from popcode_runtime.confidence import (
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import GRID_REPRESENTATIONS
+from popcode_runtime.metadata import GRID_REPRESENTATIONS, Representation
 from popcode_runtime.symmetries import symmetry_rotations
 
 from . import checkpoint
@@ -69,8 +69,8 @@ def estimate_held_out(estimator: PoseEstimator, instances: Sequence[Instance], r
     meta = estimator.metadata
     codes = np.empty((len(instances), meta.output_dim), np.float32)
     R_est = np.empty((len(instances), 3, 3))
-    for image_path, rows in tqdm(rows_by_image(instances).items(), desc="confidence: held-out crops", unit="img",
-                                 disable=not progress):
+    for image_path, rows in tqdm(rows_by_image(instances).items(), unit="img", disable=not progress,
+                                 desc=f"confidence: held-out crops, {estimator.decoder}"):
         image = read_image(image_path)
         predictions = estimator.predict(image, [instances[i].box for i in rows], K=instances[rows[0]].K,
                                         obj_ids=[instances[i].obj_id for i in rows], return_code=True)
@@ -129,8 +129,15 @@ def fit_calibrator(estimator: PoseEstimator, instances: Sequence[Instance],
         return None, (f"{int(correct.sum())} of {len(correct)} held-out estimates are within {threshold_deg:g} deg: "
                       f"at least {MIN_PER_OUTCOME} right and {MIN_PER_OUTCOME} wrong ones are needed to calibrate")
     weights, bias = fit_logistic(held_out.features, correct)
+    refined = None
+    if meta.representation == Representation.POPULATION_CODE:  # the same codes, decoded between the neurons
+        refined_estimator = PoseEstimator.from_engine(estimator.engine, meta, decoder="refined")
+        refined_correct = estimate_held_out(refined_estimator, instances, radius, progress).errors_deg < threshold_deg
+        if min(refined_correct.sum(), (~refined_correct).sum()) >= MIN_PER_OUTCOME:
+            refined_weights, refined_bias = fit_logistic(held_out.features, refined_correct)
+            refined = (tuple(float(w) for w in refined_weights), refined_bias)
     fitted_on = {"held_out_instances": len(correct), "share_correct": round(float(correct.mean()), 4)}
-    return Calibrator(threshold_deg, radius, tuple(float(w) for w in weights), bias, fitted_on), \
+    return Calibrator(threshold_deg, radius, tuple(float(w) for w in weights), bias, fitted_on, refined), \
         f"fitted on {len(correct)} held-out crops ({100 * correct.mean():.1f} % within {threshold_deg:g} deg)"
 
 
