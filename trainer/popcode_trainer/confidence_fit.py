@@ -47,10 +47,10 @@ L2_PENALTY = 1e-3  # keeps the weights finite when the classes separate perfectl
 
 @dataclass(frozen=True)
 class HeldOutEstimates:
-    """What the model says about held-out instances and how wrong it is."""
+    """What the model says about held-out instances and how wrong it is, per decoder."""
 
-    features: np.ndarray  # (N, len(FEATURES))
-    errors_deg: np.ndarray  # (N,) rotation error up to symmetry
+    features: np.ndarray  # (N, len(FEATURES)), of the code (the same whatever the decoder)
+    errors_deg: dict[str, np.ndarray]  # decoder -> (N,) rotation error up to symmetry
 
 
 def held_out_instances(config: Config, limit: int = MAX_CALIBRATION_INSTANCES) -> list[Instance]:
@@ -63,27 +63,32 @@ def held_out_instances(config: Config, limit: int = MAX_CALIBRATION_INSTANCES) -
     return held_out
 
 
-def estimate_held_out(estimator: PoseEstimator, instances: Sequence[Instance], rival_radius_deg: float,
+def estimate_held_out(estimators: Sequence[PoseEstimator], instances: Sequence[Instance], rival_radius_deg: float,
                       progress: bool = True) -> HeldOutEstimates:
-    """Run the estimator on every instance (each image read once); code features and errors up to symmetry."""
-    meta = estimator.metadata
+    """Run the estimators (one model, one per decoder) on every instance, each image read once; the code's
+    features (from the first) and each decoder's errors up to symmetry."""
+    meta = estimators[0].metadata
     codes = np.empty((len(instances), meta.output_dim), np.float32)
-    R_est = np.empty((len(instances), 3, 3))
+    R_est = {estimator.decoder: np.empty((len(instances), 3, 3)) for estimator in estimators}
     for image_path, rows in tqdm(rows_by_image(instances).items(), unit="img", disable=not progress,
-                                 desc=f"confidence: held-out crops, {estimator.decoder}"):
+                                 desc="confidence: held-out crops"):
         image = read_image(image_path)
-        predictions = estimator.predict(image, [instances[i].box for i in rows], K=instances[rows[0]].K,
-                                        obj_ids=[instances[i].obj_id for i in rows], return_code=True)
-        for row, prediction in zip(rows, predictions, strict=True):
-            codes[row], R_est[row] = prediction.code, prediction.R_m2c
+        for index, estimator in enumerate(estimators):
+            predictions = estimator.predict(image, [instances[i].box for i in rows], K=instances[rows[0]].K,
+                                            obj_ids=[instances[i].obj_id for i in rows], return_code=index == 0)
+            for row, prediction in zip(rows, predictions, strict=True):
+                R_est[estimator.decoder][row] = prediction.R_m2c
+                if index == 0:
+                    codes[row] = prediction.code
     obj_ids = np.array([inst.obj_id for inst in instances])
     features = np.empty((len(instances), len(FEATURES)))
     for obj_id in np.unique(obj_ids):
         rows = np.flatnonzero(obj_ids == obj_id)
         features[rows] = code_features(meta.code, codes[rows], symmetry_rotations(meta.objects[int(obj_id)]),
                                        rival_radius_deg)
-    errors = rotation_errors_deg(R_est, np.stack([inst.R_m2c for inst in instances]), obj_ids, meta.objects)
-    return HeldOutEstimates(features, errors)
+    R_true = np.stack([inst.R_m2c for inst in instances])
+    return HeldOutEstimates(features, {decoder: rotation_errors_deg(R, R_true, obj_ids, meta.objects)
+                                       for decoder, R in R_est.items()})
 
 
 def fit_logistic(features: np.ndarray, correct: np.ndarray) -> tuple[np.ndarray, float]:
@@ -123,16 +128,18 @@ def fit_calibrator(estimator: PoseEstimator, instances: Sequence[Instance],
     if not instances:
         return None, "no held-out images (set data.val_fraction above 0 to keep some out of training)"
     radius = default_rival_radius_deg(meta.code)
-    held_out = estimate_held_out(estimator, instances, radius, progress)
-    correct = held_out.errors_deg < threshold_deg
+    estimators = [estimator]
+    if meta.representation == Representation.POPULATION_CODE:  # the same codes, decoded between the neurons too
+        estimators.append(PoseEstimator.from_engine(estimator.engine, meta, decoder="refined"))
+    held_out = estimate_held_out(estimators, instances, radius, progress)
+    correct = held_out.errors_deg[estimator.decoder] < threshold_deg
     if min(correct.sum(), (~correct).sum()) < MIN_PER_OUTCOME:
         return None, (f"{int(correct.sum())} of {len(correct)} held-out estimates are within {threshold_deg:g} deg: "
                       f"at least {MIN_PER_OUTCOME} right and {MIN_PER_OUTCOME} wrong ones are needed to calibrate")
     weights, bias = fit_logistic(held_out.features, correct)
     refined = None
-    if meta.representation == Representation.POPULATION_CODE:  # the same codes, decoded between the neurons
-        refined_estimator = PoseEstimator.from_engine(estimator.engine, meta, decoder="refined")
-        refined_correct = estimate_held_out(refined_estimator, instances, radius, progress).errors_deg < threshold_deg
+    if "refined" in held_out.errors_deg:
+        refined_correct = held_out.errors_deg["refined"] < threshold_deg
         if min(refined_correct.sum(), (~refined_correct).sum()) >= MIN_PER_OUTCOME:
             refined_weights, refined_bias = fit_logistic(held_out.features, refined_correct)
             refined = (tuple(float(w) for w in refined_weights), refined_bias)
