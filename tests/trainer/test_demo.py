@@ -11,6 +11,7 @@ import pytest
 
 from popcode_runtime import PoseEstimator
 from popcode_runtime.cli import main as runtime_main
+from popcode_trainer import epoch_budget
 from popcode_trainer.cli import main as cli_main
 from popcode_trainer.demo import StagePlan, run_demo
 from popcode_trainer.demo_report import POPCODE, SUMMARY_FILE
@@ -21,13 +22,14 @@ from popcode_trainer.pipeline import PipelineSize, small_config
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
                                        batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2)
+BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 1
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("demo")
-    return out, run_demo("tiny", out, TINY, latency_iterations=3)
+    return out, run_demo("tiny", out, TINY, latency_iterations=3, minutes=BUDGET_MINUTES)
 
 
 @pytest.mark.slow
@@ -94,19 +96,32 @@ def test_rerun_resumes_without_retraining(demo_run: tuple[Path, dict]) -> None:
     out, summary = demo_run
     model = Path(summary["models"][POPCODE][0])
     before = model.stat().st_mtime_ns
-    again = run_demo("tiny", out, TINY, latency_iterations=3)
+    again = run_demo("tiny", out, TINY, latency_iterations=3, minutes=BUDGET_MINUTES)
     assert model.stat().st_mtime_ns == before
     assert set(again["scores"]) == set(summary["scores"])
+
+
+def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -> None:
+    out, summary = demo_run
+    fit = epoch_budget.load(out)
+    assert fit is not None and fit.epochs == summary["epoch_fit"]["epochs"] == summary["settings"]["config"]["train"][
+        "epochs"] == 1
+    assert fit.budget_s == pytest.approx(60 * BUDGET_MINUTES) and fit.seconds_left < 0
+    assert len(fit.first_epoch_seconds) == 4 and all(s > 0 for s in fit.first_epoch_seconds.values())
+    assert f"fitted to a {BUDGET_MINUTES:g}-minute budget on this machine" in (out / "report.md").read_text()
 
 
 def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None:
     plan = StagePlan([("a", 10.0), ("b", 30.0)])
     assert plan.remaining_s() == 40.0
     plan.done["a"] = 20.0  # twice as slow as estimated
+    assert plan.scale == pytest.approx(2.0)
     assert plan.remaining_s() == pytest.approx(60.0)
+    plan.revise({"a": 99.0, "b": 15.0})  # a finished step keeps its estimate
+    assert plan.remaining_s() == pytest.approx(30.0)
     with plan.stage("b"):
         pass
-    assert "[2/2] b: about 1.0 min; about 1.0 min left overall" in capsys.readouterr().out
+    assert "[2/2] b: about 30 s; about 30 s left overall" in capsys.readouterr().out
 
 
 def test_nearest_equivalent_picks_the_symmetric_pose() -> None:

@@ -9,9 +9,9 @@ interrupted demo with the same folder continues where it stopped.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
+from . import epoch_budget
 from .config import Config, DataConfig
 from .data.bop import model_path
 from .data.objects import BUILTIN_PARTS
@@ -42,6 +43,7 @@ from .pipeline import (
     run_dir,
     small_config,
     train_and_export,
+    train_first_epoch,
 )
 
 BASELINE = Representation.SINGLE_VARIABLE
@@ -55,11 +57,15 @@ class DemoSize:
 
     pipeline: PipelineSize
     purpose: str
+    minutes: float | None = None  # fit the epochs so the whole demo takes about this long (epoch_budget)
+    epoch_bounds: tuple[int, int] = (1, 1000)  # the fitted epochs stay within these
 
 
 DEMO_SIZES = {
+    # 13.5 minutes leave the 15 of `make demo` room for creating .venv (about a minute) and the estimate's error.
     "quick": DemoSize(PipelineSize(1000, 40, small_config(epochs=20, n_axes=642, n_angles=36), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=40), "about 15 minutes on a 2-core CPU"),
+                                   cluttered_test_scenes=40), "about 15 minutes on a 2-core CPU", minutes=13.5,
+                      epoch_bounds=(10, 60)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=40, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                     cluttered_test_scenes=100), "a few hours on a 2-core CPU, minutes on a GPU"),
     # The paper's defaults (Config()), with data-loader workers for a GPU.
@@ -71,6 +77,7 @@ DEMO_SIZES = {
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.008
 SECONDS_PER_TRAINING_SAMPLE = 0.0035
+SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
@@ -89,11 +96,19 @@ class StagePlan:
         self.estimates = dict(stages)
         self.done: dict[str, float] = {}
 
-    def remaining_s(self, after: Sequence[str] = ()) -> float:
+    @property
+    def scale(self) -> float:
+        """Seconds taken per second estimated over the finished steps (1 before any)."""
         estimated_done = sum(self.estimates[name] for name in self.done)
-        scale = sum(self.done.values()) / estimated_done if estimated_done > 0 else 1.0
+        return sum(self.done.values()) / estimated_done if estimated_done > 0 else 1.0
+
+    def remaining_s(self, after: Sequence[str] = ()) -> float:
         left = [name for name in self.estimates if name not in self.done and name not in after]
-        return scale * sum(self.estimates[name] for name in left)
+        return self.scale * sum(self.estimates[name] for name in left)
+
+    def revise(self, estimates: Mapping[str, float]) -> None:
+        """New estimates for steps not yet done (the finished ones keep theirs, which set the scale)."""
+        self.estimates.update({name: s for name, s in estimates.items() if name not in self.done})
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
@@ -110,16 +125,20 @@ def _minutes(seconds: float) -> str:
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
-def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int) -> StagePlan:
-    """The demo's steps with their estimated seconds on the reference CPU."""
+def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_epochs: bool = False) -> StagePlan:
+    """The demo's steps with their estimated seconds on the reference CPU; with ``fit_epochs`` a step trains the
+    first epoch of every model and the training steps the rest."""
     images = objects * (size.train_images_per_object + size.test_images_per_object)
     width = np.prod(size.config.network.conv_channels) / np.prod(SMALL_NETWORK.conv_channels)
+    per_epoch = {(representation, tuple(obj_ids)): len(obj_ids) * size.train_images_per_object
+                 * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
+                 for representation in size.representations for obj_ids in groups}
     stages = [("render", images * SECONDS_PER_RENDERED_IMAGE)]
-    for representation in size.representations:
-        for obj_ids in groups:
-            samples = len(obj_ids) * size.train_images_per_object * size.config.train.epochs
-            stages.append((_train_stage(representation, obj_ids),
-                           samples * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))))
+    if fit_epochs:
+        stages.append((FIRST_EPOCHS, sum(per_epoch.values())))
+    for (representation, obj_ids), seconds in per_epoch.items():
+        stages.append((_train_stage(representation, obj_ids),
+                       seconds * (size.config.train.epochs - fit_epochs) + SECONDS_PER_EXPORT))
     methods = len(size.representations) + 2  # + refined decoder + quantised model
     stages += [("evaluate", methods * objects * size.test_images_per_object * SECONDS_PER_EVALUATED_INSTANCE)]
     if size.cluttered_test_scenes:
@@ -130,6 +149,34 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int) -> S
 
 def _train_stage(representation: str, obj_ids: Sequence[int]) -> str:
     return f"train {representation} for objects {', '.join(map(str, obj_ids))}"
+
+
+FIRST_EPOCHS = "time the first epoch of every model"
+
+
+def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int]], train_split: Path,
+               out_dir: Path, started: float, stages: StagePlan) -> epoch_budget.EpochFit:
+    """Train every model's first epoch and choose the epochs that fill ``demo.minutes`` counted from ``started``
+    (see :mod:`popcode_trainer.epoch_budget`); an interrupted run's earlier fit is kept."""
+    earlier = epoch_budget.load(out_dir)
+    if earlier is not None:
+        return earlier
+    if size.config.train.schedule != "constant":
+        raise PopcodeError(f"fitting the epochs to a time budget needs the constant schedule, not "
+                           f"{size.config.train.schedule!r}: pass --epochs")
+    first = {}
+    for representation in size.representations:
+        for obj_ids in groups:
+            folder = train_first_epoch(size, representation, obj_ids, train_split, out_dir)
+            first[folder.name] = epoch_budget.first_epoch_seconds(folder)
+    elapsed_s = time.perf_counter() - started
+    training = [_train_stage(r, g) for r in size.representations for g in groups]
+    exports = stages.scale * SECONDS_PER_EXPORT * len(training)
+    other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports
+    result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps,
+                              demo.epoch_bounds)
+    epoch_budget.save(result, out_dir)
+    return result
 
 
 def train_models(size: PipelineSize, groups: Sequence[Sequence[int]], train_split: Path, out_dir: Path,
@@ -222,23 +269,44 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
 
 
 def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
-             latency_iterations: int = 50) -> dict[str, Any]:
-    """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``)."""
+             latency_iterations: int = 50, minutes: float | None = None) -> dict[str, Any]:
+    """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``).
+
+    Without ``size`` the named size is used with its time budget; ``minutes`` sets a budget for any size
+    (the epochs are then fitted to it, within the named size's bounds).
+    """
     if size_name not in DEMO_SIZES and size is None:
         raise PopcodeError(f"unknown demo size {size_name!r}; choose from {list(DEMO_SIZES)}")
-    size = size or DEMO_SIZES[size_name].pipeline
+    demo = DEMO_SIZES.get(size_name, DemoSize(size, "a custom size"))
+    if minutes is None and size is None:
+        minutes = demo.minutes
+    demo = replace(demo, minutes=minutes)
+    size = size or demo.pipeline
     if POPCODE not in size.representations:
         raise PopcodeError("the demo needs the population code among its representations")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     groups = object_groups({part.obj_id: part.symmetries for part in BUILTIN_PARTS})
-    stages = plan(size, groups, sum(map(len, groups)))
-    print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, about "
+    objects = sum(map(len, groups))
+    stages = plan(size, groups, objects, fit_epochs=minutes is not None)
+    budget = f"epochs fitted to {minutes:g} min on this machine" if minutes is not None else \
+        f"{size.config.train.epochs} epochs"
+    print(f"popcode demo, size {size_name} ({budget}): {len(stages.estimates)} steps, about "
           f"{_minutes(stages.remaining_s())} on a 2-core CPU (the estimate corrects itself as steps finish); "
           f"output in {out_dir}", flush=True)
     with stages.stage("render"):
         train_split, test_split = render_splits(size, out_dir)
+    epoch_fit = None
+    if minutes is not None:
+        with stages.stage(FIRST_EPOCHS):
+            epoch_fit = fit_epochs(size, demo, groups, train_split, out_dir, started, stages)
+        size = size.with_epochs(epoch_fit.epochs)
+        stages.revise(plan(size, groups, objects, fit_epochs=True).estimates)
+        print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
+              f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
+              f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
+              flush=True)
     models = train_models(size, groups, train_split, out_dir, stages)
     with stages.stage("evaluate"):
         split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
@@ -254,7 +322,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
         figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
     run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
-                  cluttered)
+                  cluttered, epoch_fit)
     summary = write_outputs(run)
     print(f"\ndone in {_minutes(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
     return summary

@@ -15,6 +15,7 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 
+from .epoch_budget import EpochFit
 from .eval.pipeline.evaluate import MethodResult
 from .eval.pipeline.split import EvalSplit
 from .eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
@@ -55,6 +56,7 @@ class DemoRun:
     figures: dict[str, list[Path]]
     step_seconds: dict[str, float]
     cluttered: list[MethodResult] = field(default_factory=list)  # the same methods on the cluttered test split
+    epoch_fit: EpochFit | None = None  # how the epochs were fitted to a time budget, when they were
 
     @property
     def seconds(self) -> float:
@@ -170,7 +172,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"# popcode demo (`--size {run.size_name}`)",
         f"Rendered the six built-in parts ({size.train_images_per_object} training and "
         f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
-        f"with the same network, data and budget ({size.config.train.epochs} epochs; objects pooled as {run.groups}), "
+        f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores).",
         "## Models\n\n" + "\n".join(model_lines)
@@ -187,6 +189,17 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
+
+
+def _epochs_text(run: DemoRun) -> str:
+    """The epochs, and when they were fitted to a time budget, what they were fitted from."""
+    epochs = f"{run.size.config.train.epochs} epochs"
+    fit = run.epoch_fit
+    if fit is None:
+        return epochs
+    return (f"{epochs}, fitted to a {fit.budget_s / 60:g}-minute budget on this machine: one epoch of every model "
+            f"took {sum(fit.first_epoch_seconds.values()):.0f} s and the budget left {fit.seconds_left:.0f} s for "
+            f"training, within {fit.bounds[0]}-{fit.bounds[1]} epochs")
 
 
 def _percent(value: float) -> str:
@@ -233,6 +246,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
     report.write_text(report_markdown(run, model_card))
     summary = {
         "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
+        "epoch_fit": asdict(run.epoch_fit) if run.epoch_fit else None,
         "wall_seconds": run.seconds, "machine": machine_description(), "step_seconds": run.step_seconds,
         "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,
         "confidence": {r.name: r.confidence.to_dict() for r in run.results if r.confidence is not None},

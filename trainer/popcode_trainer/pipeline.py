@@ -119,6 +119,21 @@ def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
     return out_dir / "runs" / f"{representation}_{'-'.join(map(str, obj_ids))}"
 
 
+def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
+                      out_dir: Path) -> Path:
+    """Train one model's first epoch (kept when its folder already holds a checkpoint); returns the folder.
+
+    :func:`train_and_export` later resumes it to the size's epochs, which with the constant schedule is
+    the same as training them in one go.
+    """
+    folder = run_dir(out_dir, representation, obj_ids)
+    if not (folder / LAST_CHECKPOINT).exists():
+        config = training_config(size.with_epochs(1), representation, obj_ids, split, folder)
+        data = build_training_data(config)
+        train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
+    return folder
+
+
 def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path, out_dir: Path,
                      quantisations: tuple[str, ...] = ()) -> tuple[Path, float]:
     """Train (resuming an interrupted run) and export one model; returns the float ONNX path and the seconds.

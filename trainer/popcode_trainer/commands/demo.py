@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
@@ -22,19 +23,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "figures. Rerun with the same --out to resume an interrupted demo.")
     parser.add_argument("--size", choices=list(DEMO_SIZES), default="quick", help=f"budget ({sizes})")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default: runs/demo)")
-    parser.add_argument("--epochs", type=int, help="train this many epochs instead of the size's")
+    parser.add_argument("--epochs", type=int, help="train this many epochs instead of fitting them to the size's "
+                                                   "time budget (quick: 13.5 min) or taking the size's")
+    parser.add_argument("--minutes", type=float, metavar="M",
+                        help="fit the epochs so the whole demo takes about M minutes on this machine "
+                             "(every model trains one epoch, then as many as fit)")
     parser.add_argument("--images", type=int, metavar="N", help="training images per object instead of the size's")
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    size = DEMO_SIZES[args.size].pipeline
-    for option, value in (("--epochs", args.epochs), ("--images", args.images)):
-        if value is not None and value < 1:
-            raise PopcodeError(f"{option} must be at least 1, got {value}")
+    demo = DEMO_SIZES[args.size]
+    size, minutes = demo.pipeline, demo.minutes
+    for option, value in (("--epochs", args.epochs), ("--images", args.images), ("--minutes", args.minutes)):
+        if value is not None and not (value >= 1 and math.isfinite(value)):
+            raise PopcodeError(f"{option} must be at least 1 and finite, got {value}")
+    if args.epochs is not None and args.minutes is not None:
+        raise PopcodeError("--epochs and --minutes both set the training budget; give one")
     if args.epochs is not None:
-        size = size.with_epochs(args.epochs)
+        size, minutes = size.with_epochs(args.epochs), None
+    if args.minutes is not None:
+        minutes = args.minutes
     if args.images is not None:
         size = dataclasses.replace(size, train_images_per_object=args.images)
-    run_demo(args.size, args.out, size)
+    run_demo(args.size, args.out, size, minutes=minutes)
     return 0

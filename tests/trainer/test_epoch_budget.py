@@ -1,0 +1,80 @@
+"""Epochs fitted to a time budget: the arithmetic, the fit file, and that a first epoch resumed to more
+epochs trains exactly what one run of those epochs trains."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+
+from popcode_runtime.errors import PopcodeError
+from popcode_trainer import epoch_budget
+from popcode_trainer.checkpoint import load
+from popcode_trainer.data.render import render_builtin_split
+from popcode_trainer.network import NetworkConfig
+from popcode_trainer.pipeline import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
+from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
+
+TINY = PipelineSize(8, 2, small_config(epochs=3, n_axes=42, n_angles=12, sigma_deg=30.0, batch_size=4,
+                                       network=NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2,
+                                                             hidden=(16, 16, 16))),
+                    ("population_code",))
+
+
+@pytest.mark.parametrize(("epoch_s", "left_s", "bounds", "expected"), [
+    (10.0, 95.0, (1, 100), 10),  # the first epoch and 9 more
+    (10.0, 95.0, (1, 5), 5),  # capped
+    (10.0, -30.0, (3, 100), 3),  # nothing left: the lowest
+    (10.0, -30.0, (1, 100), 1),
+])
+def test_fitted_epochs(epoch_s: float, left_s: float, bounds: tuple[int, int], expected: int) -> None:
+    assert epoch_budget.fitted_epochs(epoch_s, left_s, bounds) == expected
+
+
+@pytest.mark.parametrize(("epoch_s", "bounds", "message"), [
+    (0.0, (1, 5), "must take some time"), (float("nan"), (1, 5), "must take some time"),
+    (1.0, (0, 5), "1 <= lowest <= highest"), (1.0, (6, 5), "1 <= lowest <= highest")])
+def test_fitted_epochs_refuses_nonsense(epoch_s: float, bounds: tuple[int, int], message: str) -> None:
+    with pytest.raises(PopcodeError, match=message):
+        epoch_budget.fitted_epochs(epoch_s, 10.0, bounds)
+
+
+def test_fit_file_round_trip_and_bad_file(tmp_path: Path) -> None:
+    assert epoch_budget.load(tmp_path) is None
+    fit = epoch_budget.fit({"a": 4.0, "b": 6.0}, 600.0, 101.0, (2, 50))
+    assert fit.epochs == 11
+    epoch_budget.save(fit, tmp_path)
+    assert epoch_budget.load(tmp_path) == fit
+    (tmp_path / epoch_budget.FIT_FILE).write_text('{"epochs": 3}')
+    with pytest.raises(PopcodeError, match="not an epoch fit"):
+        epoch_budget.load(tmp_path)
+
+
+def test_first_epoch_seconds_names_a_run_without_epochs(tmp_path: Path) -> None:
+    with pytest.raises(PopcodeError, match="no first epoch to time"):
+        epoch_budget.first_epoch_seconds(tmp_path)
+    (tmp_path / METRICS_FILE).write_text("epoch,seconds\n")
+    with pytest.raises(PopcodeError, match="no first epoch to time"):
+        epoch_budget.first_epoch_seconds(tmp_path)
+
+
+@pytest.mark.slow
+def test_first_epoch_resumed_equals_one_run(tmp_path: Path) -> None:
+    split = render_builtin_split(tmp_path / "split", images_per_object=TINY.train_images_per_object, obj_ids=[3, 4])
+    fitted = train_first_epoch(TINY, "population_code", [3, 4], split, tmp_path / "fitted")
+    assert epoch_budget.first_epoch_seconds(fitted) > 0
+    before = (fitted / LAST_CHECKPOINT).stat().st_mtime_ns
+    assert train_first_epoch(TINY, "population_code", [3, 4], split, tmp_path / "fitted") == fitted
+    assert (fitted / LAST_CHECKPOINT).stat().st_mtime_ns == before  # kept, not trained again
+    train_and_export(TINY, "population_code", [3, 4], split, tmp_path / "fitted")
+    train_and_export(TINY, "population_code", [3, 4], split, tmp_path / "straight")
+    straight = run_dir(tmp_path / "straight", "population_code", [3, 4])
+
+    resumed, direct = load(fitted / LAST_CHECKPOINT), load(straight / LAST_CHECKPOINT)
+    assert resumed["epoch"] == direct["epoch"] == TINY.config.train.epochs
+    for name, tensor in direct["model"].items():
+        assert torch.equal(resumed["model"][name], tensor), name
+    with open(fitted / METRICS_FILE, newline="") as handle:
+        assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1, 2, 3]

@@ -1,0 +1,81 @@
+"""Epochs fitted to a wall-clock budget, so a run uses the minutes it is given on whatever machine it meets.
+
+At the demo's budget every model is far from converged (bench/results/budget-quick-hybrid.md), so each
+minute of training a machine can spare is accuracy, and a slower machine must not overrun. Every model
+of the run first trains one epoch; the seconds those epochs took give the cost of one more epoch of all
+models together, and the run trains as many epochs as fit in what the budget leaves. Every model then
+resumes to that many epochs, so the representations stay on equal terms (same epochs, data and network).
+The fit is written to the run folder, so an interrupted run resumes with the same epochs.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import read_json, write_json_atomic
+
+from .run_files import METRICS_FILE
+
+FIT_FILE = "epochs.json"
+
+
+@dataclass(frozen=True)
+class EpochFit:
+    """The epochs chosen for a budget and what they were chosen from."""
+
+    epochs: int
+    budget_s: float  # the whole run's wall-clock budget
+    seconds_left: float  # what the budget left for training after the first epochs and the other steps
+    first_epoch_seconds: dict[str, float]  # per model (run folder name): the first epoch's training loop
+    bounds: tuple[int, int]
+
+
+def first_epoch_seconds(run_dir: Path) -> float:
+    """Seconds of a run's first epoch (its training loop), read from its metrics so a rerun reads the same."""
+    try:
+        with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
+            first = next(csv.DictReader(file))
+        return float(first["seconds"])
+    except (OSError, StopIteration, KeyError, ValueError) as error:
+        raise PopcodeError(f"{run_dir / METRICS_FILE}: no first epoch to time ({error})") from error
+
+
+def fitted_epochs(epoch_seconds: float, seconds_left: float, bounds: tuple[int, int]) -> int:
+    """The first epoch plus as many more of ``epoch_seconds`` as fit in ``seconds_left``, within ``bounds``."""
+    lowest, highest = bounds
+    if not 1 <= lowest <= highest:
+        raise PopcodeError(f"epoch bounds {bounds} must satisfy 1 <= lowest <= highest")
+    if not epoch_seconds > 0:
+        raise PopcodeError(f"an epoch must take some time, not {epoch_seconds} s")
+    more = math.floor(max(seconds_left, 0.0) / epoch_seconds)
+    return int(min(max(1 + more, lowest), highest))
+
+
+def fit(first_epochs: dict[str, float], budget_s: float, seconds_left: float, bounds: tuple[int, int]) -> EpochFit:
+    """The :class:`EpochFit` for models whose first epochs took ``first_epochs`` seconds."""
+    epochs = fitted_epochs(sum(first_epochs.values()), seconds_left, bounds)
+    return EpochFit(epochs, budget_s, seconds_left, dict(first_epochs), bounds)
+
+
+def save(result: EpochFit, out_dir: Path) -> Path:
+    path = out_dir / FIT_FILE
+    write_json_atomic(path, asdict(result))
+    return path
+
+
+def load(out_dir: Path) -> EpochFit | None:
+    """The fit an earlier (interrupted) run of this folder made, or None."""
+    path = out_dir / FIT_FILE
+    if not path.exists():
+        return None
+    data = read_json(path)
+    try:
+        return EpochFit(int(data["epochs"]), float(data["budget_s"]), float(data["seconds_left"]),
+                        {str(k): float(v) for k, v in data["first_epoch_seconds"].items()},
+                        (int(data["bounds"][0]), int(data["bounds"][1])))
+    except (KeyError, TypeError, ValueError, IndexError) as error:
+        raise PopcodeError(f"{path}: not an epoch fit ({error}); delete it to fit again") from error
