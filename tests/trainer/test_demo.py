@@ -48,6 +48,7 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
         all_objects = summary["scores"][name]["All objects"]
         assert 0.0 <= all_objects["MSSD"] <= 1.0
     assert set(summary["confidence"]) == methods  # each judged: a calibrated confidence or its raw score
+    assert "## Against the paper's accuracy" in report and "| MSSD over all parts |" in report
     for name in methods:
         assert 0.0 <= summary["confidence"][name]["mssd_at_coverage"]["0.5"] <= 1.0
     assert "### Confidence" in report

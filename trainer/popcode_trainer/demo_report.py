@@ -15,6 +15,7 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 
+from .demo_targets import targets_markdown
 from .epoch_budget import EpochFit
 from .eval.pipeline.evaluate import MethodResult
 from .eval.pipeline.split import EvalSplit
@@ -183,12 +184,19 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         "## Accuracy (rotation from the model, translation from the ground truth: the paper's protocol)\n\n"
         f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
         + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),
+        _targets_section(run),
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
         cluttered_markdown(run),
         _confidence_section(run),
         "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
+
+
+def _targets_section(run: DemoRun) -> str:
+    by_name = {r.name: r for r in run.results}
+    run_dirs = [path.parent for path in run.models.by_representation[POPCODE]]
+    return targets_markdown(by_name[POPCODE], by_name.get(Representation.SINGLE_VARIABLE), run_dirs)
 
 
 def _epochs_text(run: DemoRun) -> str:
