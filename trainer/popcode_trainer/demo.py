@@ -167,8 +167,8 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int
     first = {}
     for representation in size.representations:
         for obj_ids in groups:
-            folder = train_first_epoch(size, representation, obj_ids, train_split, out_dir)
-            first[folder.name] = epoch_budget.first_epoch_seconds(folder)
+            seconds = train_first_epoch(size, representation, obj_ids, train_split, out_dir)
+            first[run_dir(out_dir, representation, obj_ids).name] = seconds
     elapsed_s = time.perf_counter() - started
     training = [_train_stage(r, g) for r in size.representations for g in groups]
     exports = stages.scale * SECONDS_PER_EXPORT * len(training)

@@ -30,12 +30,12 @@ class EpochFit:
     epochs: int
     budget_s: float  # the whole run's wall-clock budget
     seconds_left: float  # what the budget left for training after the first epochs and the other steps
-    first_epoch_seconds: dict[str, float]  # per model (run folder name): the first epoch's training loop
+    first_epoch_seconds: dict[str, float]  # per model (run folder name): its first epoch
     bounds: tuple[int, int]
 
 
 def first_epoch_seconds(run_dir: Path) -> float:
-    """Seconds of a run's first epoch (its training loop), read from its metrics so a rerun reads the same."""
+    """Seconds of the training loop of a run's first epoch, from its metrics (for a run that trained it before)."""
     try:
         with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
             first = next(csv.DictReader(file))

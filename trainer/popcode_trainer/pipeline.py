@@ -25,6 +25,7 @@ from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_
 from .confidence_fit import calibrate_checkpoint
 from .config import CodeConfig, Config, DataConfig, TrainConfig
 from .data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from .epoch_budget import first_epoch_seconds
 from .export import export_checkpoint
 from .network import NetworkConfig
 from .run_files import LAST_CHECKPOINT, MODEL_FILE
@@ -120,18 +121,21 @@ def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
 
 
 def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
-                      out_dir: Path) -> Path:
-    """Train one model's first epoch (kept when its folder already holds a checkpoint); returns the folder.
+                      out_dir: Path) -> float:
+    """Train one model's first epoch; returns its seconds (training loop, validation and checkpoint).
 
     :func:`train_and_export` later resumes it to the size's epochs, which with the constant schedule is
-    the same as training them in one go.
+    the same as training them in one go. A folder that already holds a checkpoint is kept, and its
+    first epoch's training loop (from its metrics) is returned.
     """
     folder = run_dir(out_dir, representation, obj_ids)
-    if not (folder / LAST_CHECKPOINT).exists():
-        config = training_config(size.with_epochs(1), representation, obj_ids, split, folder)
-        data = build_training_data(config)
-        train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
-    return folder
+    if (folder / LAST_CHECKPOINT).exists():
+        return first_epoch_seconds(folder)
+    config = training_config(size.with_epochs(1), representation, obj_ids, split, folder)
+    data = build_training_data(config)
+    started = time.perf_counter()
+    train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
+    return time.perf_counter() - started
 
 
 def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path, out_dir: Path,
