@@ -18,7 +18,7 @@ from popcode_trainer.cli import main
 from popcode_trainer.config import load_config
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.objects import model_info
-from popcode_trainer.pipeline import small_config
+from popcode_trainer.demo import DEMO_SIZES
 
 QUICK = Path(__file__).resolve().parents[2] / "trainer" / "configs" / "quick.toml"
 
@@ -45,7 +45,7 @@ def _write_models(folder: Path) -> Path:
 
 def test_quick_config_is_the_demo_recipe() -> None:
     quick = load_config(QUICK)
-    demo = small_config(epochs=20, n_axes=642, n_angles=36)
+    demo = DEMO_SIZES["quick"].pipeline.config
     paths = {"splits", "models_dir", "obj_ids"}
     assert {k: v for k, v in quick.to_dict()["data"].items() if k not in paths} == \
         {k: v for k, v in demo.to_dict()["data"].items() if k not in paths}
