@@ -305,7 +305,10 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         with stages.stage(FIRST_EPOCHS):
             epoch_fit = fit_epochs(size, demo, groups, train_split, out_dir, started, stages)
         size = size.with_epochs(epoch_fit.epochs)
-        stages.revise(plan(size, groups, objects, fit_epochs=True).estimates)
+        # What is left of each model's training is now measured, not estimated: stated in reference seconds.
+        stages.revise({_train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
+            run_dir(out_dir, r, g).name] / stages.scale + SECONDS_PER_EXPORT for r in size.representations
+            for g in groups})
         print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
               f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
               f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
