@@ -14,7 +14,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_trainer import checkpoint
 from popcode_trainer.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
-from popcode_trainer.schedule import learning_rate
+from popcode_trainer.schedule import first_epoch_rate_is_fixed, learning_rate
 from popcode_trainer.train import train
 
 
@@ -105,3 +105,16 @@ def test_learning_rate_schedules_warm_up_and_decay() -> None:
     assert all(a <= b for a, b in zip(cosine[:peak], cosine[1 : peak + 1], strict=True))  # warm-up rises
     assert all(a >= b for a, b in zip(cosine[peak:-1], cosine[peak + 1 :], strict=True))  # then decays
     assert learning_rate(1e-3, "cosine", 10.5, 20, warmup_epochs=1.0) == pytest.approx(5e-4)  # half-way: half
+    # anneal: constant through the first 80 % of the run, then linear to zero
+    assert learning_rate(1e-3, "anneal", 15.9, 20) == learning_rate(1e-3, "anneal", 16.0, 20) == 1e-3
+    assert learning_rate(1e-3, "anneal", 18.0, 20) == pytest.approx(5e-4)
+    assert learning_rate(1e-3, "anneal", 20.0, 20) == 0.0
+    assert learning_rate(1e-3, "anneal", 0.5, 20, warmup_epochs=1.0) == pytest.approx(5e-4)
+
+
+@pytest.mark.parametrize(("schedule", "shortest", "fixed"), [
+    ("constant", 1, True), ("anneal", 2, True), ("anneal", 1, False), ("cosine", 40, False)])
+def test_first_epoch_rate_is_fixed(schedule: str, shortest: int, fixed: bool) -> None:
+    assert first_epoch_rate_is_fixed(schedule, shortest) is fixed
+    rates = {learning_rate(1e-3, schedule, 0.99, epochs) for epochs in range(shortest, shortest + 30)}
+    assert (len(rates) == 1) is fixed

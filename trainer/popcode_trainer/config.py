@@ -78,7 +78,7 @@ class TrainConfig:
     epochs: int = 80
     batch_size: int = 64  # global: split evenly over torchrun ranks
     lr: float = 2e-4
-    schedule: str = "constant"  # learning rate over the run: "constant" (the paper's) or "cosine" (schedule.py)
+    schedule: str = "constant"  # the rate over the run: "constant" (the paper's), "cosine", "anneal" (schedule.py)
     warmup_epochs: float = 0.0  # linear warm-up from 0 to lr over this many epochs (any schedule)
     seed: int = 0
     out_dir: str = "runs/popcode"

@@ -45,6 +45,7 @@ from .pipeline import (
     train_and_export,
     train_first_epoch,
 )
+from .schedule import first_epoch_rate_is_fixed
 
 BASELINE = Representation.SINGLE_VARIABLE
 CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
@@ -164,9 +165,9 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int
     earlier = epoch_budget.load(out_dir)
     if earlier is not None:
         return earlier
-    if size.config.train.schedule != "constant":
-        raise PopcodeError(f"fitting the epochs to a time budget needs the constant schedule, not "
-                           f"{size.config.train.schedule!r}: pass --epochs")
+    if not first_epoch_rate_is_fixed(size.config.train.schedule, demo.epoch_bounds[0]):
+        raise PopcodeError(f"fitting the epochs to a time budget needs a schedule whose first epoch does not depend "
+                           f"on the run's length (constant, anneal), not {size.config.train.schedule!r}: pass --epochs")
     first = {}
     for representation in size.representations:
         for obj_ids in groups:
@@ -293,11 +294,11 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
     groups = object_groups({part.obj_id: part.symmetries for part in BUILTIN_PARTS})
     objects = sum(map(len, groups))
     stages = plan(size, groups, objects, fit_epochs=minutes is not None)
-    budget = f"epochs fitted to {minutes:g} min on this machine" if minutes is not None else \
-        f"{size.config.train.epochs} epochs"
-    print(f"popcode demo, size {size_name} ({budget}): {len(stages.estimates)} steps, about "
-          f"{_minutes(stages.remaining_s())} on a 2-core CPU (the estimate corrects itself as steps finish); "
-          f"output in {out_dir}", flush=True)
+    duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
+                else f"{size.config.train.epochs} epochs, about {_minutes(stages.remaining_s())} on a 2-core CPU "
+                     "(the estimate corrects itself as steps finish)")
+    print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
+          flush=True)
     with stages.stage("render"):
         train_split, test_split = render_splits(size, out_dir)
     epoch_fit = None

@@ -122,19 +122,21 @@ def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
 
 def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
                       out_dir: Path) -> float:
-    """Train one model's first epoch; returns its seconds (training loop, validation and checkpoint).
+    """Train the first epoch of one model of ``size``; returns its seconds (training loop, validation, checkpoint).
 
-    :func:`train_and_export` later resumes it to the size's epochs, which with the constant schedule is
-    the same as training them in one go. A folder that already holds a checkpoint is kept, and its
-    first epoch's training loop (from its metrics) is returned.
+    :func:`train_and_export` later resumes it to the epochs it is given, which is the same as training them
+    in one go when the first epoch's rate does not depend on the run's length
+    (:func:`~popcode_trainer.schedule.first_epoch_rate_is_fixed`). A folder that already holds a checkpoint
+    is kept, and its first epoch's training loop (from its metrics) is returned.
     """
     folder = run_dir(out_dir, representation, obj_ids)
     if (folder / LAST_CHECKPOINT).exists():
         return first_epoch_seconds(folder)
-    config = training_config(size.with_epochs(1), representation, obj_ids, split, folder)
+    config = training_config(size, representation, obj_ids, split, folder)
     data = build_training_data(config)
     started = time.perf_counter()
-    train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
+    train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances,
+          stop_after_epoch=1)
     return time.perf_counter() - started
 
 

@@ -144,18 +144,21 @@ class _TensorBoard:
 
 
 def train(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None = None,
-          resume: bool = False, val_instances: Sequence[InstanceLike] | None = None) -> list[EpochMetrics]:
+          resume: bool = False, val_instances: Sequence[InstanceLike] | None = None,
+          stop_after_epoch: int | None = None) -> list[EpochMetrics]:
     """Train (or resume) per ``config``; writes checkpoints and metrics to ``config.train.out_dir``.
 
     ``train_set``/``val_set`` yield dicts with ``image`` (1, S, S), ``target``,
     ``R_m2c``, ``obj_id`` and ``index`` (the ``CropDataset`` contract);
     ``val_instances[index]`` gives K and the box for allocentric validation.
+    ``stop_after_epoch`` ends the call after that epoch (checkpointed) of a run of ``train.epochs``: the rate
+    schedule still sees the whole run, and a later call resumes it.
     Returns the metrics of the epochs this call ran.
     """
     cfg = config.train
     context = distributed.setup(cfg.device)
     try:
-        history = _run(config, representation, train_set, val_set, resume, val_instances, context)
+        history = _run(config, representation, train_set, val_set, resume, val_instances, context, stop_after_epoch)
     except BaseException:
         distributed.teardown(context)
         raise
@@ -165,7 +168,7 @@ def train(config: Config, representation: OutputRepresentation, train_set: Datas
 
 def _run(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None,
          resume: bool, val_instances: Sequence[InstanceLike] | None,
-         context: distributed.Context) -> list[EpochMetrics]:
+         context: distributed.Context, stop_after_epoch: int | None = None) -> list[EpochMetrics]:
     cfg = config.train
     out_dir = Path(cfg.out_dir)
     if cfg.batch_size % context.world_size:
@@ -210,7 +213,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     tensorboard = _TensorBoard(out_dir) if context.is_main else None
     revision = checkpoint.git_revision() if context.is_main else ""
     history = []
-    for epoch in range(start_epoch, cfg.epochs):
+    for epoch in range(start_epoch, cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)):
         if hasattr(train_set, "set_epoch"):
             train_set.set_epoch(epoch)
         loader = _loader(train_set, rank_batch, context, cfg.seed, epoch, config.data.num_workers, train=True)
