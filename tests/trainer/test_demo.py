@@ -22,7 +22,7 @@ from popcode_trainer.pipeline import PipelineSize, small_config
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
                                        batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2)
-BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 1
+BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -106,7 +106,7 @@ def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -
     out, summary = demo_run
     fit = epoch_budget.load(out)
     assert fit is not None and fit.epochs == summary["epoch_fit"]["epochs"] == summary["settings"]["config"]["train"][
-        "epochs"] == 1
+        "epochs"] == 2
     assert fit.budget_s == pytest.approx(60 * BUDGET_MINUTES) and fit.seconds_left < 0
     assert len(fit.first_epoch_seconds) == 4 and all(s > 0 for s in fit.first_epoch_seconds.values())
     assert f"fitted to a {BUDGET_MINUTES:g}-minute budget on this machine" in (out / "report.md").read_text()

@@ -59,7 +59,7 @@ class DemoSize:
     pipeline: PipelineSize
     purpose: str
     minutes: float | None = None  # fit the epochs so the whole demo takes about this long (epoch_budget)
-    epoch_bounds: tuple[int, int] = (1, 1000)  # the fitted epochs stay within these
+    epoch_bounds: tuple[int, int] = (2, 1000)  # the fitted epochs stay within these (2: an anneal needs them)
 
 
 DEMO_SIZES = {
