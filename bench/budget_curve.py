@@ -38,7 +38,7 @@ from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
 from popcode_trainer.train import train
 from popcode_trainer.training_data import build_training_data
 
-from .report import write_results
+from .report import machine, machine_line, write_results
 
 TRAIN_SEED, VALIDATION_SEED = 0, 2000  # pipeline.render_splits uses seed + 1000 for the test split
 
@@ -96,7 +96,8 @@ def curve(base: Config, epochs: Sequence[int], images: int, obj_ids: Sequence[in
     return sorted((p for p in points if p["epochs"] in epochs), key=lambda p: p["epochs"])
 
 
-def to_markdown(name: str, points: Sequence[dict[str, Any]], overrides: Sequence[str], images: int) -> str:
+def to_markdown(name: str, points: Sequence[dict[str, Any]], overrides: Sequence[str], images: int,
+                machine_description: dict[str, Any]) -> str:
     obj_ids = list(points[0]["mssd_per_object"])
     rows = [[str(p["epochs"]), f"{p['crop_updates']:,}", f"{p['training_s'] / 60:.1f}", f"{100 * p['mssd']:.1f}",
              f"{100 * p['mssd_with_ambiguity']:.1f}", f"{100 * p['mssd_without_ambiguity']:.1f}",
@@ -110,7 +111,7 @@ def to_markdown(name: str, points: Sequence[dict[str, Any]], overrides: Sequence
         f"`python -m bench.budget_curve` with {images} training images per part, overrides: "
         f"{', '.join(f'`{o}`' for o in overrides) or 'none'}. MSSD (BOP19 recall, rotation only, GT translation) "
         "on the validation split (seed 2000), last checkpoint of one run extended epoch budget by epoch budget.",
-        "", markdown_table(header, rows),
+        "", machine_line(machine_description), "", markdown_table(header, rows),
     ])
 
 
@@ -130,7 +131,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     points = curve(base, args.epochs, args.images, args.obj_ids, args.work, args.name)
     payload = {"config": str(args.config), "overrides": args.overrides, "images_per_object": args.images,
                "obj_ids": args.obj_ids, "points": points}
-    write_results(args.out, f"budget-{args.name}", payload, to_markdown(args.name, points, args.overrides, args.images))
+    write_results(args.out, f"budget-{args.name}", payload,
+                  to_markdown(args.name, points, args.overrides, args.images, machine()))
     return points
 
 

@@ -18,6 +18,14 @@ def machine() -> dict[str, Any]:
             "load_average_1m": os.getloadavg()[0]}
 
 
+def machine_line(description: dict[str, Any]) -> str:
+    """One markdown line naming the machine, its load and the library versions of a :func:`machine` record."""
+    flags = ", ".join(description.get("cpu_flags", [])) or "no flags read"
+    return (f"Machine: {description['cpu']} ({flags}), {description['cores']} cores, load "
+            f"{description['load_average_1m']:.2f}; Python {description['python']}, torch {description['torch']}, "
+            f"numpy {description['numpy']}, onnxruntime {description['onnxruntime']}.")
+
+
 def write_results(out_dir: str | Path, name: str, payload: dict[str, Any], markdown: str) -> tuple[Path, Path]:
     """Write ``<name>.json`` (payload + machine) and ``<name>.md`` into ``out_dir``."""
     out_dir = Path(out_dir)

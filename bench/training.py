@@ -37,7 +37,7 @@ from popcode_trainer.pipeline import SMALL_NETWORK, PipelineSize, render_splits,
 from popcode_trainer.train import network_config
 from popcode_trainer.training_data import build_training_data
 
-from .report import machine, write_results
+from .report import machine, machine_line, write_results
 
 NETWORKS = {
     "tiny": NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16)),  # smoke tests only
@@ -121,9 +121,8 @@ def to_markdown(payload: dict[str, Any]) -> str:
              f"{r['crops_per_s']:.1f}", f"{r['ms_per_batch']:.1f}") for r in payload["rows"]]
     return "\n\n".join([
         "# Training throughput",
-        f"Machine: {description['cpu']} ({', '.join(description.get('cpu_flags', [])) or 'no flags read'}), "
-        f"{description['cores']} cores, load {description['load_average_1m']:.2f}; torch {description['torch']}. "
-        f"Command: `python -m bench.training {payload['arguments']}`. Population code 642 x 36, batch {BATCH}, "
+        f"{machine_line(description)} Command: `python -m bench.training {payload['arguments']}`. "
+        f"Population code 642 x 36, batch {BATCH}, "
         "the paper's augmentation on rendered 128 px images of built-in parts 3-6.",
         "`data`: DataLoader batches alone; `forward_backward`: network + loss + backward on a fixed batch; "
         "`optimizer`: Adam's step; `step`: the real training loop.",
