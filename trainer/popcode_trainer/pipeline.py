@@ -69,8 +69,8 @@ def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig
     """Settings for a CPU budget: the paper's recipe with batch 32, lr 1e-3 annealed over the last fifth of the
     run, no data-loader workers and the population code trained with MSE plus cross entropy (it learns parts
     without symmetry, which MSE alone does not at this budget, and keeps MSE's accuracy on symmetric ones:
-    bench/results/recipe.md); sigma
-    is narrowed where a part's symmetric peaks would merge (:mod:`popcode_trainer.code_sigma`).
+    bench/results/recipe.md); sigma is narrowed where a part's symmetric peaks would merge
+    (:mod:`popcode_trainer.code_sigma`).
 
     ``train`` overrides further :class:`~popcode_trainer.config.TrainConfig` fields.
     """
