@@ -10,7 +10,7 @@ crops that int8 was calibrated on). Every ground-truth instance of the split
 from its box, every model runs on the same crops, and each quantised model is
 compared with the float one: the argmax agreement (same winning neuron) and
 the pose agreement (same argmax-decoded rotation up to the object's
-symmetries, :func:`popcode_trainer.agreement.pose_agreement`), over all crops and
+symmetries, :func:`popcode_trainer.export.agreement.pose_agreement`), over all crops and
 per object.
 """
 
@@ -27,10 +27,10 @@ from tqdm import tqdm
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
-from popcode_trainer.agreement import compare
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.eval.pipeline.split import read_eval_split, rows_by_image
 from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.export.agreement import compare
 
 from .report import write_results
 

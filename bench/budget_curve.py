@@ -28,15 +28,15 @@ from typing import Any
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import write_json_atomic
-from popcode_trainer.config import Config, load_config
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.eval.pipeline.evaluate import evaluate_models
 from popcode_trainer.eval.pipeline.models import methods_from_paths
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
-from popcode_trainer.train import train
-from popcode_trainer.training_data import build_training_data
+from popcode_trainer.train.config import Config, load_config
+from popcode_trainer.train.loop import train
+from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train.training_data import build_training_data
 
 from .report import machine, machine_line, write_results
 

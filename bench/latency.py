@@ -18,7 +18,7 @@ crops of rendered built-in objects; with random weights they say how much
 quantisation moves the peak of an untrained code, which is a harder test than
 a trained code's clear peak, but not the same one. The model is of one object
 without symmetry, so the pose agreement (same decoded rotation within one
-grid step, see ``popcode_trainer.agreement.pose_agreement``) differs from the
+grid step, see ``popcode_trainer.export.agreement.pose_agreement``) differs from the
 argmax agreement only by peaks that moved to a grid neighbour. int8 is
 calibrated on the even crops; agreement is measured on the odd ones. The compute floor is the MACs
 over the GEMM peak measured here (a 1024^3 MatMul, best of several): an
@@ -53,17 +53,17 @@ from popcode_runtime.engine import OnnxEngine, onnx_session
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_runtime.population_code import CodeLayout
-from popcode_trainer.agreement import compare
-from popcode_trainer.config import Config
 from popcode_trainer.data.render import render_builtin_split
+from popcode_trainer.demo.steps import SMALL_NETWORK
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.export import ONNX_OPSET, export_onnx
-from popcode_trainer.model_io import ONNX_IR_VERSION
-from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
-from popcode_trainer.pipeline import SMALL_NETWORK
-from popcode_trainer.quantise import quantise
-from popcode_trainer.torch_engine import TorchEngine
-from popcode_trainer.training_data import validation_crops
+from popcode_trainer.export.agreement import compare
+from popcode_trainer.export.model_io import ONNX_IR_VERSION
+from popcode_trainer.export.onnx_export import ONNX_OPSET, export_onnx
+from popcode_trainer.export.quantise import quantise
+from popcode_trainer.export.torch_engine import TorchEngine
+from popcode_trainer.train.config import Config
+from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
+from popcode_trainer.train.training_data import validation_crops
 
 from .report import machine, write_results
 

@@ -15,7 +15,7 @@ import time
 
 import torch
 
-from popcode_trainer.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
+from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 
 
 def main() -> None:

@@ -28,10 +28,15 @@ import torch
 from popcode_runtime.benchmark import machine_description
 from popcode_runtime.metadata import Representation
 from popcode_runtime.symmetries import SymmetryClass, symmetry_class
-from popcode_trainer.config import Config, DataConfig
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
-from popcode_trainer.eval.metrics.recall import GROUPS
+from popcode_trainer.demo.steps import (
+    PipelineSize,
+    object_groups,
+    render_splits,
+    small_config,
+    train_and_export,
+)
 from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
 from popcode_trainer.eval.pipeline.models import Method, load_model
 from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split
@@ -39,13 +44,8 @@ from popcode_trainer.eval.reporting.figures import plot_instance_code
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.eval.reporting.report import report_dict, write_report
 from popcode_trainer.eval.reporting.tables import methods_markdown, to_json
-from popcode_trainer.pipeline import (
-    PipelineSize,
-    object_groups,
-    render_splits,
-    small_config,
-    train_and_export,
-)
+from popcode_trainer.metrics.recall import GROUPS
+from popcode_trainer.train.config import Config, DataConfig
 
 REFINED = "population_code (refined)"
 PAPER_METHODS = {Representation.SINGLE_VARIABLE: "Single Variable", Representation.ONE_HOT: "One Hot Vector",

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from popcode_trainer.data.scene_render import render_cluttered_test_split
-from popcode_trainer.eval.metrics.recall import VISIBILITY_BINS
+from popcode_trainer.metrics.recall import VISIBILITY_BINS
 
 
 def _instance_infos(split: Path) -> list[dict]:

@@ -54,7 +54,7 @@ from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.refine import refine_angle
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.network import ToyNet, ToyNetworkConfig
+from popcode_trainer.train.network import ToyNet, ToyNetworkConfig
 
 from .report import write_results
 

@@ -31,11 +31,11 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
+from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.network import NetworkConfig, build_network
-from popcode_trainer.pipeline import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
-from popcode_trainer.train import network_config
-from popcode_trainer.training_data import build_training_data
+from popcode_trainer.train.loop import network_config
+from popcode_trainer.train.network import NetworkConfig, build_network
+from popcode_trainer.train.training_data import build_training_data
 
 from .report import machine, machine_line, write_results
 

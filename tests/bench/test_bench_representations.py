@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from bench import representations as bench
-from popcode_trainer.network import NetworkConfig
-from popcode_trainer.pipeline import PipelineSize, small_config
+from popcode_trainer.demo.steps import PipelineSize, small_config
+from popcode_trainer.train.network import NetworkConfig
 
 
 @pytest.mark.slow

@@ -20,7 +20,7 @@ from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.objects import model_info
 from popcode_trainer.data.scene_layout import PlacedObject
 from popcode_trainer.data.scene_render import SceneSettings, instance_gt_info, render_scene_split
-from popcode_trainer.eval.metrics.visibility import depth_to_distance
+from popcode_trainer.metrics.visibility import depth_to_distance
 
 TINY = SceneSettings(scenes=4, width=96, height=72, seed=3, parts=(3, 5), distractors=(1, 2), bin_size_mm=90.0)
 

@@ -19,7 +19,7 @@ from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_t
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.crop_cache import CACHE_SUFFIX, crop_with_margin
 from popcode_trainer.data.samples import CropDataset
-from popcode_trainer.representations import PerObjectPopulationCodes
+from popcode_trainer.train.representations import PerObjectPopulationCodes
 
 DRAWS = 2000
 SMALL_CODE = CodeLayout(n_axes=162, n_angles=12)

@@ -17,7 +17,8 @@ from scipy.spatial.distance import pdist
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh
-from popcode_trainer.eval.metrics.pose_errors import (
+from popcode_trainer.eval.pipeline.instance_errors import ObjectModel, compute_instance_errors
+from popcode_trainer.metrics.pose_errors import (
     add,
     adi,
     mspd,
@@ -27,8 +28,7 @@ from popcode_trainer.eval.metrics.pose_errors import (
     translation_error_mm,
     vsd_from_depths,
 )
-from popcode_trainer.eval.metrics.recall import Thresholds
-from popcode_trainer.eval.pipeline.instance_errors import ObjectModel, compute_instance_errors
+from popcode_trainer.metrics.recall import Thresholds
 
 REFERENCE = Path(__file__).parent / "bop_reference"
 REF = json.loads((REFERENCE / "reference.json").read_text())

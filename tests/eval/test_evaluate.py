@@ -16,22 +16,22 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.translation import object_points_mm, translation_from_box
 from popcode_trainer.cli import main
-from popcode_trainer.config import Config
 from popcode_trainer.data.hull import HULL_POINTS
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
-from popcode_trainer.eval.metrics.recall import (
-    GROUPS,
-    Thresholds,
-)
 from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.models import methods_from_paths
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
 from popcode_trainer.eval.reporting.report import write_report
-from popcode_trainer.export import export_checkpoint
-from popcode_trainer.run_files import LAST_CHECKPOINT
-from popcode_trainer.train import train
-from popcode_trainer.training_data import build_training_data, validation_crops
+from popcode_trainer.export.onnx_export import export_checkpoint
+from popcode_trainer.metrics.recall import (
+    GROUPS,
+    Thresholds,
+)
+from popcode_trainer.train.config import Config
+from popcode_trainer.train.loop import train
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from popcode_trainer.train.training_data import build_training_data, validation_crops
 
 OBJECTS = [3, 6]  # a 2-fold symmetric part and one without symmetry: both ambiguity groups
 

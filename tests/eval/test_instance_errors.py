@@ -9,9 +9,9 @@ from symmetry_cases import CASES
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
-from popcode_trainer.eval.metrics.pose_errors import mspd
-from popcode_trainer.eval.metrics.recall import metric_scores
 from popcode_trainer.eval.pipeline.instance_errors import ObjectModel, compute_instance_errors
+from popcode_trainer.metrics.pose_errors import mspd
+from popcode_trainer.metrics.recall import metric_scores
 
 HALF_MM = {1: np.array([40.0, 25.0, 10.0]), 2: np.array([30.0, 30.0, 20.0])}
 INFO = {1: CASES["none"], 2: CASES["four_fold"]}

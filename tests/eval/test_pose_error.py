@@ -9,8 +9,8 @@ from symmetry_cases import CASES
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
 from popcode_runtime.symmetries import symmetry_transforms
-from popcode_trainer.eval.metrics import pose_errors as pose_error
-from popcode_trainer.eval.metrics.pose_errors import (
+from popcode_trainer.metrics import pose_errors as pose_error
+from popcode_trainer.metrics.pose_errors import (
     add,
     adi,
     mspd,

@@ -10,7 +10,13 @@ import pytest
 from symmetry_cases import CASES
 
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer.eval.metrics.recall import (
+from popcode_trainer.eval.reporting.tables import (
+    ambiguity_markdown,
+    methods_markdown,
+    per_object_markdown,
+    to_json,
+)
+from popcode_trainer.metrics.recall import (
     GROUPS,
     InstanceErrors,
     Thresholds,
@@ -21,12 +27,6 @@ from popcode_trainer.eval.metrics.recall import (
     scores_per_object,
     tightest_recalls,
     tightest_thresholds,
-)
-from popcode_trainer.eval.reporting.tables import (
-    ambiguity_markdown,
-    methods_markdown,
-    per_object_markdown,
-    to_json,
 )
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from tiny import tiny_config, tiny_data, tiny_representation
 
-from popcode_trainer.train import train
+from popcode_trainer.train.loop import train
 
 if __name__ == "__main__":
     config = tiny_config(Path(sys.argv[1]), epochs=int(sys.argv[2]))

@@ -12,8 +12,8 @@ from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.refine import decode_refined
 from popcode_runtime.rotations import random_rotations
 from popcode_runtime.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
-from popcode_trainer.code_sigma import exact_decoding_errors_deg, fit_sigma, merged_peaks, sigma_floor_deg
-from popcode_trainer.representations import build_representation
+from popcode_trainer.train.code_sigma import exact_decoding_errors_deg, fit_sigma, merged_peaks, sigma_floor_deg
+from popcode_trainer.train.representations import build_representation
 
 DEMO_GRID = dict(n_axes=642, n_angles=36)
 # A hex nut: 6-fold about its axis and upside-down, 12 equivalent poses.

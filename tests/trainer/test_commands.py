@@ -10,7 +10,7 @@ from test_export import trained_checkpoint
 
 from popcode_runtime.errors import PopcodeError
 from popcode_trainer.cli import main
-from popcode_trainer.config import Config, load_config
+from popcode_trainer.train.config import Config, load_config
 
 
 def write(tmp_path: Path, text: str) -> Path:

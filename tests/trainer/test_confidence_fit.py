@@ -11,10 +11,10 @@ import pytest
 from popcode_runtime import PoseEstimator, read_image
 from popcode_runtime.confidence import FEATURES
 from popcode_trainer.cli import main
-from popcode_trainer.confidence_fit import fit_logistic
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.eval.metrics.confidence import (
+from popcode_trainer.export.confidence_fit import fit_logistic
+from popcode_trainer.metrics.confidence import (
     auroc,
     evaluate_confidence,
     expected_calibration_error,

@@ -11,13 +11,13 @@ import pytest
 
 from popcode_runtime import PoseEstimator
 from popcode_runtime.cli import main as runtime_main
-from popcode_trainer import epoch_budget
 from popcode_trainer.cli import main as cli_main
-from popcode_trainer.demo import StagePlan, run_demo
-from popcode_trainer.demo_report import POPCODE, SUMMARY_FILE
+from popcode_trainer.demo import epoch_budget
+from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
+from popcode_trainer.demo.run import StagePlan, run_demo
+from popcode_trainer.demo.steps import PipelineSize, small_config
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
-from popcode_trainer.network import NetworkConfig
-from popcode_trainer.pipeline import PipelineSize, small_config
+from popcode_trainer.train.network import NetworkConfig
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,

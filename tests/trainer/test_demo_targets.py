@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from types import SimpleNamespace
 
-from popcode_trainer.demo_targets import held_out_errors, targets, targets_markdown
-from popcode_trainer.run_files import METRICS_FILE
+from popcode_trainer.demo.targets import held_out_errors, targets, targets_markdown
+from popcode_trainer.train.run_files import METRICS_FILE
 
 
 def _result(name: str, per_object: dict[int, float], ambiguous: float, unambiguous: float,

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from popcode_trainer import checkpoint
-from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train import checkpoint
+from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
 
 HERE = Path(__file__).parent
 ROOT = HERE.parents[1]

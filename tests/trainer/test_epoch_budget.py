@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer import epoch_budget
-from popcode_trainer.checkpoint import load
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.network import NetworkConfig
-from popcode_trainer.pipeline import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
-from popcode_trainer.run_files import LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.demo import epoch_budget
+from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
+from popcode_trainer.train.checkpoint import load
+from popcode_trainer.train.network import NetworkConfig
+from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
 
 TINY = PipelineSize(8, 2, small_config(epochs=3, n_axes=42, n_angles=12, sigma_deg=30.0, batch_size=4,
                                        network=NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2,

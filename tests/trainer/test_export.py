@@ -21,14 +21,14 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
-from popcode_trainer import export
-from popcode_trainer.agreement import compare
-from popcode_trainer.export import export_checkpoint, export_onnx
-from popcode_trainer.model_io import load_checkpoint_model
-from popcode_trainer.network import NetworkConfig, PopcodeNet, build_network
-from popcode_trainer.quantise import quantise
-from popcode_trainer.run_files import LAST_CHECKPOINT
-from popcode_trainer.train import network_config, train
+from popcode_trainer.export import onnx_export as export
+from popcode_trainer.export.agreement import compare
+from popcode_trainer.export.model_io import load_checkpoint_model
+from popcode_trainer.export.onnx_export import export_checkpoint, export_onnx
+from popcode_trainer.export.quantise import quantise
+from popcode_trainer.train.loop import network_config, train
+from popcode_trainer.train.network import NetworkConfig, PopcodeNet, build_network
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
 
 
 def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarray]:

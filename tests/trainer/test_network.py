@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer.network import (
+from popcode_trainer.train.network import (
     ColumnBlockOutputLayer,
     NetworkConfig,
     PopcodeNet,

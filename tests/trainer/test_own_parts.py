@@ -15,10 +15,10 @@ import trimesh
 
 from popcode_runtime.cli import main as runtime_main
 from popcode_trainer.cli import main
-from popcode_trainer.config import load_config
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.objects import model_info
-from popcode_trainer.demo import DEMO_SIZES
+from popcode_trainer.demo.run import DEMO_SIZES
+from popcode_trainer.train.config import load_config
 
 QUICK = Path(__file__).resolve().parents[2] / "trainer" / "configs" / "quick.toml"
 

@@ -12,7 +12,7 @@ from symmetry_cases import CASES
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
-from popcode_trainer.representations import (
+from popcode_trainer.train.representations import (
     HYBRID_CE_WEIGHT,
     MultiHypothesisRepresentation,
     PerObjectPopulationCodes,

@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 
 from popcode_trainer.cli import main
-from popcode_trainer.config import Config
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.data.scene_render import render_cluttered_test_split
-from popcode_trainer.eval.metrics.recall import VISIBILITY_BINS
 from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
 from popcode_trainer.eval.reporting.report import write_report
-from popcode_trainer.run_files import LAST_CHECKPOINT
-from popcode_trainer.train import train
-from popcode_trainer.training_data import build_training_data
+from popcode_trainer.metrics.recall import VISIBILITY_BINS
+from popcode_trainer.train.config import Config
+from popcode_trainer.train.loop import train
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from popcode_trainer.train.training_data import build_training_data
 
 SIZE = (160, 120)
 FULL_CODE_PARTS = [3, 4, 5, 6]  # one model cannot pool them with the continuously symmetric 1 and 2

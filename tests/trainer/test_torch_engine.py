@@ -12,7 +12,7 @@ from test_export import pasted_frame, trained_checkpoint
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import RotationFrame
 from popcode_trainer.eval.pipeline.models import load_model
-from popcode_trainer.export import export_checkpoint
+from popcode_trainer.export.onnx_export import export_checkpoint
 
 
 @pytest.mark.filterwarnings("ignore:no mesh")  # translation from the 3-D box corners is what is compared

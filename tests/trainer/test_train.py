@@ -12,10 +12,10 @@ from tiny import tiny_config, tiny_data, tiny_representation
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
-from popcode_trainer import checkpoint
-from popcode_trainer.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
-from popcode_trainer.schedule import first_epoch_rate_is_fixed, learning_rate
-from popcode_trainer.train import train
+from popcode_trainer.train import checkpoint
+from popcode_trainer.train.loop import train
+from popcode_trainer.train.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train.schedule import first_epoch_rate_is_fixed, learning_rate
 
 
 @pytest.mark.parametrize("name", Representation.values())

@@ -8,8 +8,8 @@ from typing import Any
 from symmetry_cases import CASES
 from synthetic import RotatedPoints
 
-from popcode_trainer.config import Config
-from popcode_trainer.representations import OutputRepresentation, build_representation
+from popcode_trainer.train.config import Config
+from popcode_trainer.train.representations import OutputRepresentation, build_representation
 
 
 def tiny_config(out_dir: Path, **train: Any) -> Config:

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
 
-from ..demo import DEMO_SIZES, run_demo
-from ..demo_report import REPORT_FILE
+from ..demo.report import REPORT_FILE
+from ..demo.run import DEMO_SIZES, run_demo
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -10,11 +10,11 @@ import numpy as np
 from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError, first_line
 
-from .. import checkpoint
-from ..confidence_fit import calibrate_checkpoint
-from ..config import Config
-from ..export import COREML_MAX_DIM, export_checkpoint
-from ..quantise import QUANTISATIONS
+from ..export.confidence_fit import calibrate_checkpoint
+from ..export.onnx_export import COREML_MAX_DIM, export_checkpoint
+from ..export.quantise import QUANTISATIONS
+from ..train import checkpoint
+from ..train.config import Config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -76,7 +76,7 @@ def _crops(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray | None]:
         return crops, obj_ids
     if args.crop_obj_ids is not None:
         raise PopcodeError("--crop-obj-ids names the objects of --crops; give --crops too")
-    from ..training_data import validation_crops  # imports the data side only when needed
+    from ..train.training_data import validation_crops  # imports the data side only when needed
 
     return validation_crops(Config.from_dict(checkpoint.load_trained(args.checkpoint)["config"]))
 

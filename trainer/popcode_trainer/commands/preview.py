@@ -21,7 +21,7 @@ from ..data.augment import Augmentation
 from ..data.bop import read_bop_split
 from ..data.samples import CropDataset
 from ..eval.reporting.figures import axis_activations, save_figure, sphere_panel
-from ..representations import PerObjectPopulationCodes
+from ..train.representations import PerObjectPopulationCodes
 
 _PAIRS_PER_ROW = 4
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from ..config import load_config
-from ..train import train
+from ..train.config import load_config
+from ..train.loop import train
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
-    from ..training_data import build_training_data  # the data side, imported once the config is valid
+    from ..train.training_data import build_training_data  # the data side, imported once the config is valid
 
     data = build_training_data(config)
     train(config, data.representation, data.train_set, data.val_set, resume=args.resume,

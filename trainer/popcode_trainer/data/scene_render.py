@@ -30,7 +30,7 @@ from tqdm import tqdm
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import write_json_atomic, write_png_atomic
 
-from ..eval.metrics.visibility import depth_to_distance, visible_mask_gt
+from ..metrics.visibility import depth_to_distance, visible_mask_gt
 from .augment import procedural_texture
 from .bop import load_models_info, model_path
 from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera

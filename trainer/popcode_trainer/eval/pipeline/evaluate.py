@@ -20,8 +20,8 @@ import numpy as np
 from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError
 
-from ..metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
-from ..metrics.recall import InstanceErrors, Thresholds, metric_scores
+from ...metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
+from ...metrics.recall import InstanceErrors, Thresholds, metric_scores
 from .estimates import Estimates
 from .models import Method
 from .results_file import ResultsMethod

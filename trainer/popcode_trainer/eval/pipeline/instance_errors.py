@@ -17,7 +17,7 @@ import numpy as np
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
 
-from ..metrics.pose_errors import (
+from ...metrics.pose_errors import (
     RenderDepth,
     adi,
     mspd,
@@ -26,7 +26,7 @@ from ..metrics.pose_errors import (
     spheres_overlap,
     vsd_from_depths,
 )
-from ..metrics.recall import InstanceErrors, Thresholds
+from ...metrics.recall import InstanceErrors, Thresholds
 
 MakeRenderDepth = Callable[[int, np.ndarray, int, int], RenderDepth]
 """``make_render_depth(obj_id, K, width, height) -> render_depth``: a non-anti-aliased depth renderer."""

@@ -23,7 +23,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 
 from ...data.bop import Instance
-from ...torch_engine import checkpoint_estimator
+from ...export.torch_engine import checkpoint_estimator
 from .estimates import Estimates
 from .results_file import RESULTS_SUFFIX, ResultsMethod, read_results_method
 from .split import rows_by_image

@@ -24,7 +24,7 @@ from popcode_runtime.bop19_csv import PoseEstimate, read_bop19_results
 from popcode_runtime.errors import PopcodeError
 
 from ...data.bop import Instance
-from ..metrics.confidence import rotation_errors_deg
+from ...metrics.confidence import rotation_errors_deg
 from .estimates import Estimates
 
 RESULTS_SUFFIX = ".csv"

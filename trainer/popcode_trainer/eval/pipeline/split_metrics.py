@@ -21,8 +21,8 @@ from popcode_runtime.errors import PopcodeError
 from ...data.bop import Instance, model_path
 from ...data.gl import DepthRenderer
 from ...data.meshes import load_mesh
-from ..metrics.pose_errors import RenderDepth
-from ..metrics.recall import (
+from ...metrics.pose_errors import RenderDepth
+from ...metrics.recall import (
     InstanceErrors,
     Thresholds,
     ambiguous_objects,

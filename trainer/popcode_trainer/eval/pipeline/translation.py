@@ -20,8 +20,8 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.translation import object_points_mm, translation_from_box
 
 from ...data.bop import Instance
-from ..metrics.pose_errors import translation_error_mm
-from ..metrics.recall import InstanceErrors
+from ...metrics.pose_errors import translation_error_mm
+from ...metrics.recall import InstanceErrors
 from .split_metrics import SplitMetrics
 
 SUMMARY_COLUMNS = {

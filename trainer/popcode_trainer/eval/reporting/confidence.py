@@ -14,7 +14,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
-from ..metrics.confidence import COVERAGES
+from ...metrics.confidence import COVERAGES
 from ..pipeline.evaluate import MethodResult
 from .figures import save_figure
 from .markdown import markdown_table

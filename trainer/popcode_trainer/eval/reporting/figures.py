@@ -26,8 +26,8 @@ from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import SymmetryTransforms
 
 from ...data.bop import Instance
-from ...representations import representation_from_metadata
-from ..metrics.pose_errors import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
+from ...metrics.pose_errors import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
+from ...train.representations import representation_from_metadata
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ def sensitivity_curves(
     """Errors of the ground truth rotated by ``angles_deg`` about a random axis drawn from ``rng``.
 
     The translation stays the ground truth's, as in the paper's evaluation. With
-    ``render_depth`` (see :data:`popcode_trainer.eval.metrics.pose_errors.RenderDepth`) the
+    ``render_depth`` (see :data:`popcode_trainer.metrics.pose_errors.RenderDepth`) the
     VSD and VSS curves are added; the test image is then the object alone in its
     ground-truth pose.
     """

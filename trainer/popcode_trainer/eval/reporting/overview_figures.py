@@ -14,7 +14,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import geodesic_angle
 from popcode_runtime.symmetries import symmetry_transforms
 
-from ...run_files import METRICS_FILE
+from ...train.run_files import METRICS_FILE
 from ..pipeline.evaluate import MethodResult
 from .figures import save_figure
 

@@ -20,8 +20,8 @@ import numpy as np
 from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
 from popcode_runtime.errors import PopcodeError
 
-from ..metrics.pose_errors import rotation_error_deg, translation_error_mm
-from ..metrics.recall import (
+from ...metrics.pose_errors import rotation_error_deg, translation_error_mm
+from ...metrics.recall import (
     METRICS,
     VISIBILITY_BINS,
     InstanceErrors,

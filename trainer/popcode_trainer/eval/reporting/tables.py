@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ..metrics.recall import GROUPS, METRICS, VISIBILITY_BINS
+from ...metrics.recall import GROUPS, METRICS, VISIBILITY_BINS
 from ..pipeline.translation import SUMMARY_COLUMNS
 from .markdown import markdown_table
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import read_json, write_json_atomic
 
-from .run_files import METRICS_FILE
+from ..train.run_files import METRICS_FILE
 
 FIT_FILE = "epochs.json"
 

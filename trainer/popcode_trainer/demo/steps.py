@@ -22,15 +22,15 @@ from popcode_runtime.metadata import Representation
 from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
-from .confidence_fit import calibrate_checkpoint
-from .config import CodeConfig, Config, DataConfig, TrainConfig
-from .data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from ..data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from ..export.confidence_fit import calibrate_checkpoint
+from ..export.onnx_export import export_checkpoint
+from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
+from ..train.loop import train
+from ..train.network import NetworkConfig
+from ..train.run_files import LAST_CHECKPOINT, MODEL_FILE
+from ..train.training_data import build_training_data, validation_crops
 from .epoch_budget import first_epoch_seconds
-from .export import export_checkpoint
-from .network import NetworkConfig
-from .run_files import LAST_CHECKPOINT, MODEL_FILE
-from .train import train
-from .training_data import build_training_data, validation_crops
 
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
@@ -70,9 +70,9 @@ def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig
     run, no data-loader workers and the population code trained with MSE plus cross entropy (it learns parts
     without symmetry, which MSE alone does not at this budget, and keeps MSE's accuracy on symmetric ones:
     bench/results/recipe.md); sigma is narrowed where a part's symmetric peaks would merge
-    (:mod:`popcode_trainer.code_sigma`).
+    (:mod:`popcode_trainer.train.code_sigma`).
 
-    ``train`` overrides further :class:`~popcode_trainer.config.TrainConfig` fields.
+    ``train`` overrides further :class:`~popcode_trainer.train.config.TrainConfig` fields.
     """
     train_config = TrainConfig(**{"epochs": epochs, "batch_size": 32, "lr": 1e-3, "schedule": "anneal",
                                   "loss": "mse+cross_entropy", **train})
@@ -128,7 +128,7 @@ def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence
 
     :func:`train_and_export` later resumes it to the epochs it is given, which is the same as training them
     in one go when the first epoch's rate does not depend on the run's length
-    (:func:`~popcode_trainer.schedule.first_epoch_rate_is_fixed`). A folder that already holds a checkpoint
+    (:func:`~popcode_trainer.train.schedule.first_epoch_rate_is_fixed`). A folder that already holds a checkpoint
     is kept, and its first epoch's training loop (from its metrics) is returned.
     """
     folder = run_dir(out_dir, representation, obj_ids)

@@ -14,9 +14,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from .eval.pipeline.evaluate import MethodResult
-from .eval.reporting.markdown import markdown_table
-from .run_files import METRICS_FILE
+from ..eval.pipeline.evaluate import MethodResult
+from ..eval.reporting.markdown import markdown_table
+from ..train.run_files import METRICS_FILE
 
 MSSD_ALL_PARTS = 0.85
 MSSD_EVERY_PART = 0.70

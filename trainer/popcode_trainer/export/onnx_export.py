@@ -24,9 +24,9 @@ from popcode_runtime.engine import OnnxEngine
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
+from ..train.network import ColumnBlockOutputLayer
 from .agreement import Comparison, compare, crop_symmetries
 from .model_io import load_checkpoint_model, save_onnx
-from .network import ColumnBlockOutputLayer
 from .quantise import quantise
 from .torch_engine import TorchEngine
 
@@ -87,7 +87,7 @@ def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: 
     crops it was calibrated on. ``obj_ids`` (the object of each crop) picks
     each crop's symmetries for the pose agreement; a model of several objects
     with different symmetries has none without them. ``calibrator`` (see
-    :mod:`popcode_trainer.confidence_fit`) goes into the metadata of every model written.
+    :mod:`popcode_trainer.export.confidence_fit`) goes into the metadata of every model written.
     """
     model, metadata = load_checkpoint_model(checkpoint_path)
     metadata = dataclasses.replace(metadata, confidence=calibrator)

@@ -15,16 +15,16 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 
-from .demo_targets import targets_markdown
+from ..eval.pipeline.evaluate import MethodResult
+from ..eval.pipeline.split import EvalSplit
+from ..eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
+from ..eval.reporting.markdown import markdown_table
+from ..eval.reporting.report import REPORT_MD, full_pose_markdown
+from ..eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
+from ..train.network import NetworkConfig
 from .epoch_budget import EpochFit
-from .eval.pipeline.evaluate import MethodResult
-from .eval.pipeline.split import EvalSplit
-from .eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
-from .eval.reporting.markdown import markdown_table
-from .eval.reporting.report import REPORT_MD, full_pose_markdown
-from .eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
-from .network import NetworkConfig
-from .pipeline import PipelineSize
+from .steps import PipelineSize
+from .targets import targets_markdown
 
 POPCODE = Representation.POPULATION_CODE
 QUANTISATION = "int8"

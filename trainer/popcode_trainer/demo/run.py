@@ -2,7 +2,7 @@
 baseline the same way, export (float and quantised), evaluate with the BOP metrics, time the runtime,
 draw the figures and write one report, all under one run folder.
 
-Every step resumes (see :mod:`popcode_trainer.pipeline`), so rerunning an
+Every step resumes (see :mod:`popcode_trainer.demo.steps`), so rerunning an
 interrupted demo with the same folder continues where it stopped.
 """
 
@@ -22,20 +22,21 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
+from ..data.bop import model_path
+from ..data.objects import BUILTIN_PARTS
+from ..data.render import BUILTIN_MODELS_FOLDER
+from ..data.scene_render import render_cluttered_test_split
+from ..eval.pipeline.evaluate import MethodResult, evaluate_models
+from ..eval.pipeline.models import Method, load_model
+from ..eval.pipeline.split import EvalSplit, read_eval_split
+from ..eval.reporting.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
+from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
+from ..eval.reporting.report import write_report
+from ..train.config import Config, DataConfig
+from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
-from .config import Config, DataConfig
-from .data.bop import model_path
-from .data.objects import BUILTIN_PARTS
-from .data.render import BUILTIN_MODELS_FOLDER
-from .data.scene_render import render_cluttered_test_split
-from .demo_report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
-from .eval.pipeline.evaluate import MethodResult, evaluate_models
-from .eval.pipeline.models import Method, load_model
-from .eval.pipeline.split import EvalSplit, read_eval_split
-from .eval.reporting.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
-from .eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
-from .eval.reporting.report import write_report
-from .pipeline import (
+from .report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
+from .steps import (
     SMALL_NETWORK,
     PipelineSize,
     object_groups,
@@ -45,7 +46,6 @@ from .pipeline import (
     train_and_export,
     train_first_epoch,
 )
-from .schedule import first_epoch_rate_is_fixed
 
 BASELINE = Representation.SINGLE_VARIABLE
 CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
@@ -161,7 +161,7 @@ FIRST_EPOCHS = "time the first epoch of every model"
 def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int]], train_split: Path,
                out_dir: Path, started: float, stages: StagePlan) -> epoch_budget.EpochFit:
     """Train every model's first epoch and choose the epochs that fill ``demo.minutes`` counted from ``started``
-    (see :mod:`popcode_trainer.epoch_budget`); an interrupted run's earlier fit is kept."""
+    (see :mod:`popcode_trainer.demo.epoch_budget`); an interrupted run's earlier fit is kept."""
     earlier = epoch_budget.load(out_dir)
     if earlier is not None:
         return earlier
@@ -240,9 +240,9 @@ def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, An
 def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: TrainedModels, run_dirs: Sequence[Path],
                  out_dir: Path) -> dict[str, list[Path]]:
     """Training curves, metric sensitivity, code on the sphere and a grid of crops with their poses."""
-    from .data.gl import DepthRenderer
-    from .data.meshes import load_mesh
-    from .eval.pipeline.instance_errors import ObjectModel
+    from ..data.gl import DepthRenderer
+    from ..data.meshes import load_mesh
+    from ..eval.pipeline.instance_errors import ObjectModel
 
     out_dir.mkdir(parents=True, exist_ok=True)
     figures = {"training curves": [plot_training_curves(metrics_files_of(run_dirs), out_dir / "training.png")],

@@ -14,10 +14,10 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import ModelMetadata
 
-from . import checkpoint
-from .data.hull import with_hull_points
-from .network import NetworkConfig, build_network
-from .representations import CodeSoftmax, code_mass
+from ..data.hull import with_hull_points
+from ..train import checkpoint
+from ..train.network import NetworkConfig, build_network
+from ..train.representations import CodeSoftmax, code_mass
 
 ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
 

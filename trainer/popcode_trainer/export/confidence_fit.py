@@ -32,13 +32,13 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import GRID_REPRESENTATIONS, Representation
 from popcode_runtime.symmetries import symmetry_rotations
 
-from . import checkpoint
-from .config import Config
-from .data.bop import Instance
-from .eval.metrics.confidence import rotation_errors_deg
-from .eval.pipeline.split import rows_by_image
+from ..data.bop import Instance
+from ..eval.pipeline.split import rows_by_image
+from ..metrics.confidence import rotation_errors_deg
+from ..train import checkpoint
+from ..train.config import Config
+from ..train.training_data import read_instances, split_by_image
 from .torch_engine import checkpoint_estimator
-from .training_data import read_instances, split_by_image
 
 MAX_CALIBRATION_INSTANCES = 2000  # enough for four weights; bounds the export's time
 MIN_PER_OUTCOME = 5  # correct and wrong estimates each; fewer cannot say where the boundary lies

@@ -14,11 +14,11 @@ import numpy as np
 
 from popcode_runtime.errors import PopcodeError
 
+from ..data.augment import Augmentation
+from ..data.bop import Instance, read_bop_split
+from ..data.samples import CropDataset
+from ..data.symmetry_check import check_models_symmetries
 from .config import Config
-from .data.augment import Augmentation
-from .data.bop import Instance, read_bop_split
-from .data.samples import CropDataset
-from .data.symmetry_check import check_models_symmetries
 from .representations import OutputRepresentation, build_representation
 from .run_files import CROP_CACHE_FOLDER
 
