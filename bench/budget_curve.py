@@ -18,7 +18,6 @@ curve resumes. Results: ``bench/results/budget-<name>.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from collections.abc import Sequence
@@ -35,7 +34,7 @@ from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.config import Config, load_config
 from popcode_trainer.train.loop import train
-from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train.run_files import LAST_CHECKPOINT, read_metrics
 from popcode_trainer.train.training_data import build_training_data
 
 from .report import machine, machine_line, write_results
@@ -53,11 +52,10 @@ def _config(base: Config, train_split: Path, run_dir: Path, epochs: int) -> Conf
 def _training_so_far(run_dir: Path) -> dict[str, float]:
     """Seconds of the training loop and crops seen over the epochs run so far, and the last epoch's
     median error on the images the run held out of its training split (up to symmetry)."""
-    with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
-        rows = list(csv.DictReader(file))
-    return {"training_s": sum(float(row["seconds"]) for row in rows),
-            "crop_updates": int(round(sum(float(row["samples_per_s"]) * float(row["seconds"]) for row in rows))),
-            "held_out_median_deg": round(float(rows[-1]["val_error_median_deg"]), 2)}
+    metrics = read_metrics(run_dir, ("seconds", "samples_per_s", "val_error_median_deg"))
+    return {"training_s": sum(metrics["seconds"].tolist()),
+            "crop_updates": int(round(sum((metrics["samples_per_s"] * metrics["seconds"]).tolist()))),
+            "held_out_median_deg": round(float(metrics["val_error_median_deg"][-1]), 2)}
 
 
 def _point(config: Config, run_dir: Path, validation_split: Path, obj_ids: Sequence[int]) -> dict[str, Any]:

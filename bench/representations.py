@@ -38,6 +38,7 @@ from popcode_trainer.demo.steps import (
     train_and_export,
 )
 from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
+from popcode_trainer.eval.pipeline.instance_code import instance_code
 from popcode_trainer.eval.pipeline.models import Method, load_model
 from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split
 from popcode_trainer.eval.reporting.figures import plot_instance_code
@@ -131,7 +132,8 @@ def code_figures(method: Method, split: EvalSplit, out_dir: Path) -> list[Path]:
     paths = []
     for model in method.models:
         instance = next(inst for inst in split.instances if inst.obj_id in model.obj_ids)
-        paths.append(plot_instance_code(model.estimator, instance, out_dir / f"code_obj{instance.obj_id}.png"))
+        path = out_dir / f"code_obj{instance.obj_id}.png"
+        paths.append(plot_instance_code(instance_code(model.estimator, instance), path))
     return paths
 
 

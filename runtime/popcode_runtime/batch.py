@@ -1,8 +1,8 @@
 """``popcode run``: a pose for every detection of a BOP split, written as a BOP19 results file.
 
-popcode is the pose stage after any 2-D detector: each image is read once, all
-its boxes go through the model in one batch (:meth:`PoseEstimator.predict`),
-the translation is fitted to each box with the image's ``cam_K``, and the
+popcode is the pose stage after any 2-D detector: each image is read once, the
+boxes of each model go through it in one batch (:mod:`.image_loop`), the
+translation is fitted to each box with the image's ``cam_K``, and the
 image's estimates are appended to ``<out>.partial`` with a closing mark. A run
 that is stopped resumes from the last closed image; the results file appears
 (atomically) only when every image is done. The ``time`` of an image is the
@@ -27,12 +27,12 @@ import numpy as np
 
 from .bop19_csv import PoseEstimate, format_estimate, write_bop19_lines
 from .bop_split import SplitImage
-from .crop import read_image
 from .detections import Detection
 from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
 from .files import write_bytes_atomic, write_picture_atomic
+from .image_loop import ImageBoxes, estimate_images, route_objects
 
 PARTIAL_SUFFIX = ".partial"
 RUN_MARK = "#popcode-run "  # first line of a partial file: what the run was made from
@@ -50,18 +50,6 @@ class RunSummary:
     estimates: int  # lines written in this call
     skipped: dict[int, int]  # object id -> detections no model knows
     seconds: float
-
-
-def route_objects(estimators: Sequence[PoseEstimator], names: Sequence[str]) -> dict[int, int]:
-    """Object id -> the index of the one model that estimates it; two models for one object is an error."""
-    owner: dict[int, int] = {}
-    for index, estimator in enumerate(estimators):
-        for obj_id in estimator.metadata.objects:
-            if obj_id in owner:
-                raise PopcodeError(f"object {obj_id} is in both {names[owner[obj_id]]} and {names[index]}; "
-                                   "give one model per object")
-            owner[obj_id] = index
-    return owner
 
 
 def file_digest(path: Path) -> str:
@@ -169,12 +157,12 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
                            "translation from the box needs the camera")
 
 
-def _estimates(key: ImageKey, answered: list[tuple[Detection, Prediction]], detector_s: float,
+def _estimates(key: ImageKey, detections: Sequence[Detection], predictions: Sequence[Prediction], detector_s: float,
                popcode_s: float) -> list[PoseEstimate]:
     """One image's results lines: score = detection score x calibrated confidence (where there is one)."""
     time_s = popcode_s + detector_s if detector_s >= 0 else popcode_s
     return [PoseEstimate(key[0], key[1], d.obj_id, d.score * (1.0 if p.confidence is None else p.confidence),
-                         p.R_m2c, p.t_m2c_mm, time_s) for d, p in answered]
+                         p.R_m2c, p.t_m2c_mm, time_s) for d, p in zip(detections, predictions, strict=True)]
 
 
 def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
@@ -197,34 +185,25 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
     owner = route_objects(estimators, names)
     skipped = Counter(d.obj_id for d in detections if d.obj_id not in owner)
     by_image: dict[ImageKey, list[Detection]] = defaultdict(list)
-    for detection in detections:
-        if detection.obj_id in owner:
-            by_image[detection.image_key].append(detection)
+    # model by model (stable): an image's estimates are written in the order of the models
+    for detection in sorted((d for d in detections if d.obj_id in owner), key=lambda d: owner[d.obj_id]):
+        by_image[detection.image_key].append(detection)
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
     results = PartialResults(out, fingerprint)
     try:
         todo = [key for key in keys if key not in results.done]
         bar, written = Progress(len(todo), progress), 0
-        for key in todo:
-            image_started = time.perf_counter()
-            split_image = images[key]
-            image = read_image(split_image.path)
-            answered: list[tuple[Detection, Prediction]] = []
-            drawn: list[tuple[PoseEstimator, list[Prediction]]] = []
-            for index, estimator in enumerate(estimators):
-                chosen = [d for d in by_image[key] if owner[d.obj_id] == index]
-                if chosen:
-                    predictions = estimator.predict(image, [d.box for d in chosen], K=split_image.K,
-                                                    obj_ids=[d.obj_id for d in chosen], translation=True)
-                    answered += zip(chosen, predictions, strict=True)
-                    drawn.append((estimator, predictions))
-            detector_s = max(d.time_s for d in by_image[key])
-            estimates = _estimates(key, answered, detector_s, time.perf_counter() - image_started)
+        work = (ImageBoxes(key, images[key].path, images[key].K, [d.box for d in by_image[key]],
+                           [d.obj_id for d in by_image[key]]) for key in todo)
+        for done in estimate_images(estimators, names, work, translation=True):
+            key, chosen = done.key, by_image[done.key]
+            detector_s = max(d.time_s for d in chosen)
+            estimates = _estimates(key, chosen, done.predictions, detector_s, done.seconds)
             results.add(key, estimates)
             written += len(estimates)
             if draw_dir is not None:
-                draw_image(draw_dir / f"{key[0]:06d}_{key[1]:06d}.png", image, split_image, drawn)
+                draw_image(draw_dir / f"{key[0]:06d}_{key[1]:06d}.png", done.image, images[key], done.by_model)
             bar.step()
         results.finish()
     finally:

@@ -11,7 +11,7 @@ trainer's reader (:mod:`popcode_trainer.data.bop`) builds on these functions;
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Container, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -77,7 +77,7 @@ def image_folder(scene_dir: Path) -> Path:
     return folder
 
 
-def camera_matrix(camera: Any, path: Path, im_id: int) -> np.ndarray:
+def read_cam_K(camera: Any, path: Path, im_id: int) -> np.ndarray:
     """``cam_K`` of one ``scene_camera.json`` entry as 3x3, checked as the runtime checks a camera (positive focal
     lengths, last row 0 0 1): a corrupt camera is named here, not trained or evaluated on."""
     values = json_field(camera, "cam_K", path, f"image {im_id}", size=9)
@@ -108,6 +108,60 @@ def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
             if not stem.isdigit():
                 continue
             im_id = int(stem)
-            K = camera_matrix(cameras[im_id], camera_path, im_id) if im_id in cameras else None
+            K = read_cam_K(cameras[im_id], camera_path, im_id) if im_id in cameras else None
             images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K)
     return images
+
+
+def _where(im_id: int, gt_index: int) -> str:
+    return f"image {im_id}, object {gt_index}"
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """One annotated object instance: what ``scene_gt.json`` and ``scene_gt_info.json`` say of it."""
+
+    scene_id: int
+    im_id: int
+    gt_index: int  # its place in the image's lists (and in its mask's file name)
+    obj_id: int
+    box: tuple[float, float, float, float]  # x, y, w, h px, of the kind asked for
+    visib_fract: float
+    gt_entry: Mapping[str, Any]  # its scene_gt.json entry, for a reader of the pose (cam_R_m2c, cam_t_m2c)
+    gt_path: Path
+
+    @property
+    def where(self) -> str:
+        """How error messages name it in ``gt_path``."""
+        return _where(self.im_id, self.gt_index)
+
+
+def scene_ground_truth(scene_dir: Path, box_kind: str, min_visib_fract: float,
+                       obj_ids: Container[int] | None = None) -> Iterator[tuple[int, list[GroundTruth]]]:
+    """Each image of the scene's ``scene_gt.json`` in id order, with its instances of ``obj_ids`` (all when None)
+    that are at least ``min_visib_fract`` visible and have a box of ``box_kind`` with an area (maybe none).
+
+    The one walk of the ground truth, so training, evaluation and ``popcode run --gt-boxes`` select the same
+    instances and refuse the same malformed files.
+    """
+    gt_path, info_path = scene_dir / "scene_gt.json", scene_dir / "scene_gt_info.json"
+    scene_gt, scene_info = int_keys(read_json(gt_path), gt_path), int_keys(read_json(info_path), info_path)
+    for im_id, gts in sorted(scene_gt.items()):
+        if im_id not in scene_info:
+            raise PopcodeError(f"{info_path}: key '{im_id}' missing (it is in {gt_path.name})")
+        infos = scene_info[im_id]
+        if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
+            raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of objects")
+        selected = []
+        for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
+            where = _where(im_id, gt_index)
+            obj_id = int(json_field(gt, "obj_id", gt_path, where))
+            if obj_ids is not None and obj_id not in obj_ids:
+                continue
+            visib_fract = float(json_field(info, "visib_fract", info_path, where, size=1)[0])
+            x, y, w, h = json_field(info, box_kind, info_path, where, size=4)
+            if visib_fract < min_visib_fract or w <= 0 or h <= 0:
+                continue
+            selected.append(GroundTruth(int(scene_dir.name), im_id, gt_index, obj_id,
+                                        (float(x), float(y), float(w), float(h)), visib_fract, gt, gt_path))
+        yield im_id, selected

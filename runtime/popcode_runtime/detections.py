@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, int_keys, json_field, scene_folders
+from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, scene_folders, scene_ground_truth
 from .errors import PopcodeError
 from .files import read_json
 
@@ -91,26 +91,12 @@ def ground_truth_boxes(split_dir: str | Path, box_kind: str = "bbox_obj",
                        min_visib_fract: float = BOP19_MIN_VISIB_FRACT) -> list[Detection]:
     """The split's own boxes (``scene_gt_info.json``) as detections of score 1: the paper's GT-box protocol.
 
-    Instances with less than ``min_visib_fract`` visible or an empty box are
-    left out, as :func:`popcode_trainer.data.bop.read_bop_split` leaves them out.
+    Instances with less than ``min_visib_fract`` visible or an empty box are left out
+    (:func:`popcode_runtime.bop_split.scene_ground_truth`, the walk the trainer's reader takes too).
     """
     if box_kind not in BOX_KINDS:
         raise PopcodeError(f"box kind must be one of {list(BOX_KINDS)}, got {box_kind!r}")
-    detections = []
-    for scene_dir in scene_folders(Path(split_dir)):
-        gt_path, info_path = scene_dir / "scene_gt.json", scene_dir / "scene_gt_info.json"
-        scene_gt, scene_info = int_keys(read_json(gt_path), gt_path), int_keys(read_json(info_path), info_path)
-        for im_id, gts in sorted(scene_gt.items()):
-            infos = scene_info.get(im_id)
-            if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
-                raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of "
-                                   "objects")
-            for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
-                where = f"image {im_id}, object {gt_index}"
-                x, y, w, h = json_field(info, box_kind, info_path, where, size=4)
-                visib_fract = float(json_field(info, "visib_fract", info_path, where, size=1)[0])
-                if visib_fract < min_visib_fract or w <= 0 or h <= 0:
-                    continue
-                obj_id = json_field(gt, "obj_id", gt_path, where)
-                detections.append(Detection(int(scene_dir.name), im_id, int(obj_id), (x, y, w, h)))
-    return detections
+    return [Detection(gt.scene_id, gt.im_id, gt.obj_id, gt.box)
+            for scene_dir in scene_folders(Path(split_dir))
+            for _, selected in scene_ground_truth(scene_dir, box_kind, min_visib_fract)
+            for gt in selected]

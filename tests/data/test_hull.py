@@ -14,7 +14,7 @@ from popcode_trainer.data.hull import HULL_POINTS, hull_points_mm, hull_vertices
 from popcode_trainer.data.objects import build_part, write_builtin_models
 from popcode_trainer.data.render import camera_matrix
 
-BOX_TOLERANCE = 0.010  # of the box size: what the module docstring states for the built-in parts
+BOX_TOLERANCE = 0.010  # of the box size: what bench/results/hull-points.md measured on the built-in parts
 
 
 def _box(uv: np.ndarray) -> np.ndarray:

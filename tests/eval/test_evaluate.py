@@ -162,8 +162,8 @@ def test_models_and_objects_that_do_not_match_are_refused(split: Path, models: t
     assert "'model' has no model for objects [5] (its models know [3, 6])" in capsys.readouterr().err
     with pytest.warns(UserWarning, match=r"objects \[5\] of the split are not known to every model"):
         assert evaluate(split, tmp_path / "out", *both, "--no-vsd") == 0
-    with pytest.raises(PopcodeError, match="object 3 is in both"):
-        methods_from_paths([models[1], models[1]], ["same", "same"])[0].model_of()
+    with pytest.raises(PopcodeError, match="method 'same': object 3 is in both"):
+        methods_from_paths([models[1], models[1]], ["same", "same"])[0].known_objects()
     with pytest.raises(PopcodeError, match="2 names for 1 models"):
         methods_from_paths([models[1]], ["a", "b"])
     eval_split = read_eval_split([split], split / BUILTIN_MODELS_FOLDER)

@@ -9,12 +9,8 @@ from symmetry_cases import CASES
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import symmetry_transforms
-from popcode_trainer.eval.reporting.figures import (
-    axis_activations,
-    plot_code_comparison,
-    plot_sensitivity,
-    sensitivity_curves,
-)
+from popcode_trainer.eval.pipeline.sensitivity import sensitivity_curves
+from popcode_trainer.eval.reporting.figures import axis_activations, plot_code_comparison, plot_sensitivity
 
 K = np.array([[600.0, 0.0, 80.0], [0.0, 600.0, 60.0], [0.0, 0.0, 1.0]])
 HALF_MM = np.array([40.0, 25.0, 10.0])

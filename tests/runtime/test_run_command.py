@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import popcode_runtime.batch as batch
+import popcode_runtime.image_loop as image_loop
 from popcode_runtime import PoseEstimator, read_image
 from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.cli import main
@@ -79,7 +79,7 @@ def test_an_interrupted_run_resumes_from_the_last_finished_image(split: Path, tm
     assert _run(split, whole, "--gt-boxes") == 0
     out = tmp_path / "results.csv"
     calls = {"n": 0}
-    real_read = batch.read_image
+    real_read = image_loop.read_image
 
     def killed_at_the_fifth_image(path, *args):
         calls["n"] += 1
@@ -87,7 +87,7 @@ def test_an_interrupted_run_resumes_from_the_last_finished_image(split: Path, tm
             raise KeyboardInterrupt
         return real_read(path, *args)
 
-    monkeypatch.setattr(batch, "read_image", killed_at_the_fifth_image)
+    monkeypatch.setattr(image_loop, "read_image", killed_at_the_fifth_image)
     assert _run(split, out, "--gt-boxes") == 130
     monkeypatch.undo()
     partial = out.with_name("results.csv.partial")

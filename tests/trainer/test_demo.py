@@ -8,16 +8,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from test_export import calls_of
 
 from popcode_runtime import PoseEstimator
 from popcode_runtime.cli import main as runtime_main
 from popcode_trainer.cli import main as cli_main
+from popcode_trainer.data import hull
+from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import StagePlan, run_demo
-from popcode_trainer.demo.steps import PipelineSize, small_config
+from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.train.network import NetworkConfig
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
@@ -110,6 +115,17 @@ def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -
     assert fit.budget_s == pytest.approx(60 * BUDGET_MINUTES) and fit.seconds_left < 0
     assert len(fit.first_epoch_seconds) == 4 and all(s > 0 for s in fit.first_epoch_seconds.values())
     assert f"fitted to a {BUDGET_MINUTES:g}-minute budget on this machine" in (out / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training computes each object's hull points once and stores them; the export (calibration, parity, int8)
+    reads the checkpoint it wrote once."""
+    split = render_builtin_split(tmp_path / "split", 4, obj_ids=[3, 6], random_position=True)
+    loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
+    train_and_export(TINY, POPCODE, [3, 6], split, tmp_path, ("int8",))
+    assert [args[0] for args in loads] == [run_dir(tmp_path, POPCODE, [3, 6]) / LAST_CHECKPOINT]
+    assert len(hulls) == 2
 
 
 def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None:

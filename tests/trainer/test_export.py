@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
+import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
@@ -21,14 +26,23 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
+from popcode_trainer.cli import main
+from popcode_trainer.data import hull
+from popcode_trainer.data.bop import model_path
+from popcode_trainer.data.meshes import load_mesh
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.export import onnx_export as export
 from popcode_trainer.export.agreement import compare
-from popcode_trainer.export.model_io import load_checkpoint_model
+from popcode_trainer.export.model_io import load_checkpoint_model, load_trained_model
 from popcode_trainer.export.onnx_export import export_checkpoint, export_onnx
 from popcode_trainer.export.quantise import quantise
+from popcode_trainer.train.config import Config
 from popcode_trainer.train.loop import network_config, train
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, build_network
 from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from popcode_trainer.train.training_data import build_training_data
+
+RENDERED_OBJ_ID = 6  # a part without symmetry: its code needs no narrower sigma
 
 
 def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarray]:
@@ -265,3 +279,86 @@ def test_pose_agreement_takes_each_crops_symmetries_from_its_object() -> None:
         compare(Path("v.onnx"), output, reference, metadata, obj_ids=[5] * 12)
     with pytest.raises(PopcodeError, match="got 3 object ids for 12 crops"):
         compare(Path("v.onnx"), output, reference, metadata, obj_ids=[1, 2, 2])
+
+
+def calls_of(monkeypatch: pytest.MonkeyPatch, owner: Any, name: str) -> list[tuple]:
+    """The arguments of every call of ``owner.name`` from now on; the real function still runs."""
+    real: Callable = getattr(owner, name)
+    calls: list[tuple] = []
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        calls.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, counting)
+    return calls
+
+
+@pytest.fixture(scope="module")
+def rendered_split(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return render_builtin_split(tmp_path_factory.mktemp("split"), 6, obj_ids=[RENDERED_OBJ_ID], random_position=True)
+
+
+def rendered_checkpoint(split: Path, folder: Path) -> tuple[Path, Path]:
+    """A tiny network trained one epoch on the rendered split with its own copy of the models folder (so that a
+    test may delete it): the checkpoint and that folder."""
+    models = Path(shutil.copytree(split / BUILTIN_MODELS_FOLDER, folder / "models"))
+    config = Config.from_dict({
+        "data": {"splits": [str(split)], "models_dir": str(models), "num_workers": 0, "val_fraction": 0.5},
+        "code": {"n_axes": 42, "n_angles": 12, "sigma_deg": 30.0},
+        "network": {"conv_channels": [4, 4, 4], "squeeze_channels": 2, "hidden": [16, 16, 16]},
+        "train": {"epochs": 1, "batch_size": 2, "out_dir": str(folder / "run"), "device": "cpu"},
+    })
+    data = build_training_data(config, progress=False)
+    train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances)
+    return folder / "run" / LAST_CHECKPOINT, models
+
+
+def mesh_hull_points(models: Path) -> list[list[float]]:
+    return hull.hull_points_mm(np.asarray(load_mesh(model_path(models, RENDERED_OBJ_ID)).vertices)).tolist()
+
+
+@pytest.mark.slow
+def test_export_and_evaluate_commands_read_the_checkpoint_once(rendered_split: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """The default export (validation crops, confidence fit, parity, int8) and an evaluation of the .pt read the
+    file once each; the hull points stored at training are not computed again."""
+    ckpt, models = rendered_checkpoint(rendered_split, tmp_path)
+    loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "model.onnx"), "--quantize", "int8"]) == 0
+    assert [args[0] for args in loads] == [ckpt] and hulls == []
+    loads.clear()
+    assert main(["evaluate", str(ckpt), "--split", str(rendered_split), "--models-dir", str(models),
+                 "--out", str(tmp_path / "eval"), "--no-vsd"]) == 0
+    assert [args[0] for args in loads] == [ckpt] and hulls == []
+
+
+@pytest.mark.slow
+def test_export_needs_no_models_folder(rendered_split: Path, tmp_path: Path) -> None:
+    """Training stored each object's hull points, computed from its mesh as export did: the models folder may go."""
+    ckpt, models = rendered_checkpoint(rendered_split, tmp_path)
+    expected = mesh_hull_points(models)
+    shutil.rmtree(models)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="no mesh")
+        export_checkpoint(ckpt, tmp_path / "model.onnx", np.stack([draw(np.eye(3))[None]]))
+    assert PoseEstimator(tmp_path / "model.onnx").metadata.objects[RENDERED_OBJ_ID]["hull_points_mm"] == expected
+
+
+@pytest.mark.slow
+def test_a_checkpoint_without_hull_points_gets_them_from_its_meshes(rendered_split: Path, tmp_path: Path) -> None:
+    """A checkpoint written before hull points were stored: they come from the models folder, as they did; without
+    it the object keeps its box corners, with a warning."""
+    ckpt, models = rendered_checkpoint(rendered_split, tmp_path)
+    state = torch.load(ckpt, weights_only=True)
+    objects = json.loads(state["metadata"]["popcode.objects"])
+    assert objects[str(RENDERED_OBJ_ID)]["hull_points_mm"] == mesh_hull_points(models)
+    for info in objects.values():
+        del info["hull_points_mm"]
+    state["metadata"]["popcode.objects"] = json.dumps(objects)
+    torch.save(state, tmp_path / "old.pt")
+    assert load_trained_model(tmp_path / "old.pt").metadata.objects[RENDERED_OBJ_ID]["hull_points_mm"] == \
+        mesh_hull_points(models)
+    shutil.rmtree(models)
+    with pytest.warns(UserWarning, match=rf"no mesh .* for objects \[{RENDERED_OBJ_ID}\]"):
+        assert "hull_points_mm" not in load_trained_model(tmp_path / "old.pt").metadata.objects[RENDERED_OBJ_ID]

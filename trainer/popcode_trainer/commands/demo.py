@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", choices=list(DEMO_SIZES), default="quick", help=f"budget ({sizes})")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default: runs/demo)")
     parser.add_argument("--epochs", type=int, help="train this many epochs instead of fitting them to the size's "
-                                                   "time budget (quick: 13.5 min) or taking the size's")
+                                                   f"time budget (quick: {DEMO_SIZES['quick'].minutes:g} min) or "
+                                                   "taking the size's")
     parser.add_argument("--minutes", type=float, metavar="M",
                         help="fit the epochs so the whole demo takes about M minutes on this machine "
                              "(every model trains one epoch, then as many as fit)")

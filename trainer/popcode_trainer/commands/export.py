@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -11,7 +12,8 @@ from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError, first_line
 
 from ..export.confidence_fit import calibrate_checkpoint
-from ..export.onnx_export import COREML_MAX_DIM, export_checkpoint
+from ..export.model_io import trained_model
+from ..export.onnx_export import COREML_MAX_DIM, export_trained
 from ..export.quantise import QUANTISATIONS
 from ..train import checkpoint
 from ..train.config import Config
@@ -67,8 +69,9 @@ def _check_crops(crops: np.ndarray, obj_ids: np.ndarray | None) -> None:
         raise PopcodeError(f"--crop-obj-ids must be {len(crops)} integers, got {obj_ids.dtype} {obj_ids.shape}")
 
 
-def _crops(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray | None]:
-    """Parity crops and their object ids (None: not given)."""
+def _crops(args: argparse.Namespace, state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Parity crops and their object ids (None: not given); by default the validation crops of the checkpoint's
+    training (``state``: its contents)."""
     if args.crops is not None:
         obj_ids = None if args.crop_obj_ids is None else _load_npy(args.crop_obj_ids, "crop object ids")
         crops = _load_npy(args.crops, "crops")
@@ -78,7 +81,7 @@ def _crops(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray | None]:
         raise PopcodeError("--crop-obj-ids names the objects of --crops; give --crops too")
     from ..train.training_data import validation_crops  # imports the data side only when needed
 
-    return validation_crops(Config.from_dict(checkpoint.load_trained(args.checkpoint)["config"]))
+    return validation_crops(Config.from_dict(state["config"]))
 
 
 def _percent(share: float | None) -> str:
@@ -92,12 +95,13 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--out {args.out} is the checkpoint itself; give the path of the .onnx file to write")
     if not args.out.parent.is_dir():
         raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
-    checkpoint.load_trained(args.checkpoint)  # refused here, before any crop is read
-    crops, obj_ids = _crops(args)
+    state = checkpoint.load_trained(args.checkpoint)  # read once, and refused here before any crop is read
+    crops, obj_ids = _crops(args, state)
+    trained = trained_model(state, args.checkpoint)
     calibrator, note = (None, "not asked for (--no-confidence)") if args.no_confidence else \
-        calibrate_checkpoint(args.checkpoint, args.confidence_threshold)
-    results = export_checkpoint(args.checkpoint, args.out, crops, tuple(args.quantize), args.split_output,
-                                obj_ids=obj_ids, calibrator=calibrator)
+        calibrate_checkpoint(trained, args.confidence_threshold)
+    results = export_trained(trained, args.out, crops, tuple(args.quantize), args.split_output,
+                             obj_ids=obj_ids, calibrator=calibrator)
     print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17} {'pose agreement':>15}")
     for result in results:
         print(f"{str(result.path):<50} {result.max_abs_diff:>14.3g} {_percent(result.argmax_agreement):>17} "

@@ -16,12 +16,13 @@ import numpy as np
 
 from popcode_runtime.bop_split import (
     BOX_KINDS,
-    camera_matrix,
     folder_index,
     image_folder,
     int_keys,
     json_field,
+    read_cam_K,
     scene_folders,
+    scene_ground_truth,
 )
 from popcode_runtime.crop import check_box
 from popcode_runtime.errors import PopcodeError
@@ -120,52 +121,38 @@ def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
     return models_info
 
 
-def _scene_instances(scene_dir: Path, scene_id: int, obj_ids: set[int], min_visib_fract: float, box: str,
+def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float, box: str,
                      rendered: bool) -> Iterable[Instance]:
-    gt_path, info_path, camera_path = (scene_dir / f"scene_{name}.json" for name in ("gt", "gt_info", "camera"))
-    scene_gt = int_keys(read_json(gt_path), gt_path)
-    scene_info = int_keys(read_json(info_path), info_path)
+    camera_path = scene_dir / "scene_camera.json"
     scene_camera = int_keys(read_json(camera_path), camera_path)
     images_dir = image_folder(scene_dir)
     images, depths = folder_index(images_dir), folder_index(scene_dir / "depth")
     masks = folder_index(scene_dir / "mask_visib")
-    for im_id, gts in sorted(scene_gt.items()):
-        if im_id not in scene_info:
-            raise PopcodeError(f"{info_path}: key '{im_id}' missing (it is in {gt_path.name})")
+    for im_id, selected in scene_ground_truth(scene_dir, box, min_visib_fract, obj_ids):
         if im_id not in scene_camera:
-            raise PopcodeError(f"{camera_path}: key '{im_id}' missing (it is in {gt_path.name})")
-        infos = scene_info[im_id]
-        if not isinstance(gts, list) or not isinstance(infos, list) or len(gts) != len(infos):
-            raise PopcodeError(f"{gt_path} and {info_path.name}: image {im_id} must list the same number of objects")
+            raise PopcodeError(f"{camera_path}: key '{im_id}' missing (it is in scene_gt.json)")
         camera = scene_camera[im_id]
-        K = camera_matrix(camera, camera_path, im_id)
+        K = read_cam_K(camera, camera_path, im_id)
         depth_scale = float(camera.get("depth_scale", 1.0))
         stem = f"{im_id:06d}"
-        for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
-            where = f"image {im_id}, object {gt_index}"
-            obj_id = int(json_field(gt, "obj_id", gt_path, where))
-            if obj_id not in obj_ids:
-                continue
-            visib_fract = float(json_field(info, "visib_fract", info_path, where, size=1)[0])
-            x, y, w, h = json_field(info, box, info_path, where, size=4)
-            if visib_fract < min_visib_fract or w <= 0 or h <= 0:
-                continue
+        for gt in selected:
             if stem not in images:
-                raise PopcodeError(f"image {stem} listed in {gt_path} is missing from {images_dir}")
+                raise PopcodeError(f"image {stem} listed in {gt.gt_path} is missing from {images_dir}")
             yield Instance(
                 image_path=images[stem],
-                obj_id=obj_id,
-                box=(float(x), float(y), float(w), float(h)),
+                obj_id=gt.obj_id,
+                box=gt.box,
                 K=K,
-                R_m2c=_rotation(json_field(gt, "cam_R_m2c", gt_path, where, size=9), gt_path, where),
-                t_m2c_mm=json_field(gt, "cam_t_m2c", gt_path, where, size=3),
-                scene_id=scene_id,
+                R_m2c=_rotation(json_field(gt.gt_entry, "cam_R_m2c", gt.gt_path, gt.where, size=9), gt.gt_path,
+                                gt.where),
+                t_m2c_mm=json_field(gt.gt_entry, "cam_t_m2c", gt.gt_path, gt.where, size=3),
+                scene_id=gt.scene_id,
                 im_id=im_id,
-                gt_index=gt_index,
-                visib_fract=visib_fract,
+                gt_index=gt.gt_index,
+                visib_fract=gt.visib_fract,
                 rendered=rendered,
                 depth_path=depths.get(stem),
-                mask_visib_path=masks.get(f"{stem}_{gt_index:06d}"),
+                mask_visib_path=masks.get(f"{stem}_{gt.gt_index:06d}"),
                 depth_scale=depth_scale,
             )
 
@@ -206,7 +193,7 @@ def read_bop_split(
     instances = [
         instance
         for scene_dir in scene_dirs
-        for instance in _scene_instances(scene_dir, int(scene_dir.name), wanted, min_visib_fract, box, rendered)
+        for instance in _scene_instances(scene_dir, wanted, min_visib_fract, box, rendered)
     ]
     if not instances:
         raise PopcodeError(f"no instances of objects {sorted(wanted)} with visib_fract >= {min_visib_fract} "

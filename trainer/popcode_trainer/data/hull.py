@@ -5,15 +5,12 @@ The runtime finds the translation whose projected points fill the detected box
 metadata carries. A box edge is set by the hull's support function ``h(d) =
 max_p d·p`` in the direction of the edge, so the points are chosen for it:
 greedily, each new point is the hull vertex extreme in the direction where the
-chosen set falls furthest short of the whole hull (over 2000 directions).
+chosen set falls furthest short of the whole hull (over ``_DIRECTIONS`` directions).
 
-Measured on the built-in parts, 1000 random rotations each, off-centre, in
-perspective: with 64 points every box edge stays within 1.0 % of the box size,
-mean at most 0.26 % (the flanged sleeve's three 96-facet rims are the worst
-case; the polyhedral parts are exact), against up to 66 % (mean up to 23 %) for
-the 8 corners of the 3-D box. Farthest-point sampling of the hull vertices
-does as well on these clean meshes (0.7 %, mean 0.21 %) but not on a densified,
-slightly noisy copy, as a scan would be: up to 5.6 % against 0.9 % here.
+On the built-in parts :data:`HULL_POINTS` such points keep every box edge far
+closer to the mesh's than the 8 corners of the 3-D box do, and, unlike
+farthest-point sampling of the hull vertices, also on a slightly noisy copy of a
+mesh, as a scan would be: bench/results/hull-points.md.
 """
 
 from __future__ import annotations

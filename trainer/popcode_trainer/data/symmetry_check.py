@@ -11,7 +11,7 @@ must list the whole group itself.
 
 The distance of a moved sample to the surface is measured to a denser sample
 of the same surface (a k-d tree), an upper bound of the true distance that
-exceeds it by about half the sample spacing (kept under 0.4 % of the diameter).
+exceeds it by about half the sample spacing (its target: ``_SPACING`` of the diameter).
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _diameter_mm(mesh: trimesh.Trimesh, info: Mapping[str, Any]) -> float:
 
 
 def surface_sample(mesh: trimesh.Trimesh, diameter_mm: float, name: str) -> SurfaceSample:
-    """Seeded surface samples of ``mesh``: the reference dense enough for a 2 % tolerance."""
+    """Seeded surface samples of ``mesh``: the reference dense enough for :data:`TOLERANCE`."""
     area = float(mesh.area)
     if not np.isfinite(area) or area <= 0:
         raise PopcodeError(f"{name}: the mesh has no surface area; its symmetries cannot be checked")

@@ -10,7 +10,6 @@ The fit is written to the run folder, so an interrupted run resumes with the sam
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ from pathlib import Path
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import read_json, write_json_atomic
 
-from ..train.run_files import METRICS_FILE
+from ..train.run_files import read_metrics
 
 FIT_FILE = "epochs.json"
 
@@ -37,11 +36,9 @@ class EpochFit:
 def first_epoch_seconds(run_dir: Path) -> float:
     """Seconds of the training loop of a run's first epoch, from its metrics (for a run that trained it before)."""
     try:
-        with open(run_dir / METRICS_FILE, newline="", encoding="utf-8") as file:
-            first = next(csv.DictReader(file))
-        return float(first["seconds"])
-    except (OSError, StopIteration, KeyError, ValueError) as error:
-        raise PopcodeError(f"{run_dir / METRICS_FILE}: no first epoch to time ({error})") from error
+        return float(read_metrics(run_dir, ("seconds",))["seconds"][0])
+    except PopcodeError as error:
+        raise PopcodeError(f"no first epoch to time: {error}") from error
 
 
 def fitted_epochs(epoch_seconds: float, seconds_left: float, bounds: tuple[int, int]) -> int:

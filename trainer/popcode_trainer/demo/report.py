@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.benchmark import machine_description
+from popcode_runtime.benchmark import BENCH_IMAGE_SHAPE, machine_description
+from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
@@ -188,7 +189,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
         cluttered_markdown(run),
         _confidence_section(run),
-        "## Runtime latency (one thread, synthetic 720 x 540 scene)\n\n" + latency_markdown(run.latency),
+        f"## Runtime latency (one thread, synthetic {BENCH_IMAGE_SHAPE[1]} x {BENCH_IMAGE_SHAPE[0]} scene)\n\n"
+        + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
 
@@ -230,8 +232,9 @@ def cluttered_markdown(run: DemoRun) -> str:
     return "\n\n".join([
         "## Clean and cluttered test splits (MSSD, all objects)",
         f"The clean split shows one part alone; the cluttered one ({run.size.cluttered_test_scenes} scenes, "
-        f"{instances} instances at least 10 % visible) drops several parts with repeats and distractors into a "
-        "bin, seen from above with an industrial camera's noise, blur and exposure (`popcode-train render --scenes`), "
+        f"{instances} instances at least {100 * BOP19_MIN_VISIB_FRACT:g} % visible) drops several parts with repeats "
+        "and distractors into a bin, seen from above with an industrial camera's noise, blur and exposure "
+        "(`popcode-train render --scenes`), "
         "each crop cut from its ground-truth box (`bbox_obj`) as the paper does. Columns after the second: the "
         "cluttered split by visible fraction (instances). Depth-based metrics and the other tables: "
         f"[{run.link(report)}]({run.link(report)}).",

@@ -27,9 +27,11 @@ from ..data.objects import BUILTIN_PARTS
 from ..data.render import BUILTIN_MODELS_FOLDER
 from ..data.scene_render import render_cluttered_test_split
 from ..eval.pipeline.evaluate import MethodResult, evaluate_models
+from ..eval.pipeline.instance_code import instance_code
 from ..eval.pipeline.models import Method, load_model
+from ..eval.pipeline.sensitivity import sensitivity_curves
 from ..eval.pipeline.split import EvalSplit, read_eval_split
-from ..eval.reporting.figures import plot_instance_code, plot_sensitivity, sensitivity_curves
+from ..eval.reporting.figures import plot_instance_code, plot_sensitivity
 from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from ..eval.reporting.report import write_report
 from ..train.config import Config, DataConfig
@@ -63,7 +65,7 @@ class DemoSize:
 
 
 DEMO_SIZES = {
-    # 13.5 minutes leave the 15 of `make demo` room for creating .venv (about a minute) and the estimate's error.
+    # quick's minutes leave the 15 of `make demo` room for creating .venv (about a minute) and the estimate's error.
     # 2000 images a part rather than 1000 and half the epochs: +3 to +5 MSSD at equal crop-updates on a
     # validation split, 4000 only 1 to 1.5 more at twice the rendering (bench/results/recipe.md, fourth round).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
@@ -252,7 +254,7 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
     for path in models.by_representation[POPCODE]:
         estimator = PoseEstimator(path)
         instance = next(inst for inst in split.instances if inst.obj_id in estimator.metadata.objects)
-        codes.append(plot_instance_code(estimator, instance, out_dir / f"code_obj{instance.obj_id}.png"))
+        codes.append(plot_instance_code(instance_code(estimator, instance), out_dir / f"code_obj{instance.obj_id}.png"))
     figures["code on the sphere"] = codes
     # Metric sensitivity (paper Fig. 4) on the first test instance of the object with the most symmetries.
     obj_id = max(split.obj_ids, key=lambda o: len(split.models_info[o].get("symmetries_discrete", [])))

@@ -24,7 +24,8 @@ from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_
 
 from ..data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from ..export.confidence_fit import calibrate_checkpoint
-from ..export.onnx_export import export_checkpoint
+from ..export.model_io import load_trained_model
+from ..export.onnx_export import export_trained
 from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
 from ..train.loop import train
 from ..train.network import NetworkConfig
@@ -158,7 +159,7 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
         train(config, data.representation, data.train_set, data.val_set,
               resume=(folder / LAST_CHECKPOINT).exists(), val_instances=data.val_instances)
         crops, obj_ids = validation_crops(config)
-        calibrator, _ = calibrate_checkpoint(folder / LAST_CHECKPOINT)
-        export_checkpoint(folder / LAST_CHECKPOINT, onnx_path, crops, quantisations, obj_ids=obj_ids,
-                          calibrator=calibrator)
+        trained = load_trained_model(folder / LAST_CHECKPOINT)
+        calibrator, _ = calibrate_checkpoint(trained)
+        export_trained(trained, onnx_path, crops, quantisations, obj_ids=obj_ids, calibrator=calibrator)
     return onnx_path, time.perf_counter() - started

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
@@ -26,19 +25,18 @@ from popcode_runtime.confidence import (
     code_features,
     default_rival_radius_deg,
 )
-from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.image_loop import estimate_images, group_by_image
 from popcode_runtime.metadata import GRID_REPRESENTATIONS, Representation
 from popcode_runtime.symmetries import symmetry_rotations
 
 from ..data.bop import Instance
-from ..eval.pipeline.split import rows_by_image
 from ..metrics.confidence import rotation_errors_deg
-from ..train import checkpoint
 from ..train.config import Config
 from ..train.training_data import read_instances, split_by_image
-from .torch_engine import checkpoint_estimator
+from .model_io import TrainedModel
+from .torch_engine import trained_estimator
 
 MAX_CALIBRATION_INSTANCES = 2000  # enough for four weights; bounds the export's time
 MIN_PER_OUTCOME = 5  # correct and wrong estimates each; fewer cannot say where the boundary lies
@@ -65,21 +63,20 @@ def held_out_instances(config: Config, limit: int = MAX_CALIBRATION_INSTANCES) -
 
 def estimate_held_out(estimators: Sequence[PoseEstimator], instances: Sequence[Instance], rival_radius_deg: float,
                       progress: bool = True) -> HeldOutEstimates:
-    """Run the estimators (one model, one per decoder) on every instance, each image read once; the code's
-    features (from the first) and each decoder's errors up to symmetry."""
+    """Run the estimators (one model, one per decoder) on every instance, each through the runtime's per-image
+    loop; the code's features (from the first) and each decoder's errors up to symmetry."""
     meta = estimators[0].metadata
+    images = group_by_image(instances)
     codes = np.empty((len(instances), meta.output_dim), np.float32)
     R_est = {estimator.decoder: np.empty((len(instances), 3, 3)) for estimator in estimators}
-    for image_path, rows in tqdm(rows_by_image(instances).items(), unit="img", disable=not progress,
-                                 desc="confidence: held-out crops"):
-        image = read_image(image_path)
-        for index, estimator in enumerate(estimators):
-            predictions = estimator.predict(image, [instances[i].box for i in rows], K=instances[rows[0]].K,
-                                            obj_ids=[instances[i].obj_id for i in rows], return_code=index == 0)
-            for row, prediction in zip(rows, predictions, strict=True):
-                R_est[estimator.decoder][row] = prediction.R_m2c
-                if index == 0:
-                    codes[row] = prediction.code
+    for index, estimator in enumerate(estimators):
+        for done in tqdm(estimate_images([estimator], [estimator.decoder], images, return_code=index == 0),
+                         total=len(images), unit="img", disable=not progress,
+                         desc=f"confidence: held-out crops ({estimator.decoder})"):
+            rows = list(done.key)
+            R_est[estimator.decoder][rows] = np.stack([p.R_m2c for p in done.predictions])
+            if index == 0:
+                codes[rows] = np.stack([p.code for p in done.predictions])
     obj_ids = np.array([inst.obj_id for inst in instances])
     features = np.empty((len(instances), len(FEATURES)))
     for obj_id in np.unique(obj_ids):
@@ -148,13 +145,14 @@ def fit_calibrator(estimator: PoseEstimator, instances: Sequence[Instance],
         f"fitted on {len(correct)} held-out crops ({100 * correct.mean():.1f} % within {threshold_deg:g} deg)"
 
 
-def calibrate_checkpoint(path: str | Path, threshold_deg: float = DEFAULT_THRESHOLD_DEG,
+def calibrate_checkpoint(trained: TrainedModel, threshold_deg: float = DEFAULT_THRESHOLD_DEG,
                          progress: bool = True) -> tuple[Calibrator | None, str]:
-    """Fit the calibrator of a training checkpoint on the images its training held out (see :func:`fit_calibrator`)."""
-    estimator = checkpoint_estimator(path)
+    """Fit the calibrator of a loaded training checkpoint on the images its training held out
+    (see :func:`fit_calibrator`)."""
+    estimator = trained_estimator(trained)
     if estimator.metadata.representation not in GRID_REPRESENTATIONS:
         return fit_calibrator(estimator, [], threshold_deg, progress)
-    config = Config.from_dict(checkpoint.load_trained(path)["config"])
+    config = trained.config
     if not config.data.splits or not config.data.models_dir:
         return None, "the checkpoint's config names no BOP split whose held-out images could calibrate it"
     return fit_calibrator(estimator, held_out_instances(config), threshold_deg, progress)

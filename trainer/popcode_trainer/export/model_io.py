@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import onnx
 import torch
@@ -16,22 +19,44 @@ from popcode_runtime.metadata import ModelMetadata
 
 from ..data.hull import with_hull_points
 from ..train import checkpoint
+from ..train.config import Config
 from ..train.network import NetworkConfig, build_network
 from ..train.representations import CodeSoftmax, code_mass
 
 ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
 
 
-def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
-    """The trained network (eval mode) and its metadata, training summary and hull points included.
+@dataclass(frozen=True)
+class TrainedModel:
+    """A training checkpoint read once (:func:`load_trained_model`) for everything a command does with it: export,
+    quantisation, the torch engine and the confidence fit share its network and metadata."""
+
+    network: torch.nn.Module  # eval mode, outputs what the runtime reads
+    metadata: ModelMetadata  # training summary and hull points included
+
+    @property
+    def config(self) -> Config:
+        """The training config, checked as a config file is; only where it is used (an old checkpoint's config may
+        name settings since removed, which export alone does not need)."""
+        return Config.from_dict(self.metadata.training["config"])
+
+
+def load_trained_model(path: str | Path) -> TrainedModel:
+    """The training checkpoint at ``path``, read once (see :func:`trained_model`)."""
+    return trained_model(checkpoint.load_trained(path), path)
+
+
+def trained_model(state: Mapping[str, Any], path: str | Path) -> TrainedModel:
+    """The network (eval mode) and metadata of a checkpoint's contents (read from ``path`` by
+    :func:`~popcode_trainer.train.checkpoint.load_trained`), training summary and hull points included.
 
     The network outputs what the runtime reads: a model trained with the
     cross-entropy loss gets its :class:`CodeSoftmax` appended.
 
-    Each object's ``hull_points_mm`` come from its mesh in the training config's
+    Each object's ``hull_points_mm`` were stored at training; a checkpoint
+    written before they were gets them from its mesh in the training config's
     models folder (see :func:`~popcode_trainer.data.hull.with_hull_points`).
     """
-    state = checkpoint.load_trained(path)
     try:
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in state["network"].items()}
         model = build_network(NetworkConfig(**fields))
@@ -51,7 +76,13 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
     if config["train"].get("loss", "mse") == "cross_entropy":  # trained on logits: deployed as a code
         model.output_activation = CodeSoftmax(code_mass(metadata.code))
     objects = with_hull_points(metadata.objects, config["data"].get("models_dir"))
-    return model.eval(), dataclasses.replace(metadata, objects=objects, training=training)
+    return TrainedModel(model.eval(), dataclasses.replace(metadata, objects=objects, training=training))
+
+
+def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetadata]:
+    """The network and metadata of :func:`load_trained_model`."""
+    trained = load_trained_model(path)
+    return trained.network, trained.metadata
 
 
 def save_onnx(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:

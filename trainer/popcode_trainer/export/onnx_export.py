@@ -26,7 +26,7 @@ from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 from ..train.network import ColumnBlockOutputLayer
 from .agreement import Comparison, compare, crop_symmetries
-from .model_io import load_checkpoint_model, save_onnx
+from .model_io import TrainedModel, load_trained_model, save_onnx
 from .quantise import quantise
 from .torch_engine import TorchEngine
 
@@ -81,7 +81,16 @@ def check_parity(model: torch.nn.Module, onnx_path: Path, crops: np.ndarray, met
 def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: np.ndarray,
                       quantisations: tuple[str, ...] = (), split_output: int = 0,
                       obj_ids: Sequence[int] | None = None, calibrator: Calibrator | None = None) -> list[Comparison]:
-    """Export, check parity, quantise; returns the float parity and each quantised model's agreement.
+    """:func:`export_trained` of the training checkpoint at ``checkpoint_path``."""
+    return export_trained(load_trained_model(checkpoint_path), out_path, crops, quantisations, split_output, obj_ids,
+                          calibrator)
+
+
+def export_trained(trained: TrainedModel, out_path: str | Path, crops: np.ndarray, quantisations: tuple[str, ...] = (),
+                   split_output: int = 0, obj_ids: Sequence[int] | None = None,
+                   calibrator: Calibrator | None = None) -> list[Comparison]:
+    """Export a loaded checkpoint, check parity, quantise; returns the float parity and each quantised model's
+    agreement.
 
     int8 is calibrated on ``crops`` too, so its agreement is measured on the
     crops it was calibrated on. ``obj_ids`` (the object of each crop) picks
@@ -89,8 +98,8 @@ def export_checkpoint(checkpoint_path: str | Path, out_path: str | Path, crops: 
     with different symmetries has none without them. ``calibrator`` (see
     :mod:`popcode_trainer.export.confidence_fit`) goes into the metadata of every model written.
     """
-    model, metadata = load_checkpoint_model(checkpoint_path)
-    metadata = dataclasses.replace(metadata, confidence=calibrator)
+    model = trained.network
+    metadata = dataclasses.replace(trained.metadata, confidence=calibrator)
     size = metadata.input_size
     crops = np.asarray(crops, dtype=np.float32)
     if crops.ndim != 4 or crops.shape[1:] != (1, size, size) or len(crops) == 0:

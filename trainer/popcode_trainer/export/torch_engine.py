@@ -14,7 +14,7 @@ import torch
 
 from popcode_runtime.estimator import PoseEstimator
 
-from .model_io import load_checkpoint_model
+from .model_io import TrainedModel, load_trained_model
 
 
 class TorchEngine:
@@ -29,7 +29,11 @@ class TorchEngine:
             return self.network(torch.from_numpy(np.ascontiguousarray(crops, dtype=np.float32))).numpy()
 
 
+def trained_estimator(trained: TrainedModel, decoder: str = "argmax") -> PoseEstimator:
+    """A loaded checkpoint as a ``PoseEstimator``: its network through torch, its metadata as export writes it."""
+    return PoseEstimator.from_engine(TorchEngine(trained.network), trained.metadata, decoder)
+
+
 def checkpoint_estimator(path: str | Path, decoder: str = "argmax") -> PoseEstimator:
-    """A training checkpoint as a ``PoseEstimator``: its network through torch, its metadata as export writes it."""
-    network, metadata = load_checkpoint_model(path)
-    return PoseEstimator.from_engine(TorchEngine(network), metadata, decoder)
+    """The :func:`trained_estimator` of the training checkpoint at ``path``."""
+    return trained_estimator(load_trained_model(path), decoder)

@@ -4,7 +4,7 @@ An estimate is *correct* when its rotation error up to the object's symmetries
 is below the calibrator's threshold; a calibrated confidence of 0.8 should be
 right 80 % of the time (expected calibration error, ECE), and ranking estimates
 by it should put the wrong ones last (AUROC; the MSSD of the estimates a robot
-keeps when it acts on the most confident 90 / 75 / 50 %).
+keeps when it acts on the most confident fractions, :data:`COVERAGES`).
 """
 
 from __future__ import annotations

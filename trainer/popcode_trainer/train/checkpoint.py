@@ -8,6 +8,7 @@ a crash mid-write leaves the previous checkpoint intact.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import random
@@ -19,6 +20,9 @@ import numpy as np
 import torch
 
 from popcode_runtime.errors import PopcodeError, first_line
+from popcode_runtime.metadata import ModelMetadata
+
+from ..data.hull import with_hull_points
 
 # Keys that may change when resuming: more epochs extend a run; the output folder may move.
 RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers")}
@@ -63,6 +67,18 @@ def load_trained(path: str | Path) -> dict[str, Any]:
     if wrong:
         raise PopcodeError(f"{path} is not a popcode training checkpoint: {wrong} are not dicts")
     return state
+
+
+def metadata_props(metadata: ModelMetadata, input_size: int, models_dir: str | Path | None) -> dict[str, str]:
+    """The metadata a checkpoint stores: the representation's, at the crop size the network was trained on (the
+    runtime crops at that size, not the default), with each object's ``hull_points_mm`` from its mesh in
+    ``models_dir``, computed once per run so that export needs neither the meshes nor the time.
+
+    Without a models folder (data sets built in code) the objects are kept as they are; export then looks for
+    meshes as it does for a checkpoint written before hull points were stored.
+    """
+    objects = with_hull_points(metadata.objects, models_dir) if models_dir else metadata.objects
+    return dataclasses.replace(metadata, input_size=input_size, objects=objects).to_props()
 
 
 def rng_state() -> dict[str, Any]:

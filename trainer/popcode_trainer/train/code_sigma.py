@@ -3,7 +3,7 @@
 Every symmetric pose of a part is its own peak in the code. When the tuning
 width sigma is wide compared with the distance between two of those peaks, they
 merge, and even a perfect network output decodes to a rotation between them
-(a 6-fold nut at sigma 20 deg on the 642 x 36 grid: about 29 deg at worst).
+(the hex nut of tests/trainer/test_code_sigma.py at the paper's width on the demo's grid).
 The test is empirical: encode the exact code of many rotations, decode it with
 the refined decoder (the runtime's, which knows the symmetries) and require the
 error up to symmetry to stay below :data:`EXACT_TOLERANCE_DEG`.
@@ -25,8 +25,9 @@ from popcode_runtime.symmetries import rotation_error_up_to_symmetry, symmetry_r
 
 CHECK_ROTATIONS = 100  # random rotations per check (seeded: the choice is deterministic)
 CHECK_PERCENTILE = 99.0
-# "Exact": 1 deg moves a point on the part's surface by < 0.9 % of its diameter, below the
-# finest MSSD threshold (5 %); merged peaks cost errors of the order of their separation.
+# "Exact": 1 deg moves a point on the part's surface by < 0.9 % of its diameter, far below the finest
+# MSSD threshold (min of metrics.recall.Thresholds.mssd_fractions); merged peaks cost errors of the order
+# of their separation.
 EXACT_TOLERANCE_DEG = 1.0
 SIGMA_STEP_DEG = 2.5  # candidate widths: sigma_deg, sigma_deg - 2.5, ... down to the floor
 FLOOR_OF_SPACING = 0.75  # narrower than 3/4 of the grid spacing, the code falls between neurons

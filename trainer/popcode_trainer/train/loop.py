@@ -14,7 +14,6 @@ import math
 import random
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,21 +32,8 @@ from . import checkpoint, distributed
 from .config import Config
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
-from .run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from .run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE, EpochMetrics
 from .schedule import learning_rate
-
-
-@dataclass(frozen=True)
-class EpochMetrics:
-    """One row of ``metrics.csv``; errors are up to symmetry, in the model's rotation frame."""
-
-    epoch: int
-    train_loss: float
-    val_loss: float
-    val_error_mean_deg: float
-    val_error_median_deg: float
-    samples_per_s: float
-    seconds: float
 
 
 def network_config(config: Config, representation: OutputRepresentation) -> NetworkConfig:
@@ -212,6 +198,8 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         out_dir.mkdir(parents=True, exist_ok=True)
     tensorboard = _TensorBoard(out_dir) if context.is_main else None
     revision = checkpoint.git_revision() if context.is_main else ""
+    metadata = checkpoint.metadata_props(representation.metadata, net_config.input_size,
+                                         config.data.models_dir) if context.is_main else {}
     history = []
     for epoch in range(start_epoch, cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)):
         if hasattr(train_set, "set_epoch"):
@@ -262,8 +250,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                 "epoch": epoch + 1,
                 "config": config.to_dict(),
                 "network": dataclasses.asdict(net_config),
-                # The runtime crops at the size the network was trained on (data.crop_size), not the default.
-                "metadata": dataclasses.replace(representation.metadata, input_size=net_config.input_size).to_props(),
+                "metadata": metadata,
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "scaler": scaler.state_dict(),

@@ -9,7 +9,6 @@ routed to the model that knows its object.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,21 +17,20 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.estimator import PoseEstimator, Prediction
+from popcode_runtime.image_loop import estimate_images, group_by_image, route_objects
 
 from ...data.bop import Instance
 from ...export.torch_engine import checkpoint_estimator
 from .estimates import Estimates
 from .results_file import RESULTS_SUFFIX, ResultsMethod, read_results_method
-from .split import rows_by_image
 from .translation import object_points
 
 
 @dataclass(frozen=True)
 class RotationModel:
-    """A model file behind the runtime's ``PoseEstimator``: the boxes of one image -> model-to-camera rotations."""
+    """A model file and the runtime's ``PoseEstimator`` that runs it."""
 
     path: Path
     estimator: PoseEstimator
@@ -45,13 +43,6 @@ class RotationModel:
     @property
     def obj_ids(self) -> frozenset[int]:
         return frozenset(self.objects)
-
-    def predict(self, image: np.ndarray, boxes: list[tuple[float, ...]], K: np.ndarray,
-                obj_ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Rotations ``(n, 3, 3)`` in the camera frame, their calibrated confidence (NaN: none) and raw score."""
-        predictions = self.estimator.predict(image, boxes, K=K, obj_ids=obj_ids)
-        confidence = [np.nan if p.confidence is None else p.confidence for p in predictions]
-        return np.stack([p.R_m2c for p in predictions]), np.array(confidence), np.array([p.score for p in predictions])
 
     @property
     def confidence_threshold_deg(self) -> float | None:
@@ -85,17 +76,6 @@ class Method:
     name: str
     models: tuple[RotationModel, ...]
 
-    def model_of(self) -> dict[int, RotationModel]:
-        """Object id -> the one model that estimates it; two models for one object is an error."""
-        owner: dict[int, RotationModel] = {}
-        for model in self.models:
-            for obj_id in model.obj_ids:
-                if obj_id in owner:
-                    raise PopcodeError(f"method {self.name!r}: object {obj_id} is in both {owner[obj_id].path} "
-                                       f"and {model.path}")
-                owner[obj_id] = model
-        return owner
-
     def object_points(self) -> dict[int, np.ndarray]:
         """Object id -> the points its model's metadata gives the runtime to fit a box."""
         points_mm: dict[int, np.ndarray] = {}
@@ -115,8 +95,16 @@ class Method:
         """The threshold of each model's calibrated confidence (None for a model without a calibrator)."""
         return {model.confidence_threshold_deg for model in self.models}
 
+    @property
+    def estimators(self) -> list[PoseEstimator]:
+        return [model.estimator for model in self.models]
+
     def known_objects(self) -> set[int]:
-        return set(self.model_of())
+        """The objects the method's models estimate; two models for one object is an error."""
+        try:
+            return set(route_objects(self.estimators, self.paths))
+        except PopcodeError as error:
+            raise PopcodeError(f"method {self.name!r}: {error}") from error
 
     def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
                  progress: bool = True) -> Estimates:
@@ -125,30 +113,30 @@ class Method:
 
 
 def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True) -> Estimates:
-    """The method's estimate of every instance; each image is read once."""
-    owner = method.model_of()
-    missing = sorted({inst.obj_id for inst in instances} - set(owner))
+    """The method's estimate of every instance, through the runtime's per-image loop (each image read once).
+
+    The seconds per crop count the models' predict calls only, not reading the images.
+    """
+    known = method.known_objects()
+    missing = sorted({inst.obj_id for inst in instances} - known)
     if missing:
         raise PopcodeError(f"method {method.name!r} has no model for objects {missing} of the split "
-                           f"(its models know {sorted(owner)}); pass --obj-ids to evaluate fewer objects")
-    by_image = rows_by_image(instances)
+                           f"(its models know {sorted(known)}); pass --obj-ids to evaluate fewer objects")
+    images = group_by_image(instances)
     R_est, confidence, score = np.empty((len(instances), 3, 3)), np.empty(len(instances)), np.empty(len(instances))
-    model_s = 0.0
-    for image_path, rows in tqdm(by_image.items(), desc=f"predict {method.name}", unit="img", disable=not progress):
-        image = read_image(image_path)
-        for model in method.models:
-            chosen = [i for i in rows if instances[i].obj_id in model.obj_ids]
-            if not chosen:
-                continue
-            started = time.perf_counter()
-            try:
-                R_est[chosen], confidence[chosen], score[chosen] = model.predict(
-                    image, [instances[i].box for i in chosen], instances[chosen[0]].K,
-                    [instances[i].obj_id for i in chosen])
-            except PopcodeError as error:  # a box or camera of the split the runtime refuses: name the image
-                raise PopcodeError(f"{image_path}: {error}") from error
-            model_s += time.perf_counter() - started
-    return Estimates(R_est, confidence, score, model_s / max(len(instances), 1))
+    predict_s = 0.0
+    for done in tqdm(estimate_images(method.estimators, method.paths, images), total=len(images),
+                     desc=f"predict {method.name}", unit="img", disable=not progress):
+        rows = list(done.key)
+        R_est[rows], confidence[rows], score[rows] = _arrays(done.predictions)
+        predict_s += done.predict_s
+    return Estimates(R_est, confidence, score, predict_s / max(len(instances), 1))
+
+
+def _arrays(predictions: Sequence[Prediction]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotations ``(n, 3, 3)`` in the camera frame, their calibrated confidence (NaN: none) and raw score."""
+    confidence = [np.nan if p.confidence is None else p.confidence for p in predictions]
+    return np.stack([p.R_m2c for p in predictions]), np.array(confidence), np.array([p.score for p in predictions])
 
 
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,

@@ -10,6 +10,7 @@ from typing import Any
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.image_loop import group_by_image
 
 from ...data.bop import Instance, read_bop_split
 
@@ -54,10 +55,7 @@ def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, ob
 
 def rows_by_image(instances: Sequence[Instance]) -> dict[Path, list[int]]:
     """The indices of the instances in each image, so that every image is read once."""
-    rows: dict[Path, list[int]] = defaultdict(list)
-    for index, inst in enumerate(instances):
-        rows[inst.image_path].append(index)
-    return rows
+    return {image.path: list(image.key) for image in group_by_image(instances)}
 
 
 def restrict_to_objects(split: EvalSplit, obj_ids: Iterable[int]) -> EvalSplit:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -10,24 +9,14 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from popcode_runtime.crop import crop_square, read_image, to_grey
-from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import geodesic_angle
 from popcode_runtime.symmetries import symmetry_transforms
 
-from ...train.run_files import METRICS_FILE
+from ...train.run_files import METRICS_FILE, read_metrics
 from ..pipeline.evaluate import MethodResult
 from .figures import save_figure
 
 AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # object x, y, z
-
-
-def read_metrics(path: str | Path) -> dict[str, np.ndarray]:
-    """The columns of a training ``metrics.csv`` as float arrays."""
-    with Path(path).open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    if not rows:
-        raise PopcodeError(f"{path} has no epochs")
-    return {name: np.array([float(row[name]) for row in rows]) for name in rows[0]}
 
 
 def plot_training_curves(metrics_files: Mapping[str, str | Path], path: str | Path) -> Path:
@@ -39,7 +28,7 @@ def plot_training_curves(metrics_files: Mapping[str, str | Path], path: str | Pa
     figure = Figure(figsize=(10.0, 3.6), dpi=150)
     loss_axes, error_axes = figure.subplots(1, 2)
     for name, metrics_path in metrics_files.items():
-        metrics = read_metrics(metrics_path)
+        metrics = read_metrics(metrics_path, ("epoch", "train_loss", "val_error_median_deg"))
         loss_axes.plot(metrics["epoch"], metrics["train_loss"] / metrics["train_loss"][0], marker=".", label=name)
         error_axes.plot(metrics["epoch"], metrics["val_error_median_deg"], marker=".", label=name)
     loss_axes.set_ylabel("training loss / first epoch's")

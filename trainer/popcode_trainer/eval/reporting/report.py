@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
+from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
 
 from ...metrics.pose_errors import rotation_error_deg, translation_error_mm
@@ -151,12 +152,12 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
 
 
 def visibility_section(results: Sequence[MethodResult]) -> list[str]:
-    """Scores per visibility bin: only for a split with occlusion (some instance less than 90 % visible)."""
+    """Scores per visibility bin: only for a split with occlusion (an instance below the first of VISIBILITY_BINS)."""
     if all(inst.visib_fract >= VISIBILITY_BINS[0][1] for inst in results[0].split.instances):
         return []
     return ["## Scores by visibility (visib_fract of the ground truth)",
             "Occluded instances, and those the image border cuts, binned by the visible fraction of the object; "
-            "instances below 0.1 are not evaluated (BOP19).",
+            f"instances below {BOP19_MIN_VISIB_FRACT:g} are not evaluated (BOP19).",
             visibility_markdown({r.name: r.by_visibility for r in results})]
 
 
