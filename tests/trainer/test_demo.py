@@ -21,6 +21,7 @@ from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import StagePlan, run_demo
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
+from popcode_trainer.train import training_data
 from popcode_trainer.train.network import NetworkConfig
 from popcode_trainer.train.run_files import LAST_CHECKPOINT
 
@@ -120,12 +121,14 @@ def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -
 @pytest.mark.slow
 def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Training computes each object's hull points once and stores them; the export (calibration, parity, int8)
-    reads the checkpoint it wrote once."""
+    reads the checkpoint it wrote once, and the split is read once for all of it."""
     split = render_builtin_split(tmp_path / "split", 4, obj_ids=[3, 6], random_position=True)
     loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
+    splits = calls_of(monkeypatch, training_data, "read_bop_split")
     train_and_export(TINY, POPCODE, [3, 6], split, tmp_path, ("int8",))
     assert [args[0] for args in loads] == [run_dir(tmp_path, POPCODE, [3, 6]) / LAST_CHECKPOINT]
     assert len(hulls) == 2
+    assert [Path(args[0]) for args in splits] == [split]  # for training, parity crops and calibration alike
 
 
 def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None:

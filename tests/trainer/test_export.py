@@ -33,9 +33,10 @@ from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.export import onnx_export as export
 from popcode_trainer.export.agreement import compare
-from popcode_trainer.export.model_io import load_checkpoint_model, load_trained_model
+from popcode_trainer.export.model_io import load_checkpoint_model, load_trained_model, read_onnx_metadata
 from popcode_trainer.export.onnx_export import export_checkpoint, export_onnx
 from popcode_trainer.export.quantise import quantise
+from popcode_trainer.train import training_data
 from popcode_trainer.train.config import Config
 from popcode_trainer.train.loop import network_config, train
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, build_network
@@ -79,6 +80,19 @@ def test_a_run_without_validation_exports_a_model_the_runtime_reads(tmp_path: Pa
     crops = np.stack([val_set[i]["image"].numpy() for i in range(4)])
     export_checkpoint(tmp_path / "run" / LAST_CHECKPOINT, tmp_path / "m.onnx", crops)
     assert PoseEstimator(tmp_path / "m.onnx").metadata.training["best_val_error_deg"] is None
+
+
+def test_metadata_read_from_the_file_is_the_runtimes(tmp_path: Path) -> None:
+    """Reports read what a model is without an inference session; it is what the runtime reads."""
+    config = tiny_config(tmp_path / "run", epochs=1)
+    rep = tiny_representation(config)
+    train_set, val_set = tiny_data(rep)
+    train(config, rep, train_set, val_set)
+    export_checkpoint(tmp_path / "run" / LAST_CHECKPOINT, tmp_path / "m.onnx", np.stack([draw(np.eye(3))[None]]))
+    assert read_onnx_metadata(tmp_path / "m.onnx").to_props() == PoseEstimator(tmp_path / "m.onnx").metadata.to_props()
+    (tmp_path / "broken.onnx").write_bytes(b"not a model")
+    with pytest.raises(PopcodeError, match="broken.onnx: not a readable ONNX model"):
+        read_onnx_metadata(tmp_path / "broken.onnx")
 
 
 def optimised_op_types(path: Path, out: Path) -> list[str]:
@@ -322,11 +336,14 @@ def mesh_hull_points(models: Path) -> list[list[float]]:
 def test_export_and_evaluate_commands_read_the_checkpoint_once(rendered_split: Path, tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """The default export (validation crops, confidence fit, parity, int8) and an evaluation of the .pt read the
-    file once each; the hull points stored at training are not computed again."""
+    file once each; the hull points stored at training are not computed again; the export reads the training
+    split once for its crops and the calibration."""
     ckpt, models = rendered_checkpoint(rendered_split, tmp_path)
     loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
+    splits = calls_of(monkeypatch, training_data, "read_bop_split")
     assert main(["export", str(ckpt), "--out", str(tmp_path / "model.onnx"), "--quantize", "int8"]) == 0
     assert [args[0] for args in loads] == [ckpt] and hulls == []
+    assert [Path(args[0]) for args in splits] == [rendered_split]
     loads.clear()
     assert main(["evaluate", str(ckpt), "--split", str(rendered_split), "--models-dir", str(models),
                  "--out", str(tmp_path / "eval"), "--no-vsd"]) == 0

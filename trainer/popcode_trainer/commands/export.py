@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,6 +17,9 @@ from ..export.onnx_export import COREML_MAX_DIM, export_trained
 from ..export.quantise import QUANTISATIONS
 from ..train import checkpoint
 from ..train.config import Config
+
+if TYPE_CHECKING:  # the data side is imported only when the default crops need it
+    from ..train.training_data import TrainingSplit
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -69,19 +72,22 @@ def _check_crops(crops: np.ndarray, obj_ids: np.ndarray | None) -> None:
         raise PopcodeError(f"--crop-obj-ids must be {len(crops)} integers, got {obj_ids.dtype} {obj_ids.shape}")
 
 
-def _crops(args: argparse.Namespace, state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+def _crops(args: argparse.Namespace,
+           state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None, TrainingSplit | None]:
     """Parity crops and their object ids (None: not given); by default the validation crops of the checkpoint's
-    training (``state``: its contents)."""
+    training (``state``: its contents), with its training split, read once for the calibration too."""
     if args.crops is not None:
         obj_ids = None if args.crop_obj_ids is None else _load_npy(args.crop_obj_ids, "crop object ids")
         crops = _load_npy(args.crops, "crops")
         _check_crops(crops, obj_ids)
-        return crops, obj_ids
+        return crops, obj_ids, None
     if args.crop_obj_ids is not None:
         raise PopcodeError("--crop-obj-ids names the objects of --crops; give --crops too")
-    from ..train.training_data import validation_crops  # imports the data side only when needed
+    from ..train.training_data import read_training_split, validation_crops  # the data side only when needed
 
-    return validation_crops(Config.from_dict(state["config"]))
+    config = Config.from_dict(state["config"])
+    split = read_training_split(config)
+    return *validation_crops(config, split=split), split
 
 
 def _percent(share: float | None) -> str:
@@ -96,10 +102,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.out.parent.is_dir():
         raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
     state = checkpoint.load_trained(args.checkpoint)  # read once, and refused here before any crop is read
-    crops, obj_ids = _crops(args, state)
+    crops, obj_ids, split = _crops(args, state)
     trained = trained_model(state, args.checkpoint)
     calibrator, note = (None, "not asked for (--no-confidence)") if args.no_confidence else \
-        calibrate_checkpoint(trained, args.confidence_threshold)
+        calibrate_checkpoint(trained, args.confidence_threshold, split=split)
     results = export_trained(trained, args.out, crops, tuple(args.quantize), args.split_output,
                              obj_ids=obj_ids, calibrator=calibrator)
     print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17} {'pose agreement':>15}")

@@ -12,7 +12,6 @@ import numpy as np
 
 from popcode_runtime.benchmark import BENCH_IMAGE_SHAPE, machine_description
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.metadata import Representation
 
@@ -22,6 +21,7 @@ from ..eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
 from ..eval.reporting.markdown import markdown_table
 from ..eval.reporting.report import REPORT_MD, full_pose_markdown
 from ..eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
+from ..export.model_io import read_onnx_metadata
 from ..train.network import NetworkConfig
 from .epoch_budget import EpochFit
 from .steps import PipelineSize
@@ -96,7 +96,7 @@ def write_model_card(run: DemoRun) -> Path:
     train, network = size.config.train, size.config.network
     lines = [f"# Model card: population-code models of the built-in objects (demo size `{run.size_name}`)", ""]
     for path, quantised in zip(run.models.by_representation[POPCODE], run.models.quantised, strict=True):
-        meta = PoseEstimator(path).metadata
+        meta = read_onnx_metadata(path)
         objects = ", ".join(f"{o} ({symmetry_name(meta.objects[o])})" for o in sorted(meta.objects))
         layout = meta.code
         lines.append(f"- `{run.link(path)}`: objects {objects}; code {layout.n_axes} axes"
@@ -166,7 +166,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
     figure_lines = [f"### {title}\n\n" + "\n".join(f"![{title}]({run.link(p)})" for p in paths)
                     for title, paths in run.figures.items()]
     example = run.models.by_representation[POPCODE][-1]
-    example_objects = PoseEstimator(example).metadata.objects
+    example_objects = read_onnx_metadata(example).objects
     instance = next(inst for inst in run.split.instances if inst.obj_id in example_objects)
     box = ",".join(f"{v:g}" for v in instance.box)
     eval_report = run.out_dir / "eval" / REPORT_MD

@@ -34,6 +34,7 @@ from ..eval.pipeline.split import EvalSplit, read_eval_split
 from ..eval.reporting.figures import plot_instance_code, plot_sensitivity
 from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from ..eval.reporting.report import write_report
+from ..export.model_io import read_onnx_metadata
 from ..train.config import Config, DataConfig
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
@@ -224,7 +225,7 @@ def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path)
 
 def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, Any]]:
     """Batch-1 and batch-8 latency of every exported model of the largest group, one thread."""
-    largest = int(np.argmax([len(PoseEstimator(p).metadata.objects) for p in models.by_representation[POPCODE]]))
+    largest = int(np.argmax([len(read_onnx_metadata(p).objects) for p in models.by_representation[POPCODE]]))
     chosen = {f"{POPCODE} (fp32)": models.by_representation[POPCODE][largest],
               f"{POPCODE} ({QUANTISATION})": models.quantised[largest]}
     chosen |= {f"{name} (fp32)": paths[largest] for name, paths in models.by_representation.items()

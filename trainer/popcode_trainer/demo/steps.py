@@ -30,7 +30,7 @@ from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
 from ..train.loop import train
 from ..train.network import NetworkConfig
 from ..train.run_files import LAST_CHECKPOINT, MODEL_FILE
-from ..train.training_data import build_training_data, validation_crops
+from ..train.training_data import build_training_data, read_training_split, validation_crops
 from .epoch_budget import first_epoch_seconds
 
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
@@ -155,11 +155,12 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
     started = time.perf_counter()
     quantised = [folder / f"{onnx_path.stem}.{kind}.onnx" for kind in quantisations]
     if not onnx_path.exists() or not all(path.exists() for path in quantised):
-        data = build_training_data(config)
+        split = read_training_split(config)  # read once for training, parity crops and calibration
+        data = build_training_data(config, split=split)
         train(config, data.representation, data.train_set, data.val_set,
               resume=(folder / LAST_CHECKPOINT).exists(), val_instances=data.val_instances)
-        crops, obj_ids = validation_crops(config)
+        crops, obj_ids = validation_crops(config, split=split)
         trained = load_trained_model(folder / LAST_CHECKPOINT)
-        calibrator, _ = calibrate_checkpoint(trained)
+        calibrator, _ = calibrate_checkpoint(trained, split=split)
         export_trained(trained, onnx_path, crops, quantisations, obj_ids=obj_ids, calibrator=calibrator)
     return onnx_path, time.perf_counter() - started

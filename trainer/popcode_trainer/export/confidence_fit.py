@@ -33,8 +33,7 @@ from popcode_runtime.symmetries import symmetry_rotations
 
 from ..data.bop import Instance
 from ..metrics.confidence import rotation_errors_deg
-from ..train.config import Config
-from ..train.training_data import read_instances, split_by_image
+from ..train.training_data import TrainingSplit, read_training_split
 from .model_io import TrainedModel
 from .torch_engine import trained_estimator
 
@@ -51,12 +50,10 @@ class HeldOutEstimates:
     errors_deg: dict[str, np.ndarray]  # decoder -> (N,) rotation error up to symmetry
 
 
-def held_out_instances(config: Config, limit: int = MAX_CALIBRATION_INSTANCES) -> list[Instance]:
-    """The validation instances of a training config (the images training held out), at most ``limit``, seeded."""
-    instances, _ = read_instances(config)
-    _, held_out = split_by_image(instances, config.data.val_fraction, config.train.seed)
+def held_out_instances(held_out: list[Instance], seed: int, limit: int = MAX_CALIBRATION_INSTANCES) -> list[Instance]:
+    """At most ``limit`` of the instances training held out, chosen with the training seed."""
     if len(held_out) > limit:
-        chosen = np.random.default_rng(config.train.seed).choice(len(held_out), limit, replace=False)
+        chosen = np.random.default_rng(seed).choice(len(held_out), limit, replace=False)
         held_out = [held_out[i] for i in sorted(chosen)]
     return held_out
 
@@ -146,13 +143,14 @@ def fit_calibrator(estimator: PoseEstimator, instances: Sequence[Instance],
 
 
 def calibrate_checkpoint(trained: TrainedModel, threshold_deg: float = DEFAULT_THRESHOLD_DEG,
-                         progress: bool = True) -> tuple[Calibrator | None, str]:
-    """Fit the calibrator of a loaded training checkpoint on the images its training held out
-    (see :func:`fit_calibrator`)."""
+                         progress: bool = True, split: TrainingSplit | None = None) -> tuple[Calibrator | None, str]:
+    """Fit the calibrator of a loaded training checkpoint on the images its training held out (``split``: its
+    training splits, already read; see :func:`fit_calibrator`)."""
     estimator = trained_estimator(trained)
     if estimator.metadata.representation not in GRID_REPRESENTATIONS:
         return fit_calibrator(estimator, [], threshold_deg, progress)
     config = trained.config
     if not config.data.splits or not config.data.models_dir:
         return None, "the checkpoint's config names no BOP split whose held-out images could calibrate it"
-    return fit_calibrator(estimator, held_out_instances(config), threshold_deg, progress)
+    split = split or read_training_split(config)
+    return fit_calibrator(estimator, held_out_instances(split.val, config.train.seed), threshold_deg, progress)

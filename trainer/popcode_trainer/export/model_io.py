@@ -11,6 +11,7 @@ from typing import Any
 
 import onnx
 import torch
+from google.protobuf.message import DecodeError
 from onnx import helper
 
 from popcode_runtime.errors import PopcodeError
@@ -93,3 +94,13 @@ def save_onnx(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> No
     helper.set_model_props(model, metadata.to_props())
     onnx.checker.check_model(model)
     write_bytes_atomic(path, model.SerializeToString())
+
+
+def read_onnx_metadata(path: str | Path) -> ModelMetadata:
+    """The popcode metadata of an exported model, read from the file without building an inference session (for
+    reports that only need to know what a model is)."""
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except (OSError, DecodeError) as error:
+        raise PopcodeError(f"{path}: not a readable ONNX model ({error})") from error
+    return ModelMetadata.from_props({prop.key: prop.value for prop in model.metadata_props})

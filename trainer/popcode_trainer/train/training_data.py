@@ -63,14 +63,32 @@ def split_by_image(instances: list[Instance], val_fraction: float, seed: int) ->
     return train, val
 
 
-def build_training_data(config: Config, progress: bool = True) -> TrainingData:
-    """Instances, representation and data sets of ``config``; training crops are cached in the run folder."""
+@dataclass(frozen=True)
+class TrainingSplit:
+    """The configured splits, read once for everything a command does with them (train, parity crops, calibration)."""
+
+    instances: list[Instance]  # every usable instance
+    objects: dict[int, dict[str, Any]]  # models_info entry of each object used
+    train: list[Instance]
+    val: list[Instance]  # the held-out images' instances (:func:`split_by_image`)
+
+
+def read_training_split(config: Config) -> TrainingSplit:
+    """Read the configured splits and hold out the validation images."""
     instances, objects = read_instances(config)
+    train, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
+    return TrainingSplit(instances, objects, train, val)
+
+
+def build_training_data(config: Config, progress: bool = True, split: TrainingSplit | None = None) -> TrainingData:
+    """Instances, representation and data sets of ``config`` (``split``: already read); training crops are cached
+    in the run folder."""
+    split = split or read_training_split(config)
     code, cfg = config.code, config.train
-    representation = build_representation(cfg.representation, objects, code.n_axes, code.n_angles, code.sigma_deg,
-                                          cfg.rotation_frame, cfg.num_hypotheses, code.sigma_from_symmetries,
-                                          cfg.loss)
-    train, val = split_by_image(instances, config.data.val_fraction, cfg.seed)
+    representation = build_representation(cfg.representation, split.objects, code.n_axes, code.n_angles,
+                                          code.sigma_deg, cfg.rotation_frame, cfg.num_hypotheses,
+                                          code.sigma_from_symmetries, cfg.loss)
+    train, val = split.train, split.val
     augmentation = Augmentation(occlusion_p=config.data.occlusion_p) if config.data.augment else None
     size = config.data.crop_size
     cache = Path(cfg.out_dir) / CROP_CACHE_FOLDER
@@ -84,15 +102,16 @@ def build_training_data(config: Config, progress: bool = True) -> TrainingData:
     )
 
 
-def validation_crops(config: Config, count: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)`` and their object ids ``(N,)``.
+def validation_crops(config: Config, count: int = 64,
+                     split: TrainingSplit | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)`` and their object ids ``(N,)`` (``split``:
+    already read; every instance when none is held out).
 
     The export's parity check input; the ids pick each crop's symmetries for
     the pose agreement.
     """
-    instances, _ = read_instances(config)
-    _, val = split_by_image(instances, config.data.val_fraction, config.train.seed)
-    chosen = (val or instances)[:count]
+    split = split or read_training_split(config)
+    chosen = (split.val or split.instances)[:count]
     crops = CropDataset(chosen, lambda batch: np.zeros((len(batch), 1), np.float32), augmentation=None,
                         crop_size=config.data.crop_size, seed=config.train.seed)
     images = np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
