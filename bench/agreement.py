@@ -27,8 +27,9 @@ from tqdm import tqdm
 from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.image_loop import group_by_image
 from popcode_trainer.data.bop import Instance
-from popcode_trainer.eval.pipeline.split import read_eval_split, rows_by_image
+from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.export.agreement import compare
 
@@ -38,9 +39,9 @@ from .report import write_results
 def split_crops(estimator: PoseEstimator, instances: Sequence[Instance]) -> tuple[np.ndarray, np.ndarray]:
     """The runtime's crops ``(N, 1, S, S)`` of the instances, read image by image, and their object ids."""
     crops, obj_ids = [], []
-    for path, rows in tqdm(rows_by_image(instances).items(), desc="crops", unit="image"):
-        crops.append(estimator.crops(read_image(path), [instances[i].box for i in rows]))
-        obj_ids += [instances[i].obj_id for i in rows]
+    for image in tqdm(group_by_image(instances), desc="crops", unit="image"):
+        crops.append(estimator.crops(read_image(image.path), image.boxes))
+        obj_ids += image.obj_ids
     return np.concatenate(crops), np.array(obj_ids)
 
 

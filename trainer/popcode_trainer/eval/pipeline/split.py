@@ -10,7 +10,6 @@ from typing import Any
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.image_loop import group_by_image
 
 from ...data.bop import Instance, read_bop_split
 
@@ -51,11 +50,6 @@ def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, ob
         instances = kept
     used = {inst.obj_id for inst in instances}
     return EvalSplit(instances, {k: v for k, v in models_info.items() if k in used}, Path(models_dir))
-
-
-def rows_by_image(instances: Sequence[Instance]) -> dict[Path, list[int]]:
-    """The indices of the instances in each image, so that every image is read once."""
-    return {image.path: list(image.key) for image in group_by_image(instances)}
 
 
 def restrict_to_objects(split: EvalSplit, obj_ids: Iterable[int]) -> EvalSplit:
