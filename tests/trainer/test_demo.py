@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import torch
 from test_export import calls_of
 
+from bench import compare_demos
 from popcode_runtime import PoseEstimator
 from popcode_runtime.cli import main as runtime_main
 from popcode_trainer.cli import main as cli_main
@@ -119,6 +121,26 @@ def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -
 
 
 @pytest.mark.slow
+def test_compare_demos_finds_a_changed_number_and_nothing_else(demo_run: tuple[Path, dict], tmp_path: Path) -> None:
+    """The tool that shows a restructure kept the demo's numbers: a run against itself has no difference; a copy
+    with one score and one learning-curve value changed has exactly those two."""
+    out, _ = demo_run
+    assert compare_demos.compare(out, out) == []
+    copy = Path(shutil.copytree(out, tmp_path / "copy"))
+    summary = json.loads((copy / SUMMARY_FILE).read_text())
+    scores = summary["scores"][POPCODE]["All objects"]
+    scores["MSSD"] += 0.01
+    (copy / SUMMARY_FILE).write_text(json.dumps(summary))
+    metrics = next((copy / "runs").glob("*/metrics.csv"))
+    header, first, *rest = metrics.read_text().splitlines()
+    fields = first.split(",")
+    fields[1] = repr(float(fields[1]) + 1e-9)  # train_loss of the first epoch
+    metrics.write_text("\n".join([header, ",".join(fields), *rest]) + "\n")
+    differences = compare_demos.compare(out, copy)
+    assert len(differences) == 2, differences
+    assert "All objects.MSSD" in differences[0] and "train_loss" in differences[1]
+
+
 def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Training computes each object's hull points once and stores them; the export (calibration, parity, int8)
     reads the checkpoint it wrote once, and the split is read once for all of it."""
