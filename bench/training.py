@@ -1,6 +1,7 @@
 """Training throughput per trunk: where a step's time goes (data preparation, forward + backward, optimizer).
 
     python -m bench.training [--quick] [--out DIR] [--networks small paper] [--threads 1 2] [--workers 0 2]
+                             [--paths eager-nchw-fp32 eager-cl-fp32 ...]
 
 Renders a small split of the built-in parts into a temporary folder and builds
 the population-code training data exactly as ``popcode-train train`` does
@@ -12,7 +13,12 @@ For each network and torch thread count it times, in crops per second:
 - ``forward_backward``: network, loss and backward on one fixed batch;
 - ``optimizer``: Adam's step alone;
 - ``step``: the real loop (loader -> forward -> loss -> backward -> step) per
-  worker count, which is what a training run gets.
+  worker count, on the path ``popcode-train train`` chooses on this machine
+  (``train.fast_path``: layout, precision, compiled or not), which is what a
+  training run gets;
+- ``path: ...``: the whole step (forward, loss, backward, Adam) on a fixed
+  batch for each path: eager or compiled, NCHW or ``channels_last``, fp32 or
+  bf16 autocast (``--paths``); the compile's seconds are in ``first_s``.
 
 Numbers, not assertions; results in ``bench/results/training.{json,md}``.
 """
@@ -20,6 +26,7 @@ Numbers, not assertions; results in ``bench/results/training.{json,md}``.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import tempfile
 import time
@@ -33,6 +40,7 @@ from torch.utils.data import DataLoader
 
 from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.train.fast_path import GuardedForward, StepPath, autocast, choose_path, to_layout
 from popcode_trainer.train.loop import network_config
 from popcode_trainer.train.network import NetworkConfig, build_network
 from popcode_trainer.train.training_data import build_training_data
@@ -44,6 +52,13 @@ NETWORKS = {
     "small": SMALL_NETWORK,  # the quick recipe's residual trunk
     "small-paper-trunk": replace(SMALL_NETWORK, trunk="paper", conv_channels=(16, 32, 32)),  # before the quick recipe
     "paper": NetworkConfig(),
+}
+PATHS = {  # name -> (channels_last, precision, compiled)
+    "eager-nchw-fp32": StepPath(False, "fp32", False, "bench"),  # what training did before fast_path
+    "eager-cl-fp32": StepPath(True, "fp32", False, "bench"),
+    "eager-cl-bf16": StepPath(True, "bf16", False, "bench"),
+    "compiled-cl-fp32": StepPath(True, "fp32", True, "bench"),
+    "compiled-cl-bf16": StepPath(True, "bf16", True, "bench"),
 }
 BATCH = 32
 IMAGES_PER_OBJECT = 80  # 4 objects x 80 x 0.9 = 288 training crops: 9 batches
@@ -63,8 +78,38 @@ def _timed_batches(loader: DataLoader, batches: int, work: Callable[[dict[str, A
     return time.perf_counter() - started
 
 
+def path_step_rate(base: torch.nn.Module, path: StepPath, batch: dict[str, Any], loss_of: Callable, lr: float,
+                   batches: int) -> tuple[float, float, StepPath]:
+    """Crops/s of the whole step on one fixed batch on ``path`` (a copy of ``base``), the first step's seconds (a
+    compile's included) and the path that ran (a failed compile falls back to eager)."""
+    model = copy.deepcopy(base)
+    if path.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    forward = GuardedForward(model, path)
+    images = to_layout(batch["image"], path)
+    cpu = torch.device("cpu")
+
+    def step() -> None:
+        with autocast(forward.path, cpu, cuda_amp=False):
+            output = forward(images)
+        loss = loss_of(output.float(), batch["target"], 0.5)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    started = time.perf_counter()
+    step()
+    first_s = time.perf_counter() - started
+    step()  # a compiled backward may finish compiling on its second call
+    started = time.perf_counter()
+    for _ in range(batches):
+        step()
+    return _rate(batches * BATCH, time.perf_counter() - started), first_s, forward.path
+
+
 def measure(network_name: str, threads: int, workers: Sequence[int], batches: int, split: Path,
-            out_dir: Path) -> list[dict[str, Any]]:
+            out_dir: Path, paths: Sequence[str] = tuple(PATHS)) -> list[dict[str, Any]]:
     """One network at one torch thread count: the rows of every part and worker count."""
     torch.set_num_threads(threads)
     size = PipelineSize(IMAGES_PER_OBJECT, 0, small_config(epochs=1, n_axes=642, n_angles=36,
@@ -76,9 +121,10 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     loss_of = data.representation.loss
     rows = []
 
-    def row(part: str, seconds: float, crops: int, workers_used: int | None = None) -> None:
+    def row(part: str, seconds: float, crops: int, workers_used: int | None = None, **extra: Any) -> None:
         rows.append({"network": network_name, "threads": threads, "part": part, "workers": workers_used,
-                     "crops_per_s": _rate(crops, seconds), "ms_per_batch": 1000 * seconds / (crops / BATCH)})
+                     "crops_per_s": _rate(crops, seconds), "ms_per_batch": 1000 * seconds / (crops / BATCH),
+                     **extra})
 
     def loader(num_workers: int) -> DataLoader:
         return DataLoader(data.train_set, batch_size=BATCH, shuffle=True, drop_last=True, num_workers=num_workers,
@@ -106,37 +152,58 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     for _ in range(batches):
         optimizer.step()
     row("optimizer", time.perf_counter() - started, batches * BATCH)
+    for name in paths:
+        rate, first_s, ran = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
+        row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
+            fell_back=PATHS[name].compiled and not ran.compiled)
+    chosen = choose_path(config.train.precision, config.train.compile, torch.device("cpu"),
+                         config.train.epochs * (len(data.train_set) // BATCH))
+    model = model.to(memory_format=torch.channels_last) if chosen.channels_last else model
+    forward = GuardedForward(model, chosen)
     for count in workers:
         def step(batch: dict[str, Any]) -> None:
-            forward_backward(batch)
+            with autocast(forward.path, torch.device("cpu"), cuda_amp=False):
+                output = forward(to_layout(batch["image"], forward.path))
+            loss = loss_of(output.float(), batch["target"], 0.5)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
             optimizer.step()
-        row("step", _timed_batches(loader(count), batches, step), batches * BATCH, count)
+        row("step", _timed_batches(loader(count), batches, step), batches * BATCH, count,
+            path=forward.path.describe())
     return rows
+
+
+def _note(row: dict[str, Any]) -> str:
+    if "first_s" in row:
+        return f"first step {row['first_s']:.1f} s" + (" (compile failed: ran eager)" if row["fell_back"] else "")
+    return row.get("path", "")
 
 
 def to_markdown(payload: dict[str, Any]) -> str:
     description = payload["machine"]
-    header = ["network", "threads", "part", "workers", "crops/s", "ms / batch of 32"]
+    header = ["network", "threads", "part", "workers", "crops/s", "ms / batch of 32", "note"]
     rows = [(r["network"], r["threads"], r["part"], "–" if r["workers"] is None else r["workers"],
-             f"{r['crops_per_s']:.1f}", f"{r['ms_per_batch']:.1f}") for r in payload["rows"]]
+             f"{r['crops_per_s']:.1f}", f"{r['ms_per_batch']:.1f}", _note(r)) for r in payload["rows"]]
     return "\n\n".join([
         "# Training throughput",
         f"{machine_line(description)} Command: `python -m bench.training {payload['arguments']}`. "
         f"Population code 642 x 36, batch {BATCH}, "
         "the paper's augmentation on rendered 128 px images of built-in parts 3-6.",
         "`data`: DataLoader batches alone; `forward_backward`: network + loss + backward on a fixed batch; "
-        "`optimizer`: Adam's step; `step`: the real training loop.",
+        "`optimizer`: Adam's step; `step`: the real training loop on the path training chooses here (note); "
+        "`path: ...`: the whole step on a fixed batch, eager or compiled, NCHW or channels_last (cl), fp32 or bf16 "
+        "autocast; the first step's seconds include a compile.",
         markdown_table(header, rows),
     ])
 
 
 def run(networks: Sequence[str], threads: Sequence[int], workers: Sequence[int], batches: int, out_dir: Path,
-        arguments: str) -> dict[str, Any]:
+        arguments: str, paths: Sequence[str] = tuple(PATHS)) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as folder:
         size = PipelineSize(IMAGES_PER_OBJECT, 1, small_config(epochs=1, n_axes=642, n_angles=36))
         split, _ = render_splits(size, Path(folder), progress=False)
         rows = [row for name in networks for count in threads
-                for row in measure(name, count, workers, batches, split, Path(folder) / "run")]
+                for row in measure(name, count, workers, batches, split, Path(folder) / "run", paths)]
     payload = {"arguments": arguments, "batch": BATCH, "rows": rows}
     payload["machine"] = machine()
     write_results(out_dir, "training", payload, to_markdown(payload))
@@ -152,12 +219,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch intra-op threads to try")
     parser.add_argument("--workers", nargs="+", type=int, default=[0, 2], help="DataLoader worker counts to try")
     parser.add_argument("--batches", type=int, default=6, help="timed batches per measurement (after a warm-up)")
+    parser.add_argument("--paths", nargs="*", choices=list(PATHS), default=list(PATHS),
+                        help="step paths to time on a fixed batch (compiled ones compile first: 15-60 s each)")
     args = parser.parse_args(argv)
     if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1:
         parser.error("--threads and --batches must be at least 1, --workers at least 0")
     batches = 2 if args.quick else args.batches
     arguments = " ".join(sys.argv[1:] if argv is None else argv)
-    return run(args.networks, args.threads, args.workers, batches, args.out, arguments)
+    return run(args.networks, args.threads, args.workers, batches, args.out, arguments, args.paths)
 
 
 if __name__ == "__main__":

@@ -140,12 +140,14 @@ def test_agreement_counts_symmetric_swaps_as_the_same_pose_per_object(tmp_path: 
 
 def test_training_throughput_smoke(tmp_path: Path) -> None:
     payload = training.main(["--quick", "--networks", "tiny", "--threads", "1", "--workers", "0", "1",
-                             "--out", str(tmp_path)])
+                             "--paths", "eager-nchw-fp32", "eager-cl-bf16", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["rows"]
     assert rows == payload["rows"]
     parts = [(r["part"], r["workers"]) for r in rows]
-    assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None), ("step", 0),
-                     ("step", 1)]
+    assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None),
+                     ("path: eager-nchw-fp32", None), ("path: eager-cl-bf16", None), ("step", 0), ("step", 1)]
+    assert all(not r["fell_back"] and r["first_s"] > 0 for r in rows if r["part"].startswith("path"))
+    assert all("channels_last" in r["path"] for r in rows if r["part"] == "step")
     assert all(r["network"] == "tiny" and r["threads"] == 1 and r["crops_per_s"] > 0 for r in rows)
     table = (tmp_path / "training.md").read_text(encoding="utf-8")
     assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(rows)

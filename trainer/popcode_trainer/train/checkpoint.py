@@ -25,7 +25,7 @@ from popcode_runtime.metadata import ModelMetadata
 from ..data.hull import with_hull_points
 
 # Keys that may change when resuming: more epochs extend a run; the output folder may move.
-RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers")}
+RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers"), ("train", "compile")}
 # What every checkpoint of ``popcode-train train`` holds (train/loop.py's state dict); export and evaluate need them.
 TRAINED_KEYS = frozenset({"network", "model", "metadata", "config", "epoch", "best_val_error_deg"})
 
@@ -104,11 +104,17 @@ def restore_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
-def config_differences(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
-    """``section.key: saved -> current`` for every setting that differs and may not change on resume."""
+def config_differences(saved: dict[str, Any], current: dict[str, Any],
+                       defaults: dict[str, Any] | None = None) -> list[str]:
+    """``section.key: saved -> current`` for every setting that differs and may not change on resume.
+
+    A setting added since the checkpoint was written (absent from ``saved``) counts as its value in ``defaults``
+    (the config's defaults), so a newer trainer resumes an older run that its defaults describe.
+    """
     differences = []
     for section in sorted(set(saved) | set(current)):
         old, new = saved.get(section, {}), current.get(section, {})
+        old = {**(defaults or {}).get(section, {}), **old}
         for key in sorted(set(old) | set(new)):
             if (section, key) not in RESUMABLE_CHANGES and old.get(key) != new.get(key):
                 differences.append(f"{section}.{key}: {old.get(key)!r} -> {new.get(key)!r}")

@@ -25,6 +25,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import MAX_INPUT_SIZE, MIN_INPUT_SIZE, Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
+from .fast_path import COMPILE_CHOICES, PRECISIONS
 from .network import TRUNKS, NetworkConfig
 from .representations import LOSSES
 from .schedule import SCHEDULES
@@ -84,6 +85,8 @@ class TrainConfig:
     out_dir: str = "runs/popcode"
     device: str = "auto"
     amp: bool = True  # mixed precision; used on CUDA only
+    precision: str = "auto"  # CPU: "auto" (bf16 where the CPU has it natively), "fp32", "bf16" (fast_path.py)
+    compile: str = "auto"  # "auto" (where it pays), "on", "off": torch.compile of the step (fast_path.py)
 
 
 @dataclass(frozen=True)
@@ -182,6 +185,8 @@ def _check_choices(config: Config) -> None:
     _choice("network.trunk", config.network.trunk, TRUNKS)
     _choice("train.schedule", config.train.schedule, SCHEDULES)
     _choice("train.loss", config.train.loss, LOSSES)
+    _choice("train.precision", config.train.precision, PRECISIONS)
+    _choice("train.compile", config.train.compile, COMPILE_CHOICES)
     if config.train.loss != "mse" and config.train.representation != Representation.POPULATION_CODE:
         raise PopcodeError(f"train.loss = {config.train.loss!r} applies to the population code; "
                            f"{config.train.representation} has its own loss")

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import RotationFrame
 
-from . import checkpoint, distributed
+from . import checkpoint, distributed, fast_path
 from .config import Config
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
@@ -168,7 +168,11 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     if rank_batch == 1 and feature_side(net_config) == 1:
         raise PopcodeError(f"the trunk ends at 1x1 for data.crop_size {config.data.crop_size}, where BatchNorm needs "
                            f"two crops per rank: raise train.batch_size or data.crop_size")
+    path = fast_path.choose_path(cfg.precision, cfg.compile, context.device,
+                                 cfg.epochs * (len(train_set) // rank_batch))
     model = build_network(net_config).to(context.device)
+    if path.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     use_amp = cfg.amp and context.device.type == "cuda"
     scaler = torch.amp.GradScaler(context.device.type, enabled=use_amp)
@@ -176,7 +180,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
 
     if resume:
         state = checkpoint.load(out_dir / LAST_CHECKPOINT)
-        differences = checkpoint.config_differences(state["config"], config.to_dict())
+        differences = checkpoint.config_differences(state["config"], config.to_dict(), Config().to_dict())
         if differences:
             raise PopcodeError(f"cannot resume {out_dir / LAST_CHECKPOINT}: the config differs "
                                f"({'; '.join(differences)}); use the run's config or a new train.out_dir")
@@ -194,6 +198,9 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
 
     # DDP averages gradients across ranks in backward; every rank steps the same optimizer state.
     trained = DistributedDataParallel(model) if context.distributed else model
+    forward = fast_path.GuardedForward(trained, path)
+    if context.is_main:
+        tqdm.write(f"training step: {path.describe()}")
     if context.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
     tensorboard = _TensorBoard(out_dir) if context.is_main else None
@@ -213,12 +220,12 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         loss_sum, seen = 0.0, 0
         bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not context.is_main, leave=False)
         for step, batch in enumerate(bar):
-            image = batch["image"].to(context.device, non_blocking=True)
+            image = fast_path.to_layout(batch["image"].to(context.device, non_blocking=True), forward.path)
             target = batch["target"].to(context.device, non_blocking=True)
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(cfg.lr, cfg.schedule, epoch + step / steps, cfg.epochs, cfg.warmup_epochs)
-            with torch.autocast(context.device.type, enabled=use_amp):
-                output = trained(image)
+            with fast_path.autocast(forward.path, context.device, use_amp):
+                output = forward(image)
             loss = representation.loss(output.float(), target, (epoch + step / steps) / cfg.epochs)
             optimizer.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()
@@ -257,6 +264,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                 "rng": checkpoint.rng_state(),
                 "best_val_error_deg": best_error,
                 "git_revision": revision,
+                "step_path": forward.path.to_dict(),
             }
             _append_metrics(out_dir / METRICS_FILE, row)  # before the checkpoint: resume truncates extra rows
             checkpoint.save_atomic(state, out_dir / LAST_CHECKPOINT)

@@ -1,0 +1,145 @@
+"""Which fast path a training step takes on this machine: memory layout, precision and a compiled step.
+
+- ``channels_last``: always. The convolutions and batch norms of the trunk run
+  in the layout oneDNN prefers, without the layout copies an NCHW step makes.
+- ``train.precision``: ``"auto"`` trains in bf16 autocast on a CPU with native
+  bf16 (``amx_bf16`` or ``avx512_bf16`` among its flags) and in fp32 elsewhere
+  (emulated bf16 is slower than fp32); ``"fp32"`` / ``"bf16"`` force one. CUDA
+  keeps its own mixed precision (``train.amp``). The exported model is fp32
+  whatever the training precision.
+- ``train.compile``: ``"auto"`` compiles the step (``torch.compile``) where it
+  was measured to pay for its compile time: a CPU with native bf16 and a run of
+  at least :data:`COMPILE_MIN_STEPS` steps; on an AVX2-only CPU the compiled
+  step was slower than the eager ``channels_last`` one (see
+  ``bench/results/training.md``). ``"on"`` / ``"off"`` force it. A missing C++
+  compiler or a failing compile falls back to the eager step, saying why in
+  one line.
+
+Resuming a run is bit-exact on the fp32 eager path; bf16 and compiled steps may
+round differently after a resume (another compile, another kernel choice).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from popcode_runtime.errors import first_line
+
+PRECISIONS = ("auto", "fp32", "bf16")
+COMPILE_CHOICES = ("auto", "on", "off")
+NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
+COMPILE_MIN_STEPS = 2000  # a compile costs 15-60 s on a 2-core VM; shorter runs do not win it back
+CPUINFO = Path("/proc/cpuinfo")
+
+
+@dataclass(frozen=True)
+class StepPath:
+    """How the training step runs, and why (recorded in the checkpoint and the demo's report)."""
+
+    channels_last: bool
+    precision: str  # "fp32" or "bf16" (CPU autocast); CUDA's fp16 autocast is train.amp
+    compiled: bool
+    reason: str
+
+    def describe(self) -> str:
+        layout = "channels_last" if self.channels_last else "NCHW"
+        return f"{'compiled' if self.compiled else 'eager'}, {layout}, {self.precision} ({self.reason})"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@cache
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags as Linux lists them (empty elsewhere: no native bf16 is assumed)."""
+    try:
+        for line in CPUINFO.read_text(errors="replace").splitlines():
+            if line.startswith("flags"):
+                return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def has_native_bf16(flags: frozenset[str]) -> bool:
+    return bool(flags & NATIVE_BF16_FLAGS)
+
+
+def choose_path(precision: str, compile_step: str, device: torch.device, planned_steps: int,
+                flags: frozenset[str] | None = None) -> StepPath:
+    """The step's path for the settings on this device (``flags``: the CPU's, read from the machine by default)."""
+    flags = cpu_flags() if flags is None else flags
+    native_bf16 = device.type == "cpu" and has_native_bf16(flags)
+    if device.type != "cpu" or precision == "fp32":
+        chosen_precision, why = "fp32", "fp32 asked for" if precision == "fp32" else "CUDA: train.amp"
+    elif precision == "bf16":
+        chosen_precision, why = "bf16", "bf16 asked for"
+    else:
+        chosen_precision = "bf16" if native_bf16 else "fp32"
+        why = "the CPU has native bf16" if native_bf16 else "no native bf16 on this CPU"
+    if compile_step == "auto":
+        compiled = native_bf16 and planned_steps >= COMPILE_MIN_STEPS
+        why += "; compiled: native bf16 and a long run" if compiled else "; eager: compiling would not pay here"
+    else:
+        compiled = compile_step == "on"
+        why += f"; {'compiled' if compiled else 'eager'} asked for"
+    return StepPath(channels_last=True, precision=chosen_precision, compiled=compiled, reason=why)
+
+
+def compiler_missing() -> str | None:
+    """Why ``torch.compile`` cannot build CPU kernels here, or None when a C++ compiler is on the PATH."""
+    if sys.platform == "win32":
+        return "torch.compile has no CPU backend set up on Windows here"
+    compilers = ("c++", "g++", "clang++")
+    return None if any(shutil.which(name) for name in compilers) else "no C++ compiler (c++, g++, clang++) on PATH"
+
+
+def eager_fallback(path: StepPath, why: str) -> StepPath:
+    """The same path, eager; says why once (a warning the CLI prints as one line)."""
+    warnings.warn(f"training eager instead of compiled: {why}", stacklevel=3)
+    return StepPath(path.channels_last, path.precision, False, f"{path.reason}; fell back to eager: {why}")
+
+
+class GuardedForward:
+    """The model's forward, compiled where the path says so; a compile that fails on the first batch falls back to
+    the eager forward of the same model (the same weights), saying why in one line."""
+
+    def __init__(self, model: nn.Module, path: StepPath) -> None:
+        self.model, self.path = model, path
+        self.compiled: Callable[[torch.Tensor], torch.Tensor] | None = None
+        if path.compiled:
+            missing = compiler_missing()
+            if missing is None:
+                self.compiled = torch.compile(model)
+            else:
+                self.path = eager_fallback(path, missing)
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        if self.compiled is not None:
+            try:
+                return self.compiled(images)
+            except Exception as error:  # dynamo and inductor raise many types; any of them means: run eager
+                self.compiled = None
+                self.path = eager_fallback(self.path, f"the compile failed ({first_line(error)})")
+        return self.model(images)
+
+
+def autocast(path: StepPath, device: torch.device, cuda_amp: bool) -> torch.autocast:
+    """The forward's autocast context: bf16 on the CPU where the path says so, CUDA's fp16 with train.amp."""
+    if device.type == "cpu":
+        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=path.precision == "bf16")
+    return torch.autocast(device.type, enabled=cuda_amp)
+
+
+def to_layout(images: torch.Tensor, path: StepPath) -> torch.Tensor:
+    return images.contiguous(memory_format=torch.channels_last) if path.channels_last else images
