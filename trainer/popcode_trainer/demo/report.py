@@ -22,6 +22,7 @@ from ..eval.reporting.markdown import markdown_table
 from ..eval.reporting.report import REPORT_MD, full_pose_markdown
 from ..eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
 from ..export.model_io import read_onnx_metadata
+from ..train.fast_path import StepPath
 from ..train.network import NetworkConfig
 from .epoch_budget import EpochFit
 from .steps import PipelineSize
@@ -166,7 +167,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
     figure_lines = [f"### {title}\n\n" + "\n".join(f"![{title}]({run.link(p)})" for p in paths)
                     for title, paths in run.figures.items()]
     example = run.models.by_representation[POPCODE][-1]
-    example_objects = read_onnx_metadata(example).objects
+    example_metadata = read_onnx_metadata(example)
+    example_objects = example_metadata.objects
     instance = next(inst for inst in run.split.instances if inst.obj_id in example_objects)
     box = ",".join(f"{v:g}" for v in instance.box)
     eval_report = run.out_dir / "eval" / REPORT_MD
@@ -176,7 +178,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
         f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
-        f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores).",
+        f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores)"
+        f"{_step_path_text(example_metadata.training)}.",
         "## Models\n\n" + "\n".join(model_lines)
         + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
         f"```bash\npopcode info {run.link(example)}\n"
@@ -193,6 +196,12 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
+
+
+def _step_path_text(training: dict[str, Any]) -> str:
+    """How the training step ran (the same path for every model of one machine), as the report's sentence ends."""
+    path = training.get("step_path")
+    return "" if not path else f"; training step: {StepPath(**path).describe()}"
 
 
 def _targets_section(run: DemoRun) -> str:

@@ -72,6 +72,7 @@ def trained_model(state: Mapping[str, Any], path: str | Path) -> TrainedModel:
         "epochs": int(state["epoch"]),
         "git_revision": state.get("git_revision", "unknown"),
         "best_val_error_deg": best_deg if math.isfinite(best_deg) else None,
+        "step_path": state.get("step_path"),  # how the step ran (train.fast_path); None before it was recorded
         "config": config,
     }
     if config["train"].get("loss", "mse") == "cross_entropy":  # trained on logits: deployed as a code
