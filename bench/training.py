@@ -157,7 +157,8 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
         row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
             fell_back=PATHS[name].compiled and not ran.compiled)
     chosen = choose_path(config.train.precision, config.train.compile, torch.device("cpu"),
-                         config.train.epochs * (len(data.train_set) // BATCH))
+                         config.train.epochs * (len(data.train_set) // BATCH),
+                         conv_widths=NETWORKS[network_name].conv_channels)
     model = model.to(memory_format=torch.channels_last) if chosen.channels_last else model
     forward = GuardedForward(model, chosen)
     for count in workers:

@@ -147,7 +147,7 @@ def test_training_throughput_smoke(tmp_path: Path) -> None:
     assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None),
                      ("path: eager-nchw-fp32", None), ("path: eager-cl-bf16", None), ("step", 0), ("step", 1)]
     assert all(not r["fell_back"] and r["first_s"] > 0 for r in rows if r["part"].startswith("path"))
-    assert all("channels_last" in r["path"] for r in rows if r["part"] == "step")
+    assert all("NCHW" in r["path"] for r in rows if r["part"] == "step")  # tiny widths of 4: NCHW (fast_path)
     assert all(r["network"] == "tiny" and r["threads"] == 1 and r["crops_per_s"] > 0 for r in rows)
     table = (tmp_path / "training.md").read_text(encoding="utf-8")
     assert sum(line.startswith("| tiny |") for line in table.splitlines()) == len(rows)

@@ -34,6 +34,13 @@ def test_bf16_only_where_the_flags_allow_or_asked_for(flags, precision, expected
     assert path.precision == expected and path.channels_last and not path.compiled
 
 
+def test_channels_last_only_for_widths_where_its_backward_runs():
+    """torch 2.13's CPU backward in channels_last hung or aborted with 4 or 6 channels in the residual trunk."""
+    assert choose_path("auto", "off", CPU, 10, AVX2, conv_widths=(16, 32, 64)).channels_last
+    narrow = choose_path("auto", "off", CPU, 10, AVX2, conv_widths=(4, 8, 16))
+    assert not narrow.channels_last and "NCHW" in narrow.reason and "NCHW" in narrow.describe()
+
+
 def test_compile_auto_only_where_it_pays():
     assert not choose_path("auto", "auto", CPU, 10 * COMPILE_MIN_STEPS, AVX2).compiled  # measured slower there
     assert not choose_path("auto", "auto", CPU, COMPILE_MIN_STEPS - 1, AMX).compiled  # too short to win it back

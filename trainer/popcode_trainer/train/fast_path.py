@@ -1,7 +1,10 @@
 """Which fast path a training step takes on this machine: memory layout, precision and a compiled step.
 
-- ``channels_last``: always. The convolutions and batch norms of the trunk run
+- ``channels_last``: where every convolution width is a multiple of
+  :data:`CHANNELS_LAST_WIDTH_MULTIPLE`. The convolutions and batch norms then run
   in the layout oneDNN prefers, without the layout copies an NCHW step makes.
+  With narrower odd widths (4 or 6 channels in the residual trunk) torch 2.13's
+  CPU backward in ``channels_last`` hangs or corrupts memory, so those stay NCHW.
 - ``train.precision``: ``"auto"`` trains in bf16 autocast on a CPU with native
   bf16 (``amx_bf16`` or ``avx512_bf16`` among its flags) and in fp32 elsewhere
   (emulated bf16 is slower than fp32); ``"fp32"`` / ``"bf16"`` force one. CUDA
@@ -24,7 +27,7 @@ from __future__ import annotations
 import shutil
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
@@ -38,6 +41,7 @@ from popcode_runtime.errors import first_line
 PRECISIONS = ("auto", "fp32", "bf16")
 COMPILE_CHOICES = ("auto", "on", "off")
 NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
+CHANNELS_LAST_WIDTH_MULTIPLE = 8  # widths 8, 16, 24, 32, 64, ... ran; 4 and 6 hung or aborted in backward
 COMPILE_MIN_STEPS = 2000  # a compile costs 15-60 s on a 2-core VM; shorter runs do not win it back
 CPUINFO = Path("/proc/cpuinfo")
 
@@ -75,9 +79,14 @@ def has_native_bf16(flags: frozenset[str]) -> bool:
     return bool(flags & NATIVE_BF16_FLAGS)
 
 
+def channels_last_is_safe(conv_widths: Sequence[int]) -> bool:
+    return all(width % CHANNELS_LAST_WIDTH_MULTIPLE == 0 for width in conv_widths)
+
+
 def choose_path(precision: str, compile_step: str, device: torch.device, planned_steps: int,
-                flags: frozenset[str] | None = None) -> StepPath:
-    """The step's path for the settings on this device (``flags``: the CPU's, read from the machine by default)."""
+                flags: frozenset[str] | None = None, conv_widths: Sequence[int] = ()) -> StepPath:
+    """The step's path for the settings on this device (``flags``: the CPU's, read from the machine by default;
+    ``conv_widths``: the network's convolution widths)."""
     flags = cpu_flags() if flags is None else flags
     native_bf16 = device.type == "cpu" and has_native_bf16(flags)
     if device.type != "cpu" or precision == "fp32":
@@ -93,7 +102,10 @@ def choose_path(precision: str, compile_step: str, device: torch.device, planned
     else:
         compiled = compile_step == "on"
         why += f"; {'compiled' if compiled else 'eager'} asked for"
-    return StepPath(channels_last=True, precision=chosen_precision, compiled=compiled, reason=why)
+    channels_last = channels_last_is_safe(conv_widths)
+    if not channels_last:
+        why += f"; NCHW: conv widths not multiples of {CHANNELS_LAST_WIDTH_MULTIPLE}"
+    return StepPath(channels_last=channels_last, precision=chosen_precision, compiled=compiled, reason=why)
 
 
 def compiler_missing() -> str | None:

@@ -169,7 +169,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         raise PopcodeError(f"the trunk ends at 1x1 for data.crop_size {config.data.crop_size}, where BatchNorm needs "
                            f"two crops per rank: raise train.batch_size or data.crop_size")
     path = fast_path.choose_path(cfg.precision, cfg.compile, context.device,
-                                 cfg.epochs * (len(train_set) // rank_batch))
+                                 cfg.epochs * (len(train_set) // rank_batch), conv_widths=net_config.conv_channels)
     model = build_network(net_config).to(context.device)
     if path.channels_last:
         model = model.to(memory_format=torch.channels_last)
