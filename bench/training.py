@@ -40,7 +40,7 @@ from torch.utils.data import DataLoader
 
 from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.train.fast_path import GuardedForward, StepPath, autocast, choose_path, to_layout
+from popcode_trainer.train.fast_path import GuardedForward, StepPath, adam, autocast, choose_path, to_layout
 from popcode_trainer.train.loop import network_config
 from popcode_trainer.train.network import NetworkConfig, build_network
 from popcode_trainer.train.training_data import build_training_data
@@ -85,7 +85,7 @@ def path_step_rate(base: torch.nn.Module, path: StepPath, batch: dict[str, Any],
     model = copy.deepcopy(base)
     if path.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    optimizer = adam(model.parameters(), lr, torch.device("cpu"))
     forward = GuardedForward(model, path)
     images = to_layout(batch["image"], path)
     cpu = torch.device("cpu")
@@ -117,7 +117,7 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     config = training_config(size, "population_code", [3, 4, 5, 6], split, out_dir)
     data = build_training_data(config)
     model = build_network(network_config(config, data.representation)).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
+    optimizer = adam(model.parameters(), config.train.lr, torch.device("cpu"))
     loss_of = data.representation.loss
     rows = []
 

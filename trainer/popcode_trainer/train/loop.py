@@ -173,7 +173,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     model = build_network(net_config).to(context.device)
     if path.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    optimizer = fast_path.adam(model.parameters(), cfg.lr, context.device)
     use_amp = cfg.amp and context.device.type == "cuda"
     scaler = torch.amp.GradScaler(context.device.type, enabled=use_amp)
     start_epoch, best_error = 0, math.inf
