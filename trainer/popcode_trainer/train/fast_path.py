@@ -13,8 +13,9 @@
 - ``train.compile``: ``"auto"`` compiles the step (``torch.compile``) where it
   was measured to pay for its compile time: a CPU with native bf16 and a run of
   at least :data:`COMPILE_MIN_STEPS` steps; on an AVX2-only CPU the compiled
-  step was slower than the eager ``channels_last`` one (see
-  ``bench/results/training.md``). ``"on"`` / ``"off"`` force it. A missing C++
+  step was no clear gain over the eager ``channels_last`` one (slower in an
+  earlier run, faster in the latest of ``bench/results/training.md``). ``"on"`` / ``"off"``
+  force it. A missing C++
   compiler or a failing compile falls back to the eager step, saying why in
   one line.
 
