@@ -207,8 +207,9 @@ class PopulationCode:
         axis, angle = matrix_to_axis_angle(equivalent)
         axes = np.concatenate([axis, -axis], axis=1)  # (N, 2K, 3): the twin peaks
         angles = np.concatenate([angle, 2.0 * np.pi - angle], axis=1)
-        if len(neurons) == self.layout.size:  # the whole code: an outer product per peak
-            code = np.einsum("bpn,bpm->bnm", self._axis_tuning(axes), self._angle_tuning(angles))
+        if len(neurons) == self.layout.size:  # the whole code: a sum of outer products, one per peak
+            axis_part = self._axis_tuning(axes).astype(np.float32).transpose(0, 2, 1)  # (N, n, 2K)
+            code = axis_part @ self._angle_tuning(angles).astype(np.float32)  # batched BLAS, in the output's precision
             return code.reshape(len(R), -1)
         axis_index, angle_index = np.divmod(neurons, self.layout.n_angles)
         axis_part = self._axis_tuning(axes, self._axes[axis_index])

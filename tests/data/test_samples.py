@@ -215,3 +215,16 @@ def test_occlusion_is_off_by_default_and_hides_part_of_the_object_when_on(split)
         assert 0.0 < hidden < 0.9, f"instance {index}: {hidden:.2f} of the object hidden"
     with pytest.raises(PopcodeError, match="occlusion_p"):
         Augmentation(occlusion_p=1.5)
+
+
+def test_noise_is_gaussian_with_the_configured_sigma_and_differs_per_crop(split) -> None:
+    only_noise = Augmentation(brightness_p=0.0, background_p=0.0, noise_p=1.0, noise_sigma=0.05, shift_p=0.0)
+    nothing = dataclasses.replace(only_noise, noise_p=0.0)
+    plain, noisy = _dataset(split, augmentation=nothing), _dataset(split, augmentation=only_noise)
+    indices = list(range(min(8, len(split.instances))))
+    before, after = plain.crops(indices), noisy.crops(indices)
+    inside = (before > 0.2) & (before < 0.8)  # away from the clip at 0 and 1
+    noise = (after - before)[inside]
+    assert abs(float(noise.mean())) < 0.005
+    assert abs(float(noise.std()) - 0.05) < 0.005
+    assert not np.allclose(after[0] - before[0], after[1] - before[1])

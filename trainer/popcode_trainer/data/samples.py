@@ -7,7 +7,7 @@ before each epoch (with ``persistent_workers=False``, the default, workers see t
 Crops are stored as uint8 with a margin for the shift augmentation (:mod:`.crop_cache`): decoded
 once into a memory-mapped cache when a ``cache_dir`` is given (training), else from the images on
 each access (a preview of a few crops). Targets of a DataLoader batch are built in one vectorised
-call (``__getitems__``), not one crop at a time.
+call (``__getitems__``), and so is the pixel arithmetic of their crops.
 """
 
 from __future__ import annotations
@@ -30,6 +30,9 @@ PAPER_AUGMENTATION = Augmentation()
 # Background patches made per epoch and reused (with a random flip and quarter turn) by every crop:
 # making one procedural texture costs more than the rest of a sample's augmentation.
 BACKGROUNDS_PER_EPOCH = 256
+# Gaussian noise fields of twice the crop side made per epoch; a crop's noise is a random window of one.
+# Drawing fresh noise for every crop cost more than the rest of its augmentation (bench/results/training.md).
+NOISE_FIELDS_PER_EPOCH = 8
 
 TargetsFn = Callable[[Sequence[Instance]], np.ndarray]
 
@@ -61,7 +64,7 @@ class CropDataset(Dataset):
                                                               progress)
         self.seed = seed
         self.epoch = 0
-        self._bank: tuple[int, np.ndarray] | None = None
+        self._bank: tuple[int, np.ndarray, np.ndarray] | None = None
 
     def set_epoch(self, epoch: int) -> None:
         """Draw new augmentations: the generator of each sample is seeded by (seed, epoch, index)."""
@@ -83,58 +86,85 @@ class CropDataset(Dataset):
             return self.cache[index]
         return crop_with_margin(self.instances[index], self.crop_size, self.margin)
 
-    def _background(self, rng: np.random.Generator) -> np.ndarray:
+    def _banks(self) -> tuple[np.ndarray, np.ndarray]:
+        """This epoch's background patches and noise fields, made once per epoch (and worker)."""
         if self._bank is None or self._bank[0] != self.epoch:
             bank_rng = np.random.default_rng([self.seed, self.epoch, len(self.instances)])
             count = min(BACKGROUNDS_PER_EPOCH, len(self.instances))
-            self._bank = (self.epoch, np.stack([self.backgrounds.sample(bank_rng, self.crop_size)
-                                                for _ in range(count)]))
-        patch = self._bank[1][int(rng.integers(len(self._bank[1])))]
+            patches = np.stack([self.backgrounds.sample(bank_rng, self.crop_size) for _ in range(count)])
+            side = 2 * self.crop_size
+            noise = bank_rng.standard_normal((NOISE_FIELDS_PER_EPOCH, side, side), dtype=np.float32)
+            self._bank = (self.epoch, patches, noise)
+        return self._bank[1], self._bank[2]
+
+    def _background(self, rng: np.random.Generator) -> np.ndarray:
+        patches = self._banks()[0]
+        patch = patches[int(rng.integers(len(patches)))]
         patch = np.rot90(patch, int(rng.integers(4)))
         return patch[:, ::-1] if rng.random() < 0.5 else patch
 
+    def _noise(self, rng: np.random.Generator) -> np.ndarray:
+        """A unit Gaussian noise field ``(S, S)``: a random window of one of the epoch's fields, maybe flipped."""
+        fields = self._banks()[1]
+        y, x = rng.integers(0, self.crop_size + 1, size=2)
+        window = fields[int(rng.integers(len(fields))), y : y + self.crop_size, x : x + self.crop_size]
+        return window[::-1] if rng.random() < 0.5 else window
+
     def crop(self, index: int) -> np.ndarray:
         """The augmented crop ``(S, S)`` float32 in [0, 1] of one instance."""
-        instance = self.instances[index]
-        augment, rng = self.draw(index)
-        stored = self.stored_crop(index)
-        # The shift (the paper's +-5 crop px) picks a window of the stored crop, to the nearest pixel.
-        dx, dy = (int(round(v)) for v in augment.shift_crop_px) if augment else (0, 0)
-        rows = slice(self.margin + dy, self.margin + dy + self.crop_size)
-        cols = slice(self.margin + dx, self.margin + dx + self.crop_size)
-        crop = stored[0, rows, cols].astype(np.float32) / 255.0
-        if augment is None:
-            return crop
-        crop = crop + augment.brightness
-        if augment.background:
-            _require_mask(instance, "background")
-            # Compositing the cropped mask as alpha equals pasting before the crop, with soft edges.
-            alpha = stored[1, rows, cols].astype(np.float32) / 255.0
-            crop = alpha * crop + (1.0 - alpha) * self._background(rng)
-        if augment.occlusion:
-            _require_mask(instance, "occlusion")
-            alpha = occluder_alpha(rng, stored[1, rows, cols].astype(np.float32) / 255.0,
-                                   self.augmentation.occlusion_max_fraction)
-            occluder = self._background(rng) * rng.uniform(0.3, 1.0) + rng.uniform(0.0, 0.4)
-            crop = alpha * occluder + (1.0 - alpha) * crop
-        if augment.noise:
-            crop = crop + self.augmentation.noise_sigma * rng.standard_normal(crop.shape, dtype=np.float32)
-        return np.clip(crop, 0.0, 1.0).astype(np.float32)
+        return self.crops([index])[0]
 
-    def _sample(self, index: int, target: np.ndarray) -> dict[str, Any]:
-        instance = self.instances[index]
-        return {
-            "image": torch.from_numpy(self.crop(index))[None],
+    def crops(self, indices: Sequence[int]) -> np.ndarray:
+        """The augmented crops ``(B, S, S)`` float32 in [0, 1] of a batch.
+
+        Each sample's random choices come from its own generator, in a fixed order, so a crop does not
+        depend on the batch it is in; the pixel arithmetic runs once over the batch.
+        """
+        size, count = self.crop_size, len(indices)
+        windows = np.empty((count, 2, size, size), np.uint8)
+        draws = []
+        for row, index in enumerate(indices):
+            augment, rng = self.draw(index)
+            # The shift (the paper's +-5 crop px) picks a window of the stored crop, to the nearest pixel.
+            dx, dy = (int(round(v)) for v in augment.shift_crop_px) if augment else (0, 0)
+            windows[row] = self.stored_crop(index)[:, self.margin + dy : self.margin + dy + size,
+                                                   self.margin + dx : self.margin + dx + size]
+            draws.append((augment, rng))
+        crops = windows[:, 0].astype(np.float32) * np.float32(1.0 / 255.0)
+        if self.augmentation is None:
+            return crops
+        alphas = windows[:, 1].astype(np.float32) * np.float32(1.0 / 255.0)
+        for row, (augment, rng) in enumerate(draws):
+            instance = self.instances[indices[row]]
+            crop, alpha = crops[row], alphas[row]
+            crop += np.float32(augment.brightness)
+            if augment.background:
+                _require_mask(instance, "background")
+                # Compositing the cropped mask as alpha equals pasting before the crop, with soft edges.
+                crop += (1.0 - alpha) * (self._background(rng) - crop)
+            if augment.occlusion:
+                _require_mask(instance, "occlusion")
+                occluder_mask = occluder_alpha(rng, alpha, self.augmentation.occlusion_max_fraction)
+                occluder = self._background(rng) * rng.uniform(0.3, 1.0) + rng.uniform(0.0, 0.4)
+                crop += occluder_mask * (occluder - crop)
+            if augment.noise:
+                crop += np.float32(self.augmentation.noise_sigma) * self._noise(rng)
+        return np.clip(crops, 0.0, 1.0, out=crops)
+
+    def _samples(self, indices: Sequence[int]) -> list[dict[str, Any]]:
+        targets = self.targets_fn([self.instances[i] for i in indices])
+        crops = torch.from_numpy(self.crops(indices))
+        return [{
+            "image": crops[row][None],
             "target": torch.from_numpy(np.asarray(target, dtype=np.float32)),
-            "R_m2c": torch.from_numpy(instance.R_m2c.astype(np.float32)),
-            "obj_id": instance.obj_id,
+            "R_m2c": torch.from_numpy(self.instances[index].R_m2c.astype(np.float32)),
+            "obj_id": self.instances[index].obj_id,
             "index": index,
-        }
+        } for row, (index, target) in enumerate(zip(indices, targets, strict=True))]
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        return self._sample(index, self.targets_fn([self.instances[index]])[0])
+        return self._samples([index])[0]
 
     def __getitems__(self, indices: Sequence[int]) -> list[dict[str, Any]]:
-        """A DataLoader batch: the targets in one call of ``targets_fn``."""
-        targets = self.targets_fn([self.instances[i] for i in indices])
-        return [self._sample(i, target) for i, target in zip(indices, targets, strict=True)]
+        """A DataLoader batch: targets and crops each made in one vectorised call."""
+        return self._samples(list(indices))
