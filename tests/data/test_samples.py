@@ -145,7 +145,7 @@ def test_stored_crops_centre_on_the_runtime_crop(split) -> None:
     offsets = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)]
     error = dict.fromkeys(offsets, 0.0)
     for instance in split.instances:
-        stored = crop_with_margin(instance, size, margin)[0] / 255.0
+        stored = crop_with_margin(instance, size, margin)[0][0] / 255.0
         runtime = crop_square(read_image(instance.image_path), instance.box, size)
         for dy, dx in offsets:
             window = stored[margin + dy: margin + dy + size, margin + dx: margin + dx + size]
@@ -163,17 +163,18 @@ def test_cached_crops_equal_decoded_ones_and_follow_the_images(split, tmp_path: 
     decoded = _dataset_of(instances)
     for index in range(len(instances)):
         assert torch.equal(cached[index]["image"], decoded[index]["image"])
-    first = sorted(cache_dir.iterdir())
-    assert len(first) == 1 and first[0].name.endswith(CACHE_SUFFIX)
+    first = sorted(cache_dir.glob(f"*{CACHE_SUFFIX}"))
+    assert len(first) == 1 and len(list(cache_dir.iterdir())) == 2  # the crops and their images' sizes
+    assert cached.image_size(0) == decoded.image_size(0) == (128, 128)
     built = first[0].stat().st_mtime_ns
     _dataset_of(instances, cache_dir=cache_dir)  # the same data: reused, not rebuilt
-    assert sorted(cache_dir.iterdir()) == first and first[0].stat().st_mtime_ns == built
+    assert sorted(cache_dir.glob(f"*{CACHE_SUFFIX}")) == first and first[0].stat().st_mtime_ns == built
     # A changed image makes a new cache with the new pixels.
     flipped = cv2.imread(str(instances[0].image_path), cv2.IMREAD_UNCHANGED)[::-1]
     cv2.imwrite(str(instances[0].image_path), flipped)
     os.utime(instances[0].image_path, ns=(built + 10**9, built + 10**9))
     changed = _dataset_of(instances, cache_dir=cache_dir)
-    assert len(list(cache_dir.iterdir())) == 2
+    assert len(list(cache_dir.glob(f"*{CACHE_SUFFIX}"))) == 2
     assert torch.equal(changed[0]["image"], _dataset_of(instances)[0]["image"])
     assert not torch.equal(changed[0]["image"], cached[0]["image"])
     loader = DataLoader(changed, batch_size=2, num_workers=2, shuffle=False)

@@ -50,6 +50,7 @@ class Instance:
     depth_path: Path | None
     mask_visib_path: Path | None
     depth_scale: float  # depth png value times this is mm
+    cluttered: bool = False  # from a scene split: the image around the object is the scene's own clutter
 
 
 @dataclass(frozen=True)
@@ -122,7 +123,7 @@ def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
 
 
 def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float, box: str,
-                     rendered: bool) -> Iterable[Instance]:
+                     rendered: bool, cluttered: bool) -> Iterable[Instance]:
     camera_path = scene_dir / "scene_camera.json"
     scene_camera = int_keys(read_json(camera_path), camera_path)
     images_dir = image_folder(scene_dir)
@@ -154,12 +155,22 @@ def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float,
                 depth_path=depths.get(stem),
                 mask_visib_path=masks.get(f"{stem}_{gt.gt_index:06d}"),
                 depth_scale=depth_scale,
+                cluttered=cluttered,
             )
 
 
 def is_rendered_split(split_dir: Path) -> bool:
     """Synthetic split: made by our renderer, or a BOP physically-based one (``train_pbr``)."""
     return (split_dir / RENDER_MARKER).is_file() or "pbr" in split_dir.name
+
+
+def is_scene_split(split_dir: Path) -> bool:
+    """Cluttered scenes: rendered with ``--scenes``, a BOP physically-based split, or real images (a BOP test
+    or real training split shows its parts where they lie); only single-object renders are not."""
+    marker = split_dir / RENDER_MARKER
+    if marker.is_file():
+        return "scenes" in read_json(marker)
+    return True
 
 
 def read_bop_split(
@@ -190,10 +201,11 @@ def read_bop_split(
                            f"(it lists {sorted(models_info)})")
     if rendered is None:
         rendered = is_rendered_split(split_dir)
+    cluttered = is_scene_split(split_dir)
     instances = [
         instance
         for scene_dir in scene_dirs
-        for instance in _scene_instances(scene_dir, wanted, min_visib_fract, box, rendered)
+        for instance in _scene_instances(scene_dir, wanted, min_visib_fract, box, rendered, cluttered)
     ]
     if not instances:
         raise PopcodeError(f"no instances of objects {sorted(wanted)} with visib_fract >= {min_visib_fract} "

@@ -25,8 +25,10 @@ from popcode_runtime.errors import PopcodeError
 
 from .bop import Instance, check_image_matches
 
-CACHE_FORMAT = 1  # bump when what is stored changes
+CACHE_FORMAT = 2  # bump when what is stored changes
 CACHE_SUFFIX = ".crops.npy"
+BOX_NOISE_CONTEXT = 0.25  # of the crop side, stored on each side when training on detector-like boxes
+SIZES_SUFFIX = ".sizes.npy"  # beside the crops: (N, 2) width, height of each instance's image
 
 
 def margin_for_shift(max_shift_crop_px: float) -> int:
@@ -34,13 +36,39 @@ def margin_for_shift(max_shift_crop_px: float) -> int:
     return int(math.ceil(max(0.0, max_shift_crop_px)))
 
 
+def margin_for_box_noise(crop_size: int) -> int:
+    """Extra pixels of context kept on each side for crops of detector-like boxes: a quarter of the crop."""
+    return int(math.ceil(BOX_NOISE_CONTEXT * crop_size))
+
+
+def window_affine(box: Sequence[float], window_box: Sequence[float], crop_size: int, margin: int,
+                  shift_crop_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray | None:
+    """The ``(2, 3)`` map from pixels of the runtime's crop of ``window_box`` to pixels of the stored crop of ``box``
+    (for ``cv2.warpAffine`` with ``WARP_INVERSE_MAP``), shifted by ``shift_crop_px``; None when the window
+    reaches past the stored margin."""
+    x, y, w, h = (float(v) for v in box)
+    wx, wy, ww, wh = (float(v) for v in window_box)
+    side, window_side = max(w, h) * CROP_PADDING, max(ww, wh) * CROP_PADDING  # image px of each square
+    zoom = window_side / side
+    stored_px = crop_size / side  # stored-crop pixels per image pixel
+    outer = crop_size + 2 * margin
+    offset = [(0.5 - crop_size / 2) * zoom + (window_centre - centre) * stored_px + outer / 2 - 0.5 + shift
+              for window_centre, centre, shift in ((wx + ww / 2, x + w / 2, shift_crop_px[0]),
+                                                   (wy + wh / 2, y + h / 2, shift_crop_px[1]))]
+    reach = [(start, start + zoom * (crop_size - 1)) for start in offset]
+    if min(low for low, _ in reach) < -0.5 or max(high for _, high in reach) > outer - 0.5:
+        return None
+    return np.array([[zoom, 0.0, offset[0]], [0.0, zoom, offset[1]]])
+
+
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """[0, 1] float -> uint8, rounded (the precision of the PNGs the crops come from)."""
     return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> np.ndarray:
-    """Image and visible mask ``(2, C, C)`` uint8 with ``C = crop_size + 2 * margin``, centred like the runtime crop.
+def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Image and visible mask ``(2, C, C)`` uint8 with ``C = crop_size + 2 * margin``, centred like the runtime crop,
+    and the image's (width, height).
 
     The inner ``crop_size`` square is the runtime's crop of the box; the mask
     is zero for instances without one (real images: no background pasting).
@@ -57,7 +85,7 @@ def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> np.ndar
             raise PopcodeError(f"{instance.mask_visib_path} is {full_mask.shape[1]}x{full_mask.shape[0]} px, its "
                                f"image {instance.image_path} {full.shape[1]}x{full.shape[0]}: they must match")
         mask = crop_square(full_mask, instance.box, outer, padding)
-    return np.stack([to_uint8(image), to_uint8(mask)])
+    return np.stack([to_uint8(image), to_uint8(mask)]), (full.shape[1], full.shape[0])
 
 
 def _fingerprint(instances: Sequence[Instance], crop_size: int, margin: int) -> str:
@@ -85,7 +113,9 @@ class CropCache:
     def __init__(self, instances: Sequence[Instance], crop_size: int, margin: int, folder: str | Path,
                  progress: bool = True) -> None:
         self.path = Path(folder) / f"{_fingerprint(instances, crop_size, margin)}{CACHE_SUFFIX}"
+        self.sizes_path = self.path.with_name(self.path.name.replace(CACHE_SUFFIX, SIZES_SUFFIX))
         self._array: np.ndarray | None = None
+        self._sizes: np.ndarray | None = None
         if not self.path.exists():
             self._build(instances, crop_size, margin, progress)
 
@@ -94,12 +124,14 @@ class CropCache:
         outer = crop_size + 2 * margin
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         array = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8, shape=(len(instances), 2, outer, outer))
+        sizes = np.zeros((len(instances), 2), np.int64)
         try:
             for index, instance in enumerate(tqdm(instances, desc="caching crops", unit="crop", disable=not progress,
                                                   leave=False)):
-                array[index] = crop_with_margin(instance, crop_size, margin)
+                array[index], sizes[index] = crop_with_margin(instance, crop_size, margin)
             array.flush()
             del array
+            np.save(self.sizes_path, sizes)  # before the crops appear: their file means both are complete
             os.replace(temporary, self.path)
         except BaseException:
             temporary.unlink(missing_ok=True)
@@ -114,5 +146,12 @@ class CropCache:
     def __getitem__(self, index: int) -> np.ndarray:
         return np.asarray(self.array[index])
 
+    def image_size(self, index: int) -> tuple[int, int]:
+        """(width, height) of the instance's image."""
+        if self._sizes is None:
+            self._sizes = np.load(self.sizes_path)
+        width, height = self._sizes[index]
+        return int(width), int(height)
+
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_array": None}  # each worker maps the file itself
+        return {**self.__dict__, "_array": None, "_sizes": None}  # each worker maps the file itself

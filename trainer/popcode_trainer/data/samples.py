@@ -12,10 +12,12 @@ call (``__getitems__``), and so is the pixel arithmetic of their crops.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -24,7 +26,8 @@ from popcode_runtime.errors import PopcodeError
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds, occluder_alpha
 from .bop import Instance
-from .crop_cache import CropCache, crop_with_margin, margin_for_shift
+from .box_noise import BoxNoise, noisy_box
+from .crop_cache import CropCache, crop_with_margin, margin_for_box_noise, margin_for_shift, window_affine
 
 PAPER_AUGMENTATION = Augmentation()
 # Background patches made per epoch and reused (with a random flip and quarter turn) by every crop:
@@ -33,6 +36,7 @@ BACKGROUNDS_PER_EPOCH = 256
 # Gaussian noise fields of twice the crop side made per epoch; a crop's noise is a random window of one.
 # Drawing fresh noise for every crop cost more than the rest of its augmentation (bench/results/training.md).
 NOISE_FIELDS_PER_EPOCH = 8
+BOX_NOISE_TRIES = 4  # draws of a detector-like box before the sample falls back to its true box
 
 TargetsFn = Callable[[Sequence[Instance]], np.ndarray]
 
@@ -45,46 +49,99 @@ def _require_mask(instance: Instance, augmentation: str) -> None:
 class CropDataset(Dataset):
     """Dicts ``image`` (1, S, S) in [0, 1], ``target``, ``R_m2c`` (3, 3), ``obj_id`` and ``index``.
 
-    ``targets_fn`` maps a list of instances to their targets ``(B, D)``.
+    ``targets_fn`` maps a list of instances to their targets ``(B, D)``. ``background``: which rendered
+    crops get a pasted background ("auto": single-object renders, not scenes, which keep their clutter;
+    "always"; "never"). ``box_noise``: crops of detector-like boxes instead of the true ones (training).
+    ``weights`` (one per instance): an epoch draws its crops with these relative chances (with
+    replacement) instead of taking every crop once; ``index`` is then the instance drawn.
     """
 
     def __init__(self, instances: Sequence[Instance], targets_fn: TargetsFn,
                  augmentation: Augmentation | None = PAPER_AUGMENTATION,
                  backgrounds: Backgrounds | str | Path | None = None, crop_size: int = 128, seed: int = 0,
-                 cache_dir: str | Path | None = None, progress: bool = False) -> None:
+                 cache_dir: str | Path | None = None, progress: bool = False, background: str = "auto",
+                 box_noise: BoxNoise | None = None, weights: Sequence[float] | None = None) -> None:
         if len(instances) == 0:
             raise PopcodeError("no instances to make training samples from")
+        if weights is not None and (len(weights) != len(instances) or not np.all(np.asarray(weights) > 0)):
+            raise PopcodeError(f"need one positive sampling weight per instance ({len(instances)}), got "
+                               f"{len(weights)} with minimum {np.min(weights) if len(weights) else 'none'}")
         self.instances = list(instances)
         self.targets_fn = targets_fn
         self.augmentation = augmentation
         self.backgrounds = backgrounds if isinstance(backgrounds, Backgrounds) else Backgrounds(backgrounds)
+        self.background = background
+        self.box_noise = None if box_noise is None or box_noise.is_none or augmentation is None else box_noise
         self.crop_size = crop_size
         self.margin = margin_for_shift(augmentation.max_shift_crop_px) if augmentation else 0
+        self.margin += margin_for_box_noise(crop_size) if self.box_noise else 0
         self.cache = None if cache_dir is None else CropCache(self.instances, crop_size, self.margin, cache_dir,
                                                               progress)
+        self.weights = None if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
         self.seed = seed
         self.epoch = 0
         self._bank: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._order: tuple[int, np.ndarray] | None = None
 
     def set_epoch(self, epoch: int) -> None:
-        """Draw new augmentations: the generator of each sample is seeded by (seed, epoch, index)."""
+        """Draw new augmentations: the generator of each sample is seeded by (seed, epoch, position in the epoch)."""
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
         return len(self.instances)
 
-    def draw(self, index: int) -> tuple[AugmentationDraw | None, np.random.Generator]:
+    def instance_index(self, position: int) -> int:
+        """The instance at ``position`` of this epoch: itself, or the weighted draw's."""
+        if self.weights is None:
+            return position
+        if self._order is None or self._order[0] != self.epoch:
+            rng = np.random.default_rng([self.seed, self.epoch, len(self.instances) + 1])
+            self._order = (self.epoch, rng.choice(len(self.instances), size=len(self.instances), p=self.weights))
+        return int(self._order[1][position])
+
+    def pastes_background(self, instance: Instance) -> bool:
+        if self.background == "never" or not instance.rendered:
+            return False
+        return self.background == "always" or not instance.cluttered
+
+    def draw(self, position: int) -> tuple[AugmentationDraw | None, np.random.Generator]:
         """The augmentation a sample gets in this epoch, and the generator for its random content."""
-        rng = np.random.default_rng([self.seed, self.epoch, index])
+        rng = np.random.default_rng([self.seed, self.epoch, position])
         if self.augmentation is None:
             return None, rng
-        return self.augmentation.draw(rng, self.instances[index].rendered), rng
+        instance = self.instances[self.instance_index(position)]
+        augment = self.augmentation.draw(rng, instance.rendered)
+        if augment.background and not self.pastes_background(instance):
+            augment = dataclasses.replace(augment, background=False)
+        return augment, rng
 
     def stored_crop(self, index: int) -> np.ndarray:
         """Image and visible mask ``(2, S + 2 margin, S + 2 margin)`` uint8 of one instance."""
         if self.cache is not None:
             return self.cache[index]
-        return crop_with_margin(self.instances[index], self.crop_size, self.margin)
+        return crop_with_margin(self.instances[index], self.crop_size, self.margin)[0]
+
+    def image_size(self, index: int) -> tuple[int, int]:
+        if self.cache is not None:
+            return self.cache.image_size(index)
+        return crop_with_margin(self.instances[index], self.crop_size, 0)[1]
+
+    def _window(self, index: int, shift: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+        """The stored crop's ``(2, S, S)`` window: the true box shifted, or a detector-like box's crop."""
+        size, stored = self.crop_size, self.stored_crop(index)
+        if self.box_noise is None:  # the shift (the paper's +-5 crop px), to the nearest pixel: a slice
+            dx, dy = (int(round(v)) for v in shift)
+            return stored[:, self.margin + dy : self.margin + dy + size, self.margin + dx : self.margin + dx + size]
+        box = self.instances[index].box
+        for _ in range(BOX_NOISE_TRIES):
+            affine = window_affine(box, noisy_box(box, self.box_noise, rng, self.image_size(index)), size,
+                                   self.margin, shift)
+            if affine is not None:
+                break
+        else:
+            affine = window_affine(box, box, size, self.margin, shift)
+        return np.stack([cv2.warpAffine(channel, affine, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                         for channel in stored])
 
     def _banks(self) -> tuple[np.ndarray, np.ndarray]:
         """This epoch's background patches and noise fields, made once per epoch (and worker)."""
@@ -110,32 +167,30 @@ class CropDataset(Dataset):
         window = fields[int(rng.integers(len(fields))), y : y + self.crop_size, x : x + self.crop_size]
         return window[::-1] if rng.random() < 0.5 else window
 
-    def crop(self, index: int) -> np.ndarray:
-        """The augmented crop ``(S, S)`` float32 in [0, 1] of one instance."""
-        return self.crops([index])[0]
+    def crop(self, position: int) -> np.ndarray:
+        """The augmented crop ``(S, S)`` float32 in [0, 1] at ``position`` of the epoch."""
+        return self.crops([position])[0]
 
-    def crops(self, indices: Sequence[int]) -> np.ndarray:
+    def crops(self, positions: Sequence[int]) -> np.ndarray:
         """The augmented crops ``(B, S, S)`` float32 in [0, 1] of a batch.
 
         Each sample's random choices come from its own generator, in a fixed order, so a crop does not
         depend on the batch it is in; the pixel arithmetic runs once over the batch.
         """
-        size, count = self.crop_size, len(indices)
+        size, count = self.crop_size, len(positions)
         windows = np.empty((count, 2, size, size), np.uint8)
         draws = []
-        for row, index in enumerate(indices):
-            augment, rng = self.draw(index)
-            # The shift (the paper's +-5 crop px) picks a window of the stored crop, to the nearest pixel.
-            dx, dy = (int(round(v)) for v in augment.shift_crop_px) if augment else (0, 0)
-            windows[row] = self.stored_crop(index)[:, self.margin + dy : self.margin + dy + size,
-                                                   self.margin + dx : self.margin + dx + size]
+        for row, position in enumerate(positions):
+            augment, rng = self.draw(position)
+            windows[row] = self._window(self.instance_index(position), augment.shift_crop_px if augment else (0, 0),
+                                        rng)
             draws.append((augment, rng))
         crops = windows[:, 0].astype(np.float32) * np.float32(1.0 / 255.0)
         if self.augmentation is None:
             return crops
         alphas = windows[:, 1].astype(np.float32) * np.float32(1.0 / 255.0)
         for row, (augment, rng) in enumerate(draws):
-            instance = self.instances[indices[row]]
+            instance = self.instances[self.instance_index(positions[row])]
             crop, alpha = crops[row], alphas[row]
             crop += np.float32(augment.brightness)
             if augment.background:
@@ -151,9 +206,10 @@ class CropDataset(Dataset):
                 crop += np.float32(self.augmentation.noise_sigma) * self._noise(rng)
         return np.clip(crops, 0.0, 1.0, out=crops)
 
-    def _samples(self, indices: Sequence[int]) -> list[dict[str, Any]]:
+    def _samples(self, positions: Sequence[int]) -> list[dict[str, Any]]:
+        indices = [self.instance_index(position) for position in positions]
         targets = self.targets_fn([self.instances[i] for i in indices])
-        crops = torch.from_numpy(self.crops(indices))
+        crops = torch.from_numpy(self.crops(positions))
         return [{
             "image": crops[row][None],
             "target": torch.from_numpy(np.asarray(target, dtype=np.float32)),
@@ -162,9 +218,9 @@ class CropDataset(Dataset):
             "index": index,
         } for row, (index, target) in enumerate(zip(indices, targets, strict=True))]
 
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        return self._samples([index])[0]
+    def __getitem__(self, position: int) -> dict[str, Any]:
+        return self._samples([position])[0]
 
-    def __getitems__(self, indices: Sequence[int]) -> list[dict[str, Any]]:
+    def __getitems__(self, positions: Sequence[int]) -> list[dict[str, Any]]:
         """A DataLoader batch: targets and crops each made in one vectorised call."""
-        return self._samples(list(indices))
+        return self._samples(list(positions))

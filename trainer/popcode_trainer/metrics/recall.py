@@ -11,7 +11,7 @@ over its thresholds (and, for VSD, over the misalignment tolerances tau);
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -244,18 +244,27 @@ VISIBILITY_BINS: tuple[tuple[str, float, float], ...] = (
 """``(label, low, high)``: an instance with ``low <= visib_fract < high`` falls into the bin (BOP19 tests >= 0.1)."""
 
 
+def binned_scores(
+    errors: InstanceErrors, values: np.ndarray, bins: Sequence[tuple[str, float, float]],
+    diameters_mm: Mapping[int, float], thresholds: Thresholds | None = None, what: str = "values",
+) -> dict[str, dict[str, float]]:
+    """Scores (:func:`metric_scores`, pooled over instances) per bin ``(label, low, high)`` of one value per
+    instance (``low <= value < high``), each with its instance count under ``"instances"``; a bin without
+    instances has NaN scores. ``what`` names the values in errors."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != np.shape(errors.obj_id):
+        raise PopcodeError(f"{len(values)} {what} for {len(errors.obj_id)} instances")
+    result = {}
+    for label, low, high in bins:
+        chosen = (values >= low) & (values < high)
+        result[label] = {**metric_scores(errors.select(chosen), diameters_mm, thresholds),
+                         "instances": float(chosen.sum())}
+    return result
+
+
 def visibility_scores(
     errors: InstanceErrors, visib_fract: np.ndarray, diameters_mm: Mapping[int, float],
     thresholds: Thresholds | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Scores (:func:`metric_scores`, pooled over instances) per bin of :data:`VISIBILITY_BINS`, each with its
-    instance count under ``"instances"``; a bin without instances has NaN scores."""
-    visib_fract = np.asarray(visib_fract, dtype=np.float64)
-    if visib_fract.shape != np.shape(errors.obj_id):
-        raise PopcodeError(f"{len(visib_fract)} visibilities for {len(errors.obj_id)} instances")
-    result = {}
-    for label, low, high in VISIBILITY_BINS:
-        chosen = (visib_fract >= low) & (visib_fract < high)
-        result[label] = {**metric_scores(errors.select(chosen), diameters_mm, thresholds),
-                         "instances": float(chosen.sum())}
-    return result
+    """:func:`binned_scores` per bin of :data:`VISIBILITY_BINS`."""
+    return binned_scores(errors, visib_fract, VISIBILITY_BINS, diameters_mm, thresholds, "visibilities")

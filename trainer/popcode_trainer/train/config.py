@@ -25,6 +25,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import MAX_INPUT_SIZE, MIN_INPUT_SIZE, Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
 
+from ..data.box_noise import box_noise_preset
 from .fast_path import COMPILE_CHOICES, PRECISIONS
 from .network import TRUNKS, NetworkConfig
 from .representations import LOSSES
@@ -36,6 +37,7 @@ else:  # the same parser, from PyPI, before Python 3.11
     import tomli as tomllib
 
 BOX_KINDS = ("bbox_obj", "bbox_visib")
+BACKGROUND_POLICIES = ("auto", "always", "never")  # where rendered crops get a pasted background (samples.py)
 DEVICES = ("auto", "cpu", "cuda")
 MAX_CONV_CHANNELS = 4096  # the paper's widest is 256
 # Network fields that follow from the representation and the crop, not from the user.
@@ -47,6 +49,7 @@ class DataConfig:
     """Where the crops come from. ``obj_ids`` empty: every object in the splits, pooled."""
 
     splits: tuple[str, ...] = ()
+    split_weights: tuple[float, ...] = ()  # share of each split in an epoch's crops; empty: every crop once
     models_dir: str = ""
     obj_ids: tuple[int, ...] = ()
     min_visib_fract: float = 0.6
@@ -54,6 +57,8 @@ class DataConfig:
     val_fraction: float = 0.1
     augment: bool = True
     occlusion_p: float = 0.0  # rendered crops: probability of an occluder over part of the object (not the paper's)
+    background: str = "auto"  # "auto": pasted behind single-object renders, scenes keep their own clutter
+    box_noise: str = "none"  # training crops from detector-like boxes: a preset of data.box_noise
     crop_size: int = CROP_SIZE
     num_workers: int = 2
 
@@ -190,6 +195,18 @@ def _check_choices(config: Config) -> None:
     if config.train.loss != "mse" and config.train.representation != Representation.POPULATION_CODE:
         raise PopcodeError(f"train.loss = {config.train.loss!r} applies to the population code; "
                            f"{config.train.representation} has its own loss")
+    _choice("data.background", config.data.background, BACKGROUND_POLICIES)
+    try:
+        box_noise_preset(config.data.box_noise)
+    except PopcodeError as error:
+        raise PopcodeError(f"data.box_noise: {error}") from error
+    weights = config.data.split_weights
+    if weights and len(weights) != len(config.data.splits):
+        raise PopcodeError(f"data.split_weights has {len(weights)} entries for {len(config.data.splits)} "
+                           "data.splits: give one weight per split, or none")
+    if any(not weight > 0 for weight in weights):  # NaN too
+        raise PopcodeError(f"data.split_weights must all be positive (a split you do not want: leave it out of "
+                           f"data.splits), got {list(weights)}")
     if not 0.0 <= config.data.val_fraction < 1.0:
         raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
     for key in ("epochs", "batch_size", "num_hypotheses"):

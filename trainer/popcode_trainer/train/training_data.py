@@ -16,6 +16,7 @@ from popcode_runtime.errors import PopcodeError
 
 from ..data.augment import Augmentation
 from ..data.bop import Instance, read_bop_split
+from ..data.box_noise import box_noise_preset
 from ..data.samples import CropDataset
 from ..data.symmetry_check import check_models_symmetries
 from .config import Config
@@ -80,6 +81,18 @@ def read_training_split(config: Config) -> TrainingSplit:
     return TrainingSplit(instances, objects, train, val)
 
 
+def sampling_weights(instances: list[Instance], splits: tuple[str, ...], split_weights: tuple[float, ...]
+                     ) -> list[float] | None:
+    """Per-instance chances that give each split ``split_weights``' share of an epoch (None: every crop once)."""
+    if not split_weights:
+        return None
+    folders = [Path(split).absolute() for split in splits]
+    owner = [next(i for i, folder in enumerate(folders) if Path(inst.image_path).absolute().is_relative_to(folder))
+             for inst in instances]
+    counts = np.bincount(owner, minlength=len(folders))
+    return [split_weights[i] / counts[i] for i in owner]
+
+
 def build_training_data(config: Config, progress: bool = True, split: TrainingSplit | None = None) -> TrainingData:
     """Instances, representation and data sets of ``config`` (``split``: already read); training crops are cached
     in the run folder."""
@@ -89,13 +102,16 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
                                           code.sigma_deg, cfg.rotation_frame, cfg.num_hypotheses,
                                           code.sigma_from_symmetries, cfg.loss)
     train, val = split.train, split.val
-    augmentation = Augmentation(occlusion_p=config.data.occlusion_p) if config.data.augment else None
-    size = config.data.crop_size
+    data = config.data
+    augmentation = Augmentation(occlusion_p=data.occlusion_p) if data.augment else None
+    size = data.crop_size
     cache = Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(
         representation=representation,
         train_set=CropDataset(train, representation.targets, augmentation=augmentation, crop_size=size, seed=cfg.seed,
-                              cache_dir=cache, progress=progress),
+                              cache_dir=cache, progress=progress, background=data.background,
+                              box_noise=box_noise_preset(data.box_noise),
+                              weights=sampling_weights(train, data.splits, data.split_weights)),
         val_set=CropDataset(val, representation.targets, augmentation=None, crop_size=size, seed=cfg.seed,
                             cache_dir=cache, progress=progress) if val else None,
         val_instances=val,

@@ -15,3 +15,5 @@ class Estimates:
     confidence: np.ndarray  # (N,) calibrated P(error < threshold); NaN where the model has no calibrator
     score: np.ndarray  # (N,) the representation's raw score (peak activation, ...)
     seconds_per_crop: float  # crop + network + decoding
+    hypotheses: np.ndarray | None = None  # (K, N, 3, 3) candidate rotations by rank: R_m2c, then the code's
+    # other distinct poses, strongest first, each instance's list padded with R_m2c; None: no hypotheses asked for

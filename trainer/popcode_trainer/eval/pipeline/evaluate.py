@@ -4,7 +4,10 @@ Rotation from the model, translation from the ground truth (the paper's
 protocol); optionally also full 6-D poses, with the translation fitted to the
 box as the runtime does it (:mod:`.translation`). Every method is scored on the
 same instances, those all of them can estimate, with the object meshes and depth
-renderers of one :class:`.split_metrics.SplitMetrics`.
+renderers of one :class:`.split_metrics.SplitMetrics`. A split whose boxes are a
+detector's (:func:`.detector_boxes.with_detector_boxes`) is also scored per box
+IoU; with ``top_k > 1`` population codes are also scored by the best of their
+top-k hypotheses.
 """
 
 from __future__ import annotations
@@ -17,8 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from popcode_runtime.checks import integer
 from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.estimator import MAX_TOP_K
 
 from ...metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
 from ...metrics.recall import InstanceErrors, Thresholds, metric_scores
@@ -28,6 +33,17 @@ from .results_file import ResultsMethod
 from .split import EvalSplit, restrict_to_objects
 from .split_metrics import SplitMetrics
 from .translation import FullPose, full_pose
+
+
+@dataclass(frozen=True)
+class BestOfTopK:
+    """MSSD of the best of each instance's first k candidate rotations (:attr:`Estimates.hypotheses`), k = 1..K.
+
+    The best candidate is the one of smallest MSSD error (the first of equals); k = 1 is the plain estimate.
+    """
+
+    mssd_mm: np.ndarray  # (K, N) row k - 1: the MSSD error [mm] of the best of the first k, split order
+    groups: dict[int, dict[str, float]]  # k -> ambiguity group -> MSSD score in [0, 1]
 
 
 @dataclass(frozen=True)
@@ -48,6 +64,23 @@ class MethodResult:
     thresholds: Thresholds = field(default_factory=Thresholds)  # those every score was computed with
     confidence: ConfidenceEvaluation | None = None  # how well the per-estimate score predicts a small error
     by_visibility: dict[str, dict[str, float]] = field(default_factory=dict)  # visib_fract bin -> scores, count
+    by_box_iou: dict[str, dict[str, float]] = field(default_factory=dict)  # IoU bin -> scores, count; detector boxes
+    top_k: int = 1  # hypotheses asked for
+    best_of_top_k: BestOfTopK | None = None  # with top_k > 1, for population codes
+
+
+def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
+    """Score the best of the first k of ``hypotheses (K, N, 3, 3)`` for every k, rank 0 having ``errors``.
+
+    Each further rank is scored once, without the depth-based errors: MSSD picks the best.
+    """
+    ranks = [errors.mssd_mm] + [metrics.errors(R, depth=False).mssd_mm for R in hypotheses[1:]]
+    best = np.minimum.accumulate(np.stack(ranks), axis=0)
+    groups = {}
+    for k, mssd_mm in enumerate(best, start=1):
+        scores = metrics.scores(dataclasses.replace(errors, mssd_mm=mssd_mm))[1]
+        groups[k] = {group: values["MSSD"] for group, values in scores.items()}
+    return BestOfTopK(best, groups)
 
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
@@ -65,19 +98,26 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
     pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
     return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups, metrics.tightest(errors),
                         model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds,
-                        by_visibility=metrics.by_visibility(errors))
+                        by_visibility=metrics.by_visibility(errors), by_box_iou=metrics.by_box_iou(errors))
 
 
 def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,
-                   points_mm: Mapping[int, np.ndarray] | None = None) -> MethodResult:
+                   points_mm: Mapping[int, np.ndarray] | None = None, top_k: int = 1) -> MethodResult:
     """Estimate every instance of the split with the method (run its models, or read its results file), then
-    score (6-D too with ``points_mm``, the object points of model files)."""
+    score (6-D too with ``points_mm``, the object points of model files; with ``top_k > 1`` the best of the
+    top-k hypotheses of a population code too)."""
     split = metrics.split
-    estimates = method.estimate(split.instances, split.models_info, progress)
+    estimates = method.estimate(split.instances, split.models_info, progress, top_k)
     result = evaluate_rotations(method.name, estimates.R_m2c, metrics, method.paths,
                                 1000.0 * estimates.seconds_per_crop, points_mm)
+    best = None
+    if estimates.hypotheses is not None:
+        started = time.perf_counter()
+        best = best_of_top_k(estimates.hypotheses, result.errors, metrics)
+        result = dataclasses.replace(result, metric_s=result.metric_s + time.perf_counter() - started)
     return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
-                                                                        method.confidence_thresholds_deg))
+                                                                        method.confidence_thresholds_deg),
+                               top_k=top_k, best_of_top_k=best)
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,
@@ -122,19 +162,22 @@ def _shared_split(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
 
 def evaluate_models(methods: Sequence[Method | ResultsMethod], split: EvalSplit, thresholds: Thresholds | None = None,
                     vsd: bool | None = None, obj_ids: Iterable[int] | None = None,
-                    progress: bool = True, translation: bool = False) -> list[MethodResult]:
+                    progress: bool = True, translation: bool = False, top_k: int = 1) -> list[MethodResult]:
     """Every method on the same split instances, sharing object models and depth renderers.
 
     ``translation`` also fits each instance's translation to its box, as the
-    runtime does, and scores the full 6-D poses (:class:`FullPose`).
+    runtime does, and scores the full 6-D poses (:class:`FullPose`). ``top_k``
+    (1 to the runtime's ``MAX_TOP_K``) above 1 also scores the best of each
+    population code's top-k hypotheses (:class:`BestOfTopK`; None for other methods).
     """
+    top_k = integer(top_k, "top_k", 1, MAX_TOP_K)
     if not methods:
         raise PopcodeError("no models to evaluate")
     # Every model's object points before the first prediction: a model without them fails now, not after hours.
     points_mm = [method.object_points() if translation else None for method in methods]
     metrics = SplitMetrics(_shared_split(methods, split, obj_ids), thresholds, vsd)
     try:
-        return [evaluate_model(method, metrics, progress, points) for method, points in zip(methods, points_mm,
-                                                                                            strict=True)]
+        return [evaluate_model(method, metrics, progress, points, top_k)
+                for method, points in zip(methods, points_mm, strict=True)]
     finally:
         metrics.close()

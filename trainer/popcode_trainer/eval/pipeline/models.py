@@ -20,6 +20,7 @@ from tqdm import tqdm
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator, Prediction
 from popcode_runtime.image_loop import estimate_images, group_by_image, route_objects
+from popcode_runtime.metadata import Representation
 
 from ...data.bop import Instance
 from ...export.torch_engine import checkpoint_estimator
@@ -99,6 +100,11 @@ class Method:
     def estimators(self) -> list[PoseEstimator]:
         return [model.estimator for model in self.models]
 
+    @property
+    def population_code(self) -> bool:
+        """Whether every model of the method outputs a population code (and so can list hypotheses)."""
+        return all(e.metadata.representation == Representation.POPULATION_CODE for e in self.estimators)
+
     def known_objects(self) -> set[int]:
         """The objects the method's models estimate; two models for one object is an error."""
         try:
@@ -107,15 +113,19 @@ class Method:
             raise PopcodeError(f"method {self.name!r}: {error}") from error
 
     def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
-                 progress: bool = True) -> Estimates:
-        """Run the models on every instance (``models_info`` is not needed: the models carry their objects)."""
-        return predict_rotations(self, instances, progress)
+                 progress: bool = True, top_k: int = 1) -> Estimates:
+        """Run the models on every instance (``models_info`` is not needed: the models carry their objects);
+        ``top_k > 1`` also lists the hypotheses of population codes (none for other representations)."""
+        return predict_rotations(self, instances, progress, top_k if self.population_code else 1)
 
 
-def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True) -> Estimates:
+def predict_rotations(method: Method, instances: Sequence[Instance], progress: bool = True,
+                      top_k: int = 1) -> Estimates:
     """The method's estimate of every instance, through the runtime's per-image loop (each image read once).
 
-    The seconds per crop count the models' predict calls only, not reading the images.
+    ``top_k > 1`` (population codes only) adds each instance's ``top_k`` candidate
+    rotations (:attr:`Estimates.hypotheses`). The seconds per crop count the
+    models' predict calls only, not reading the images (with hypotheses, their search too).
     """
     known = method.known_objects()
     missing = sorted({inst.obj_id for inst in instances} - known)
@@ -124,13 +134,24 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
                            f"(its models know {sorted(known)}); pass --obj-ids to evaluate fewer objects")
     images = group_by_image(instances)
     R_est, confidence, score = np.empty((len(instances), 3, 3)), np.empty(len(instances)), np.empty(len(instances))
+    hypotheses = np.empty((top_k, len(instances), 3, 3)) if top_k > 1 else None
+    options = {"top_k": top_k} if top_k > 1 else {}
     predict_s = 0.0
-    for done in tqdm(estimate_images(method.estimators, method.paths, images), total=len(images),
+    for done in tqdm(estimate_images(method.estimators, method.paths, images, **options), total=len(images),
                      desc=f"predict {method.name}", unit="img", disable=not progress):
         rows = list(done.key)
         R_est[rows], confidence[rows], score[rows] = _arrays(done.predictions)
+        if hypotheses is not None:
+            hypotheses[:, rows] = np.stack([ranked_rotations(p, top_k) for p in done.predictions], axis=1)
         predict_s += done.predict_s
-    return Estimates(R_est, confidence, score, predict_s / max(len(instances), 1))
+    return Estimates(R_est, confidence, score, predict_s / max(len(instances), 1), hypotheses)
+
+
+def ranked_rotations(prediction: Prediction, top_k: int) -> np.ndarray:
+    """``(top_k, 3, 3)``: the prediction's own rotation, then its other hypotheses strongest first, padded with
+    the first (so that the best of the top 1 is always the plain estimate)."""
+    ranked = [prediction.R_m2c] + [h.R_m2c for h in (prediction.hypotheses or [])[1:top_k]]
+    return np.stack(ranked + [prediction.R_m2c] * (top_k - len(ranked)))
 
 
 def _arrays(predictions: Sequence[Prediction]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -53,8 +53,11 @@ class ResultsMethod:
         return None  # no model metadata: the 6-D scores of --translation are for model files
 
     def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
-                 progress: bool = True) -> Estimates:
-        """Each instance's matched estimate (see the module docstring); an instance without one is an error."""
+                 progress: bool = True, top_k: int = 1) -> Estimates:
+        """Each instance's matched estimate (see the module docstring); an instance without one is an error.
+
+        A results file lists no hypotheses: ``top_k`` is accepted and ignored.
+        """
         rows_of: dict[tuple[int, int, int], list[int]] = defaultdict(list)
         for row, inst in enumerate(instances):
             rows_of[(inst.scene_id, inst.im_id, inst.obj_id)].append(row)

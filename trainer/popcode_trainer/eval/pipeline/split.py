@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
@@ -15,12 +17,25 @@ from ...data.bop import Instance, read_bop_split
 
 
 @dataclass(frozen=True)
+class DetectorBoxes:
+    """How a split's boxes were replaced by a detector's (``detector_boxes.with_detector_boxes``)."""
+
+    preset: str  # the box-noise preset's name ("custom" for a noise model of no preset)
+    seed: int
+    iou: np.ndarray  # (N,) each instance's box against its ground-truth box, split order
+
+
+@dataclass(frozen=True)
 class EvalSplit:
-    """The ground-truth instances to evaluate and the objects they show."""
+    """The ground-truth instances to evaluate and the objects they show.
+
+    ``detector_boxes`` is None while each instance carries its ground-truth box (the paper's protocol).
+    """
 
     instances: list[Instance]
     models_info: dict[int, dict[str, Any]]
     models_dir: Path
+    detector_boxes: DetectorBoxes | None = field(default=None, compare=False)
 
     @property
     def obj_ids(self) -> list[int]:
@@ -55,5 +70,9 @@ def read_eval_split(split_dirs: Sequence[str | Path], models_dir: str | Path, ob
 def restrict_to_objects(split: EvalSplit, obj_ids: Iterable[int]) -> EvalSplit:
     """The split's instances of ``obj_ids`` only."""
     wanted = set(obj_ids)
-    kept = [inst for inst in split.instances if inst.obj_id in wanted]
-    return EvalSplit(kept, {k: v for k, v in split.models_info.items() if k in wanted}, split.models_dir)
+    chosen = np.array([inst.obj_id in wanted for inst in split.instances], dtype=bool)
+    kept = [inst for inst, keep in zip(split.instances, chosen, strict=True) if keep]
+    boxes = split.detector_boxes
+    if boxes is not None:
+        boxes = DetectorBoxes(boxes.preset, boxes.seed, boxes.iou[chosen])
+    return EvalSplit(kept, {k: v for k, v in split.models_info.items() if k in wanted}, split.models_dir, boxes)

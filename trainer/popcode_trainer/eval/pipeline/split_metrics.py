@@ -15,10 +15,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from popcode_runtime.crop import read_image
 from popcode_runtime.errors import PopcodeError
 
 from ...data.bop import Instance, model_path
+from ...data.box_noise import IOU_BINS, iou_bin_label
 from ...data.gl import DepthRenderer
 from ...data.meshes import load_mesh
 from ...metrics.pose_errors import RenderDepth
@@ -26,11 +26,13 @@ from ...metrics.recall import (
     InstanceErrors,
     Thresholds,
     ambiguous_objects,
+    binned_scores,
     group_scores,
     scores_per_object,
     tightest_recalls,
     visibility_scores,
 )
+from .detector_boxes import image_size_px
 from .instance_errors import ObjectModel, compute_instance_errors
 from .split import EvalSplit
 
@@ -87,11 +89,13 @@ class SplitMetrics:
         renderer = self._renderer
         return lambda R, t: renderer.render(K, R, t)
 
-    def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None) -> InstanceErrors:
+    def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None, depth: bool = True) -> InstanceErrors:
         """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order.
 
         ``t_est_mm (N, 3)`` scores full 6-D poses; without it every estimate gets
-        the ground-truth translation (the paper's protocol). Instances are scored
+        the ground-truth translation (the paper's protocol). ``depth=False`` skips
+        the depth-based errors even where the split has depth (a quick score of
+        many candidate rotations, e.g. each hypothesis rank). Instances are scored
         in groups of one object and image size, so each group renders its depth
         with one renderer.
         """
@@ -109,7 +113,7 @@ class SplitMetrics:
         for key in sorted(set(keys)):
             rows = np.array([i for i, k in enumerate(keys) if k == key])
             t_rows = None if t_est_mm is None else np.asarray(t_est_mm, np.float64)[rows]
-            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows], t_rows)))
+            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows], t_rows, depth)))
         return _merge_rows(len(instances), parts)
 
     def scores(self, errors: InstanceErrors) -> tuple[dict[int, dict[str, float]], dict[str, dict[str, float]]]:
@@ -122,13 +126,23 @@ class SplitMetrics:
         visib_fract = np.array([inst.visib_fract for inst in self.split.instances])
         return visibility_scores(errors, visib_fract, self.diameters_mm, self.thresholds)
 
+    def by_box_iou(self, errors: InstanceErrors) -> dict[str, dict[str, float]]:
+        """Scores per bin of the box's IoU with the truth (``box_noise.IOU_BINS``), each with its instance count;
+        empty while the split has its ground-truth boxes."""
+        boxes = self.split.detector_boxes
+        if boxes is None:
+            return {}
+        bins = [(iou_bin_label(low, high), low, high) for low, high in IOU_BINS]
+        return binned_scores(errors, boxes.iou, bins, self.diameters_mm, self.thresholds, "box IoUs")
+
     def tightest(self, errors: InstanceErrors) -> dict[str, dict[str, float]]:
         """Recall at each metric's tightest threshold alone, per ambiguity group."""
         return group_scores(errors, self.diameters_mm, self.ambiguous, self.thresholds, score=tightest_recalls)
 
-    def _group_errors(self, rows: np.ndarray, R_est: np.ndarray, t_est_mm: np.ndarray | None) -> InstanceErrors:
+    def _group_errors(self, rows: np.ndarray, R_est: np.ndarray, t_est_mm: np.ndarray | None,
+                      use_depth: bool = True) -> InstanceErrors:
         chosen = [self.split.instances[i] for i in rows]
-        depth = _DepthImages(chosen) if self.use_depth else None
+        depth = _DepthImages(chosen) if self.use_depth and use_depth else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the skipped-VSD warning was given once, in __init__
             return compute_instance_errors(
@@ -162,8 +176,7 @@ def _image_sizes_px(instances: Sequence[Instance]) -> np.ndarray:
     sizes: dict[Path, tuple[int, int]] = {}
     for inst in instances:
         if inst.image_path not in sizes:
-            height, width = read_image(inst.image_path).shape[:2]
-            sizes[inst.image_path] = (width, height)
+            sizes[inst.image_path] = image_size_px(inst.image_path)
     return np.array([sizes[inst.image_path] for inst in instances], dtype=np.float64)
 
 

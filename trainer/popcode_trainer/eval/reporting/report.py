@@ -2,7 +2,9 @@
 
 With full 6-D poses (translation from the box) each file gains them beside the
 rotation-only results: error columns suffixed ``_6d``, a translation-error
-table and the 6-D scores, a second BOP19 file.
+table and the 6-D scores, a second BOP19 file. With a detector's boxes each
+instance's ``box_iou`` and a table of MSSD by box IoU; with hypotheses
+(``top_k > 1``) the MSSD of the best of the top k.
 """
 
 from __future__ import annotations
@@ -35,7 +37,15 @@ from ..pipeline.split import EvalSplit
 from ..pipeline.translation import relative_translation_error, translation_summary
 from .confidence import RELIABILITY_PNG, confidence_markdown, plot_reliability
 from .markdown import markdown_table
-from .tables import ambiguity_markdown, per_object_markdown, to_json, translation_markdown, visibility_markdown
+from .tables import (
+    ambiguity_markdown,
+    best_of_top_k_markdown,
+    box_iou_markdown,
+    per_object_markdown,
+    to_json,
+    translation_markdown,
+    visibility_markdown,
+)
 
 ERRORS_CSV = "errors_{name}.csv"
 BOP19_CSV = "{name}_bop19.csv"
@@ -74,9 +84,12 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
     rows = []
     for i, inst in enumerate(split.instances):
         row: dict[str, Any] = {
-            "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index,
-            "re_deg": float(re_deg[i]), **_error_columns(result.errors, i, thresholds),
-        }
+            "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index}
+        if split.detector_boxes is not None:
+            row["box_iou"] = float(split.detector_boxes.iou[i])
+        row |= {"re_deg": float(re_deg[i]), **_error_columns(result.errors, i, thresholds)}
+        if result.best_of_top_k is not None:
+            row[f"mssd_mm_best_of_top{result.top_k}"] = float(result.best_of_top_k.mssd_mm[-1, i])
         for name, (mm, fraction) in te.items():
             row[f"{name}_mm"], row[f"{name}_percent"] = float(mm[i]), 100.0 * float(fraction[i])
         if pose is not None:
@@ -138,6 +151,8 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
         ambiguity_markdown({r.name: r.groups for r in results}),
         *tightest_markdown(results),
         *visibility_section(results),
+        *box_iou_section(results),
+        *best_of_top_k_section(results),
         "## Scores per object (paper Table III)",
     ]
     present = [m for m in METRICS if any(m in s for r in results for s in r.per_object.values())]
@@ -159,6 +174,40 @@ def visibility_section(results: Sequence[MethodResult]) -> list[str]:
             "Occluded instances, and those the image border cuts, binned by the visible fraction of the object; "
             f"instances below {BOP19_MIN_VISIB_FRACT:g} are not evaluated (BOP19).",
             visibility_markdown({r.name: r.by_visibility for r in results})]
+
+
+def box_iou_section(results: Sequence[MethodResult]) -> list[str]:
+    """MSSD per bin of the box IoU: only for a split whose boxes are a detector's."""
+    boxes = results[0].split.detector_boxes
+    if boxes is None:
+        return []
+    return ["## MSSD by box IoU",
+            f"Each instance cropped from a detector-like box (box-noise preset {boxes.preset!r}, seed {boxes.seed}; "
+            f"mean IoU with the ground-truth box {boxes.iou.mean():.3f}), the same box for every method and the "
+            "translation fit; binned by that IoU.",
+            box_iou_markdown({r.name: r.by_box_iou for r in results})]
+
+
+def top_k_scores(result: MethodResult) -> dict[int, dict[str, float] | None]:
+    """k -> group -> MSSD of the best of the top k, k = 1..top_k; None for k > 1 where the method has no
+    hypotheses (k = 1 is its own estimate)."""
+    if result.best_of_top_k is not None:
+        return dict(result.best_of_top_k.groups)
+    return {1: {group: scores["MSSD"] for group, scores in result.groups.items()},
+            **dict.fromkeys(range(2, result.top_k + 1))}
+
+
+def best_of_top_k_section(results: Sequence[MethodResult]) -> list[str]:
+    """MSSD of the best of the top-k hypotheses beside the estimate: only when hypotheses were asked for."""
+    top_k = max(r.top_k for r in results)
+    if top_k == 1:
+        return []
+    return [f"## MSSD of the best of the top-{top_k} hypotheses",
+            "For each instance the candidate of smallest MSSD error among the method's own rotation and the next "
+            "distinct poses its population code holds, strongest first (fewer where the code has fewer peaks): "
+            "what a robot that can check a few hypotheses gets. A single-output representation has none (–). "
+            "Model time per crop includes the hypothesis search.",
+            best_of_top_k_markdown({r.name: top_k_scores(r) for r in results}, top_k)]
 
 
 def translation_rows(results: Sequence[MethodResult]) -> dict[str, dict[str, float]]:
@@ -198,13 +247,21 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
                            "tightest": r.tightest, "by_visibility": r.by_visibility,
                            "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s,
                            "confidence": None if r.confidence is None else r.confidence.to_dict()}
+        if r.split.detector_boxes is not None:
+            methods[r.name]["by_box_iou"] = r.by_box_iou
+        if r.top_k > 1:
+            methods[r.name]["best_of_top_k"] = None if r.best_of_top_k is None else r.best_of_top_k.groups
         if r.full_pose is not None:
             methods[r.name]["full_pose"] = {
                 "translation": translation[r.name], "translation_gt_rotation": translation[f"{r.name}, {GT_ROTATION}"],
                 "groups": r.full_pose.groups, "per_object": r.full_pose.per_object,
             }
-    return {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
-            "tightest_thresholds": tightest_thresholds(results[0].thresholds), "methods": methods}
+    report: dict[str, Any] = {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
+                              "tightest_thresholds": tightest_thresholds(results[0].thresholds)}
+    boxes = split.detector_boxes
+    if boxes is not None:
+        report["box_noise"] = {"preset": boxes.preset, "seed": boxes.seed, "mean_iou": float(boxes.iou.mean())}
+    return report | {"methods": methods}
 
 
 def write_report(results: Sequence[MethodResult], out_dir: str | Path,

@@ -76,6 +76,37 @@ def visibility_markdown(visibility_by_method: Mapping[str, Mapping[str, Scores]]
     return "\n\n".join(sections)
 
 
+def box_iou_markdown(by_iou_by_method: Mapping[str, Mapping[str, Scores]], metric: str = "MSSD") -> str:
+    """One metric per bin of the box's IoU with the truth: bins as columns (with their instance counts), methods
+    as rows."""
+    labels = list(dict.fromkeys(label for bins in by_iou_by_method.values() for label in bins))
+    first = next(iter(by_iou_by_method.values()))
+    counts = [["Instances", *(int(first[label]["instances"]) for label in labels)]]
+    rows = [(method, [bins[label].get(metric) if label in bins else None for label in labels])
+            for method, bins in by_iou_by_method.items()]
+    return _markdown([f"{metric} / box IoU", *labels], rows, leading=counts)
+
+
+def shown_ranks(top_k: int) -> list[int]:
+    """The k of the best-of-top-k columns in markdown: every k up to 10, then a few (JSON has all)."""
+    if top_k <= 10:
+        return list(range(1, top_k + 1))
+    return sorted({*range(1, 6), *(k for k in (10, 20, 50) if k < top_k), top_k})
+
+
+def best_of_top_k_markdown(by_k_by_method: Mapping[str, Mapping[int, Scores | None]], top_k: int) -> str:
+    """MSSD of the best of the top-k hypotheses, one section per ambiguity group: methods as rows, k as columns
+    (k = 1 is the method's own estimate); "–" where a method lists no hypotheses."""
+    ranks = shown_ranks(top_k)
+    header = ["Method", *("MSSD (estimate)" if k == 1 else f"MSSD (best of top-{k})" for k in ranks)]
+    sections = []
+    for group in GROUPS:
+        rows = [(method, [None if by_k.get(k) is None else by_k[k].get(group) for k in ranks])
+                for method, by_k in by_k_by_method.items()]
+        sections.append(f"**{group}**\n\n{_markdown(header, rows)}")
+    return "\n\n".join(sections)
+
+
 def per_object_markdown(
     per_object_by_method: Mapping[str, Mapping[int, Scores]],
     metric: str = "MSSD",
