@@ -12,6 +12,7 @@ from symmetry_cases import CASES
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
+from popcode_trainer.train.config import Config
 from popcode_trainer.train.representations import (
     HYBRID_CE_WEIGHT,
     MultiHypothesisRepresentation,
@@ -107,7 +108,8 @@ def test_unknown_representation_names_the_choices() -> None:
 
 
 def test_mixing_continuous_and_discrete_objects_is_refused() -> None:
-    with pytest.raises(PopcodeError, match="continuous symmetry.*cannot share"):
+    with pytest.raises(PopcodeError, match=r"continuous symmetry.*cannot share.*data.obj_ids='\[1\]'.*"
+                                           r"data.obj_ids='\[2\]'"):
         code_layout({1: CASES["continuous"], 2: CASES["two_fold"]}, **SMALL)
 
 
@@ -190,3 +192,8 @@ def test_cross_entropy_is_only_for_the_population_code() -> None:
         build_representation(Representation.SINGLE_VARIABLE, {1: CASES["none"]}, loss="cross_entropy", **SMALL)
     with pytest.raises(PopcodeError, match="unknown population-code loss 'l1'"):
         build_representation(Representation.POPULATION_CODE, {1: CASES["none"]}, loss="l1", **SMALL)
+
+
+def test_a_baseline_with_the_population_codes_loss_is_told_the_fix() -> None:
+    with pytest.raises(PopcodeError, match="train.loss.*applies to the population code.*--set train.loss="):
+        Config.from_dict({"train": {"representation": "single_variable", "loss": "mse+cross_entropy"}})

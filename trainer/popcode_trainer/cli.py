@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "train",
     "export",
     "evaluate",
+    "detections",
     "demo",
 )
 

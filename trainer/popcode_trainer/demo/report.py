@@ -108,7 +108,8 @@ def write_model_card(run: DemoRun) -> Path:
         "",
         "## Training",
         "Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
-        f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation; "
+        f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation"
+        f"{_scenes_text(size)}; "
         f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}, {train.loss} loss on the code; "
         f"network {network_summary(network)}.",
         "",
@@ -175,7 +176,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
     return "\n\n".join(part for part in [
         f"# popcode demo (`--size {run.size_name}`)",
         f"Rendered the six built-in parts ({size.train_images_per_object} training and "
-        f"{size.test_images_per_object} test images per object), trained {', '.join(size.representations)} "
+        f"{size.test_images_per_object} test images per object{_scenes_text(size)}), trained "
+        f"{', '.join(size.representations)} "
         f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores)"
@@ -196,6 +198,13 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
+
+
+def _scenes_text(size: PipelineSize) -> str:
+    if not size.train_scenes:
+        return ""
+    return (f", and {size.train_scenes} cluttered bin scenes of them that make {100 * size.scene_share:g} % of "
+            "every epoch's crops, each keeping its own clutter")
 
 
 def _step_path_text(training: dict[str, Any]) -> str:

@@ -83,6 +83,7 @@ DEMO_SIZES = {
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.008
+SECONDS_PER_TRAINING_SCENE = 0.6  # 720 x 540, about seven parts
 SECONDS_PER_TRAINING_SAMPLE = 0.0035
 SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
@@ -140,7 +141,7 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
     per_epoch = {(representation, tuple(obj_ids)): len(obj_ids) * size.train_images_per_object
                  * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
                  for representation in size.representations for obj_ids in groups}
-    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE)]
+    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE)]
     if fit_epochs:
         stages.append((FIRST_EPOCHS, sum(per_epoch.values())))
     for (representation, obj_ids), seconds in per_epoch.items():

@@ -18,11 +18,13 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation
 from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
 from ..data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from ..data.scene_render import render_cluttered_test_split
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import load_trained_model
 from ..export.onnx_export import export_trained
@@ -33,6 +35,7 @@ from ..train.run_files import LAST_CHECKPOINT, MODEL_FILE
 from ..train.training_data import build_training_data, read_training_split, validation_crops
 from .epoch_budget import first_epoch_seconds
 
+TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
 
@@ -53,6 +56,13 @@ class PipelineSize:
     config: Config
     representations: tuple[str, ...] = ALL_REPRESENTATIONS
     cluttered_test_scenes: int = 0  # a second, cluttered test split (parts in a bin, occlusion, sensor effects)
+    train_scenes: int = 0  # cluttered training scenes rendered beside the single-part images
+    scene_share: float = 0.0  # the share of scene crops in an epoch when there are training scenes
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.scene_share < 1.0 or (self.scene_share > 0) != (self.train_scenes > 0):
+            raise PopcodeError(f"scene_share must lie in [0, 1) and be positive exactly when there are training "
+                               f"scenes; got {self.scene_share} with {self.train_scenes} scenes")
 
     def with_epochs(self, epochs: int) -> PipelineSize:
         """The same run trained for ``epochs`` epochs."""
@@ -81,10 +91,19 @@ def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig
     return Config(data=DataConfig(num_workers=0), code=code, network=network, train=train_config)
 
 
+def scene_split_of(train_split: Path) -> Path:
+    """Where the training scenes of a run lie, beside its single-part training split."""
+    return train_split.with_name(f"{train_split.name}_scenes")
+
+
 def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True) -> tuple[Path, Path]:
-    """The training split and a separate test split (other seed), both with random object positions."""
+    """The training split (and its scenes, :func:`scene_split_of`) and a separate test split (other seed), all
+    with random object positions."""
     train_split = render_builtin_split(out_dir / "train", size.train_images_per_object, seed=size.config.train.seed,
                                        random_position=True, progress=progress)
+    if size.train_scenes:
+        render_cluttered_test_split(scene_split_of(train_split), size.train_scenes, progress=progress,
+                                    seed=size.config.train.seed + TRAIN_SCENES_SEED_OFFSET)
     test_split = render_builtin_split(out_dir / "test", size.test_images_per_object, seed=size.config.train.seed + 1000,
                                       random_position=True, progress=progress)
     return train_split, test_split
@@ -111,8 +130,11 @@ def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[i
     ``train.loss`` chooses the population code's loss; the other representations keep their own.
     """
     loss = size.config.train.loss if representation == Representation.POPULATION_CODE else TrainConfig.loss
+    splits, weights = (str(split),), ()
+    if size.train_scenes:
+        splits, weights = (*splits, str(scene_split_of(split))), (1.0 - size.scene_share, size.scene_share)
     config = replace(size.config,
-                     data=replace(size.config.data, splits=(str(split),), obj_ids=tuple(obj_ids),
+                     data=replace(size.config.data, splits=splits, split_weights=weights, obj_ids=tuple(obj_ids),
                                   models_dir=str(split / BUILTIN_MODELS_FOLDER)),
                      train=replace(size.config.train, representation=representation, out_dir=str(out_dir), loss=loss))
     return Config.from_dict(config.to_dict())  # checked like a config file

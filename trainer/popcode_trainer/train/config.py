@@ -194,7 +194,7 @@ def _check_choices(config: Config) -> None:
     _choice("train.compile", config.train.compile, COMPILE_CHOICES)
     if config.train.loss != "mse" and config.train.representation != Representation.POPULATION_CODE:
         raise PopcodeError(f"train.loss = {config.train.loss!r} applies to the population code; "
-                           f"{config.train.representation} has its own loss")
+                           f"{config.train.representation} has its own loss: add --set train.loss='\"mse\"'")
     _choice("data.background", config.data.background, BACKGROUND_POLICIES)
     try:
         box_noise_preset(config.data.box_noise)

@@ -65,14 +65,15 @@ def code_layout(objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles:
     if others:
         raise PopcodeError(
             f"objects {continuous} have a continuous symmetry (axis-only code) and objects {others} do not "
-            "(full code); they cannot share one model -- train them separately"
+            f"(full code); they cannot share one model -- train them separately, e.g. --set "
+            f"data.obj_ids='{continuous}' for one model and --set data.obj_ids='{others}' for the other"
         )
     axis = continuous_axis(objects[continuous[0]])
     for obj_id in continuous[1:]:
         if abs(abs(float(axis @ continuous_axis(objects[obj_id]))) - 1.0) > 1e-6:
             raise PopcodeError(
                 f"objects {continuous[0]} and {obj_id} have continuous symmetries about different model axes; "
-                "one axis-only code encodes one axis -- train them separately"
+                f"one axis-only code encodes one axis -- train them separately (--set data.obj_ids='[{obj_id}]')"
             )
     return CodeLayout(n_axes=n_axes, n_angles=n_angles, sigma_deg=sigma_deg, axis_only=True,
                       symmetry_axis=tuple(axis))

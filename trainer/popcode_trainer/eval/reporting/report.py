@@ -124,7 +124,15 @@ def shared_split(results: Sequence[MethodResult]) -> EvalSplit:
             raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored on different instances")
         if result.thresholds != results[0].thresholds:
             raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored with different thresholds")
+        if _boxes_of(result.split) != _boxes_of(split):
+            raise PopcodeError(f"{result.name!r} and {results[0].name!r} were scored on different boxes "
+                               f"({_boxes_of(result.split)} and {_boxes_of(split)})")
     return split
+
+
+def _boxes_of(split: EvalSplit) -> str:
+    boxes = split.detector_boxes
+    return "ground-truth boxes" if boxes is None else f"box-noise preset {boxes.preset!r}, seed {boxes.seed}"
 
 
 def tightest_markdown(results: Sequence[MethodResult]) -> list[str]:

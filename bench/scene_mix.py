@@ -1,0 +1,149 @@
+"""How much of a training epoch should be cluttered scenes: MSSD on a cluttered and a clean *validation* split
+against the share of scene crops, at an equal number of crop-updates.
+
+    python -m bench.scene_mix [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
+        [--shares 0 0.25 0.5 0.75] [--images 500] [--scenes 300] [--crop-updates 24000]
+        [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
+
+Renders the built-in parts alone (seed 0, as the demo's training split) and in cluttered bin scenes
+(seed 3000, as the demo's training scenes), and two validation splits no recipe is reported on: clean
+single parts (seed 5000) and cluttered scenes (seed 4000). The demo's test splits (seeds 1000 and
+2000) are never read here. Each share trains one model from the config (``data.splits`` and
+``data.split_weights`` replaced; share 0 trains on the single parts alone) for the epochs that give
+``--crop-updates``, and scores its last checkpoint on both validation splits, the cluttered one per
+visible-fraction bin. ``--work`` keeps splits and runs, so an interrupted comparison resumes.
+Results: ``bench/results/scene-mix-<name>.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from popcode_runtime.files import write_json_atomic
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from popcode_trainer.data.scene_render import render_cluttered_test_split
+from popcode_trainer.demo.steps import TRAIN_SCENES_SEED_OFFSET
+from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
+from popcode_trainer.eval.pipeline.models import methods_from_paths
+from popcode_trainer.eval.pipeline.split import read_eval_split
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.metrics.recall import VISIBILITY_BINS
+from popcode_trainer.train.config import Config, load_config
+from popcode_trainer.train.loop import train
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from popcode_trainer.train.training_data import build_training_data
+
+from .budget_curve import _training_so_far
+from .report import machine, machine_line, write_results
+
+TRAIN_SEED, CLUTTERED_VALIDATION_SEED, CLEAN_VALIDATION_SEED = 0, 4000, 5000
+VALIDATION_SCENES, VALIDATION_IMAGES = 80, 40
+
+
+def _config(base: Config, single: Path, scenes: Path, share: float, run_dir: Path, epochs: int) -> Config:
+    splits, weights = ((str(single),), ()) if share == 0 else ((str(single), str(scenes)), (1.0 - share, share))
+    data = replace(base.data, splits=splits, split_weights=weights, models_dir=str(single / BUILTIN_MODELS_FOLDER))
+    return Config.from_dict(replace(base, data=data, train=replace(base.train, out_dir=str(run_dir),
+                                                                   epochs=epochs)).to_dict())
+
+
+def _scores(result: MethodResult) -> dict[str, Any]:
+    return {"mssd": result.groups["All objects"]["MSSD"],
+            "mssd_per_object": {str(obj): s["MSSD"] for obj, s in sorted(result.per_object.items())},
+            "by_visibility": {label: {"mssd": s["MSSD"], "instances": s["instances"]}
+                              for label, s in result.by_visibility.items()}}
+
+
+def _score(run_dir: Path, name: str, split_dir: Path, obj_ids: Sequence[int]) -> dict[str, Any]:
+    split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER, obj_ids)
+    methods = methods_from_paths([run_dir / LAST_CHECKPOINT], [name])
+    return _scores(evaluate_models(methods, split, vsd=False, progress=False)[0])
+
+
+def compare(base: Config, shares: Sequence[float], images: int, scenes: int, crop_updates: int,
+            obj_ids: Sequence[int], work: Path, name: str) -> list[dict[str, Any]]:
+    single = render_builtin_split(work / "train", images, seed=TRAIN_SEED, obj_ids=obj_ids, random_position=True,
+                                  progress=True)
+    scene_split = render_cluttered_test_split(work / "train_scenes", scenes, progress=True, obj_ids=obj_ids,
+                                              seed=TRAIN_SEED + TRAIN_SCENES_SEED_OFFSET)
+    clean = render_builtin_split(work / "val_clean", VALIDATION_IMAGES, seed=CLEAN_VALIDATION_SEED, obj_ids=obj_ids,
+                                 random_position=True, progress=True)
+    cluttered = render_cluttered_test_split(work / "val_cluttered", VALIDATION_SCENES, progress=True,
+                                            obj_ids=obj_ids, seed=CLUTTERED_VALIDATION_SEED)
+    rows = []
+    for share in shares:
+        run_dir = work / "runs" / f"{name}-share{share:g}"
+        scored = run_dir / "scores.json"
+        if scored.exists():  # an interrupted comparison skips what it scored
+            rows.append(json.loads(scored.read_text(encoding="utf-8")))
+            continue
+        config = _config(base, single, scene_split, share, run_dir, 1)
+        data = build_training_data(config)
+        epochs = max(1, round(crop_updates / len(data.train_set)))
+        config = _config(base, single, scene_split, share, run_dir, epochs)
+        train(config, data.representation, data.train_set, data.val_set, resume=(run_dir / LAST_CHECKPOINT).exists(),
+              val_instances=data.val_instances)
+        row = {"share": share, "epochs": epochs, "epoch_crops": len(data.train_set), **_training_so_far(run_dir),
+               "clean": _score(run_dir, name, clean, obj_ids), "cluttered": _score(run_dir, name, cluttered, obj_ids)}
+        write_json_atomic(scored, row)
+        rows.append(row)
+        print(f"share {share:g}: MSSD clean {100 * row['clean']['mssd']:.1f} %, cluttered "
+              f"{100 * row['cluttered']['mssd']:.1f} %", flush=True)
+    return rows
+
+
+def to_markdown(name: str, rows: Sequence[dict[str, Any]], arguments: str, description: dict[str, Any]) -> str:
+    bins = [label for label, _, _ in VISIBILITY_BINS]
+    obj_ids = list(rows[0]["cluttered"]["mssd_per_object"])
+    header = ["scene share", "epochs", "crop-updates", "training min", "clean MSSD %", "cluttered MSSD %",
+              *(f"cluttered {label}" for label in bins), *(f"cluttered obj {obj}" for obj in obj_ids)]
+    table = [[f"{r['share']:g}", str(r["epochs"]), f"{r['crop_updates']:,}", f"{r['training_s'] / 60:.1f}",
+              f"{100 * r['clean']['mssd']:.1f}", f"{100 * r['cluttered']['mssd']:.1f}",
+              *(f"{100 * r['cluttered']['by_visibility'][b]['mssd']:.1f}" for b in bins),
+              *(f"{100 * r['cluttered']['mssd_per_object'][o]:.1f}" for o in obj_ids)] for r in rows]
+    counts = ", ".join(f"{b}: {rows[0]['cluttered']['by_visibility'][b]['instances']}" for b in bins)
+    return "\n".join([
+        f"# Share of cluttered scenes in training: {name}", "",
+        f"`python -m bench.scene_mix {arguments}`. MSSD (BOP19 recall, rotation only, ground-truth boxes and "
+        f"translation) of each model's last checkpoint on two validation splits: clean single parts (seed "
+        f"{CLEAN_VALIDATION_SEED}) and cluttered bin scenes with the industrial sensor (seed "
+        f"{CLUTTERED_VALIDATION_SEED}; instances >= 10 % visible, per visible-fraction bin: {counts}). Training: "
+        f"single parts (seed {TRAIN_SEED}) mixed with scenes (seed {TRAIN_SEED + TRAIN_SCENES_SEED_OFFSET}) at "
+        "each share, at about the same crop-updates.", "",
+        machine_line(description), "", markdown_table(header, table),
+    ])
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, default=Path("trainer/configs/quick.toml"))
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one setting of the config (repeatable)")
+    parser.add_argument("--shares", nargs="+", type=float, default=[0.0, 0.25, 0.5, 0.75],
+                        help="shares of scene crops in an epoch to compare")
+    parser.add_argument("--images", type=int, default=500, help="single-part training images per part")
+    parser.add_argument("--scenes", type=int, default=300, help="training scenes")
+    parser.add_argument("--crop-updates", type=int, default=24000, help="training budget of every model")
+    parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
+    parser.add_argument("--work", type=Path, default=Path("runs/scene_mix"), help="splits and runs (resumable)")
+    parser.add_argument("--name", default="quick", help="name of the comparison (results file scene-mix-<name>)")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    args = parser.parse_args(argv)
+    if any(not 0.0 <= share < 1.0 for share in args.shares):
+        parser.error("--shares must lie in [0, 1)")
+    base = load_config(args.config, args.overrides)
+    rows = compare(base, args.shares, args.images, args.scenes, args.crop_updates, args.obj_ids, args.work, args.name)
+    arguments = " ".join(sys.argv[1:] if argv is None else argv)
+    payload = {"arguments": arguments, "config": str(args.config), "overrides": args.overrides, "rows": rows}
+    write_results(args.out, f"scene-mix-{args.name}", payload, to_markdown(args.name, rows, arguments, machine()))
+    return rows
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() else 1)
