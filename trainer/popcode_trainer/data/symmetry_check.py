@@ -9,9 +9,8 @@ identity must be closed under composition. A generator alone is refused, not
 completed: the file is what the metrics and the model metadata read, so it
 must list the whole group itself.
 
-The distance of a moved sample to the surface is measured to a denser sample
-of the same surface (a k-d tree), an upper bound of the true distance that
-exceeds it by about half the sample spacing (its target: ``_SPACING`` of the diameter).
+Distances are measured as :mod:`.surface_sample` describes. A mesh that nearly has a symmetry it does
+not declare gets a warning (:mod:`.near_symmetry`).
 """
 
 from __future__ import annotations
@@ -25,7 +24,6 @@ from typing import Any
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -33,27 +31,15 @@ from popcode_runtime.symmetries import continuous_symmetries, discrete_transform
 
 from .bop import model_path
 from .meshes import load_mesh
+from .near_symmetry import look_alike_symmetries
+from .surface_sample import PERCENTILE, SurfaceSample, diameter_mm, surface_distance, surface_sample
 
 TOLERANCE = 0.02  # of the diameter: the percentile distance a true symmetry stays under
-PERCENTILE = 99.0  # of the moved samples; tolerates a stray sliver, not a misplaced feature
 GROUP_TOLERANCE = 0.01  # of the diameter: two transforms that move no anchor further are the same
 CONTINUOUS_ANGLES_DEG = (37.0, 90.0, 180.0, 251.0)  # incommensurate with small n-folds
 MAX_GROUP = 1000  # elements; a declared set whose closure grows past this is no finite group
-_QUERY_POINTS = 1000
-_SPACING = 0.004  # of the diameter: target spacing of the reference sample
-_REFERENCE_POINTS = (20_000, 200_000)
-_SEED = 0
 
 _checked: set[tuple[Any, ...]] = set()  # (mesh file, its size and mtime, declaration) already passed
-
-
-@dataclass(frozen=True)
-class SurfaceSample:
-    """Sparse query points and a dense reference sample of one mesh's surface [mm]."""
-
-    points_mm: np.ndarray  # (P, 3)
-    reference: cKDTree
-    diameter_mm: float
 
 
 @dataclass(frozen=True)
@@ -77,32 +63,6 @@ def describe(R: np.ndarray, t_mm: np.ndarray) -> str:
     if np.abs(t_mm).max() > 1e-6:
         text += f" + translation ({_numbers(t_mm)}) mm"
     return text
-
-
-def _diameter_mm(mesh: trimesh.Trimesh, info: Mapping[str, Any]) -> float:
-    """The declared diameter when it is a positive number, else the bounding-box diagonal."""
-    declared = info.get("diameter")
-    if isinstance(declared, (int, float)) and np.isfinite(declared) and declared > 0:
-        return float(declared)
-    return float(np.linalg.norm(mesh.extents))
-
-
-def surface_sample(mesh: trimesh.Trimesh, diameter_mm: float, name: str) -> SurfaceSample:
-    """Seeded surface samples of ``mesh``: the reference dense enough for :data:`TOLERANCE`."""
-    area = float(mesh.area)
-    if not np.isfinite(area) or area <= 0:
-        raise PopcodeError(f"{name}: the mesh has no surface area; its symmetries cannot be checked")
-    low, high = _REFERENCE_POINTS
-    count = int(np.clip(area / (_SPACING * diameter_mm) ** 2, low, high))
-    reference, _ = trimesh.sample.sample_surface(mesh, count, seed=_SEED)
-    points, _ = trimesh.sample.sample_surface(mesh, _QUERY_POINTS, seed=_SEED + 1)
-    return SurfaceSample(np.asarray(points), cKDTree(np.concatenate([reference, mesh.vertices])), diameter_mm)
-
-
-def surface_distance(sample: SurfaceSample, R: np.ndarray, t_mm: np.ndarray) -> float:
-    """How far the moved samples lie from the surface: the PERCENTILE distance, as a share of the diameter."""
-    distance, _ = sample.reference.query(sample.points_mm @ np.asarray(R).T + t_mm)
-    return float(np.percentile(distance, PERCENTILE)) / sample.diameter_mm
 
 
 def _numbers(values: np.ndarray) -> str:
@@ -166,13 +126,14 @@ def check_closed(info: Mapping[str, Any], name: str, diameter_mm: float) -> None
             f"declare all {len(group) - 1} non-identity symmetries in symmetries_discrete, not only a generator")
 
 
-def check_symmetries(mesh: trimesh.Trimesh, info: Mapping[str, Any], name: str) -> None:
+def check_symmetries(mesh: trimesh.Trimesh, info: Mapping[str, Any], name: str,
+                     sample: SurfaceSample | None = None) -> None:
     """Refuse declared symmetries that do not map ``mesh`` onto itself or do not form a group (PopcodeError)."""
     transforms, continuous = discrete_transforms(info), continuous_symmetries(info)
     if len(transforms) == 1 and not continuous:
         return
-    diameter = _diameter_mm(mesh, info)
-    sample = surface_sample(mesh, diameter, name)
+    diameter = diameter_mm(mesh, info)
+    sample = sample or surface_sample(mesh, diameter, name)
     for k in range(1, len(transforms)):
         R, t = transforms.R[k], transforms.t_mm[k]
         _refuse(name, f"symmetries_discrete[{k - 1}] ({describe(R, t)})", surface_distance(sample, R, t))
@@ -193,13 +154,21 @@ def _declaration(info: Mapping[str, Any]) -> str:
 
 def check_object_symmetries(mesh_path: str | Path, info: Mapping[str, Any], obj_id: int,
                             mesh: trimesh.Trimesh | None = None) -> None:
-    """:func:`check_symmetries` of one object's mesh file, once per file and declaration in a process."""
+    """:func:`check_symmetries` of one object's mesh file, and a warning for each symmetry it nearly has
+    without declaring it (:func:`.near_symmetry.look_alike_symmetries`), once per file and declaration in a
+    process."""
     path = Path(mesh_path)
     stat = path.stat()
     key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, _declaration(info))
     if key in _checked:
         return
-    check_symmetries(load_mesh(path) if mesh is None else mesh, info, f"object {obj_id} ({path})")
+    mesh = load_mesh(path) if mesh is None else mesh
+    name = f"object {obj_id} ({path})"
+    diameter = diameter_mm(mesh, info)
+    sample = surface_sample(mesh, diameter, name)
+    check_symmetries(mesh, info, name, sample)
+    for look_alike in look_alike_symmetries(sample, info, _anchors_mm(info, diameter)):
+        warnings.warn(look_alike.describe(f"object {obj_id}"), stacklevel=2)
     _checked.add(key)
 
 

@@ -1,0 +1,66 @@
+"""Look-alike poses: symmetries a mesh nearly has without declaring them are found and reported."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from popcode_trainer.data.near_symmetry import look_alike_symmetries
+from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info
+from popcode_trainer.data.surface_sample import diameter_mm, surface_sample
+from popcode_trainer.data.symmetry_check import _anchors_mm, check_object_symmetries
+
+
+def _plate_with_pin() -> trimesh.Trimesh:
+    """A square plate, 4-fold about z but for one small pin near a corner."""
+    pin = trimesh.creation.cylinder(radius=2, height=6, transform=trimesh.transformations.translation_matrix(
+        (24, 24, 7)))
+    return trimesh.util.concatenate([trimesh.creation.box(extents=(60, 60, 10)), pin])
+
+
+def _look_alikes(mesh: trimesh.Trimesh, info: dict) -> list:
+    diameter = diameter_mm(mesh, info)
+    return look_alike_symmetries(surface_sample(mesh, diameter, "test"), info, _anchors_mm(info, diameter))
+
+
+def test_a_plate_with_one_pin_looks_four_fold_about_z() -> None:
+    mesh = _plate_with_pin()
+    found = {(l.order, tuple(np.round(np.abs(l.axis), 3))): l for l in _look_alikes(mesh, model_info(mesh, {}))}
+    assert (4, (0.0, 0.0, 1.0)) in found
+    assert found[(4, (0.0, 0.0, 1.0))].distance_mm < 0.02 * np.linalg.norm(mesh.extents)
+    assert not any(order == 3 for order, _ in found)  # no 3-fold look-alike on a square
+
+
+def test_declared_symmetries_and_built_in_parts_give_no_look_alike() -> None:
+    for part in BUILTIN_PARTS:
+        mesh = build_part(part.obj_id)
+        assert _look_alikes(mesh, model_info(mesh, part.symmetries)) == [], part.name
+    bracket = next(p for p in BUILTIN_PARTS if not p.symmetries)  # asymmetric: nothing looks alike either
+    assert _look_alikes(build_part(bracket.obj_id), model_info(build_part(bracket.obj_id), {})) == []
+
+
+def test_the_symmetry_check_warns_with_the_fix(tmp_path: Path) -> None:
+    mesh = _plate_with_pin()
+    path = tmp_path / "obj_000009.ply"
+    mesh.export(path)
+    info = json.loads(json.dumps(model_info(mesh, {})))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_object_symmetries(path, info, 9)
+    texts = [str(w.message) for w in caught]
+    assert any("object 9 looks 4-fold symmetric about z" in t and "declare it" in t and "--top-k" in t for t in texts)
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 30.0])
+def test_look_alikes_follow_the_part_when_it_is_turned(angle_deg: float) -> None:
+    turn = trimesh.transformations.rotation_matrix(np.deg2rad(angle_deg), (1, 0, 0))
+    mesh = _plate_with_pin()
+    mesh.apply_transform(turn)
+    found = [l for l in _look_alikes(mesh, model_info(mesh, {})) if l.order == 4]
+    assert len(found) == 1
+    assert abs(abs(float(found[0].axis @ (turn[:3, :3] @ np.array([0.0, 0.0, 1.0])))) - 1.0) < 1e-2
