@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -29,7 +30,8 @@ from popcode_trainer.train.run_files import LAST_CHECKPOINT
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
-                                       batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2)
+                                       batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2,
+                    train_scenes=2, scene_share=0.5)
 BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -61,9 +63,16 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     for name in methods:
         assert 0.0 <= summary["confidence"][name]["mssd_at_coverage"]["0.5"] <= 1.0
     assert "### Confidence" in report
-    assert "## Clean and cluttered test splits" in report  # the two methods side by side on both splits
-    assert set(summary["cluttered_scores"]) == {"population_code", "single_variable"}
+    assert "## The robot's bin: clean and cluttered test splits" in report  # both methods on both splits
+    assert "2 cluttered bin scenes of them that make 50 % of every epoch's crops" in report  # trained on scenes
+    assert set(summary["cluttered_scores"]) == {"population_code", "single_variable",
+                                                "population_code, detector-like boxes"}
     assert all(0.0 <= s["groups"]["All objects"]["MSSD"] <= 1.0 for s in summary["cluttered_scores"].values())
+    top_k = summary["cluttered_scores"]["population_code"]["best_of_top_k"]
+    assert top_k[3]["All objects"] >= top_k[1]["All objects"]
+    assert summary["cluttered_scores"]["single_variable"]["best_of_top_k"] is None
+    assert "| best of top-2 | best of top-3 |" in report and "| population_code, detector-like boxes |" in report
+    assert "| MSSD in the cluttered bin |" in report and "| lead over single_variable in the bin |" in report
     # 3 models x 2 batches x 2 stages, each with a positive median
     assert len(summary["latency"]) == 12
     assert all(record["median_ms"] > 0 for record in summary["latency"])
@@ -148,7 +157,8 @@ def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch:
     split = render_builtin_split(tmp_path / "split", 4, obj_ids=[3, 6], random_position=True)
     loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
     splits = calls_of(monkeypatch, training_data, "read_bop_split")
-    train_and_export(TINY, POPCODE, [3, 6], split, tmp_path, ("int8",))
+    single_parts_only = dataclasses.replace(TINY, train_scenes=0, scene_share=0.0)
+    train_and_export(single_parts_only, POPCODE, [3, 6], split, tmp_path, ("int8",))
     assert [args[0] for args in loads] == [run_dir(tmp_path, POPCODE, [3, 6]) / LAST_CHECKPOINT]
     assert len(hulls) == 2
     assert [Path(args[0]) for args in splits] == [split]  # for training, parity crops and calibration alike

@@ -23,9 +23,11 @@ from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
 
 from ..data.bop import model_path
+from ..data.box_noise import box_noise_preset
 from ..data.objects import BUILTIN_PARTS
 from ..data.render import BUILTIN_MODELS_FOLDER
 from ..data.scene_render import render_cluttered_test_split
+from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import MethodResult, evaluate_models
 from ..eval.pipeline.instance_code import instance_code
 from ..eval.pipeline.models import Method, load_model
@@ -38,7 +40,7 @@ from ..export.model_io import read_onnx_metadata
 from ..train.config import Config, DataConfig
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
-from .report import POPCODE, QUANTISATION, DemoRun, TrainedModels, write_outputs
+from .report import POPCODE, QUANTISATION, ClutteredResults, DemoRun, TrainedModels, write_outputs
 from .steps import (
     SMALL_NETWORK,
     PipelineSize,
@@ -89,6 +91,8 @@ SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one mo
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
+CLUTTERED_TOP_K = 3  # the population code's best of its top-k hypotheses in clutter
+DETECTOR_BOXES = "detector"  # the box-noise preset the cluttered split is scored with once more (IoU about 0.75)
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 
@@ -212,16 +216,20 @@ def demo_methods(models: TrainedModels) -> list[Method]:
     return methods
 
 
-def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path) -> list[MethodResult]:
+def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path) -> ClutteredResults:
     """The population code and the baseline on a cluttered split (rendered once, fixed seed): rotation metrics
-    without the depth-based ones, scored per visibility bin."""
+    without the depth-based ones, scored per visibility bin, with the code's best of its top-k hypotheses; then
+    the population code again with detector-like boxes (:data:`DETECTOR_BOXES`)."""
     split_dir = render_cluttered_test_split(out_dir / "test_cluttered", size.cluttered_test_scenes,
                                             seed=size.config.train.seed + CLUTTERED_SEED_OFFSET, progress=True)
     split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER)
     methods = [m for m in demo_methods(models) if m.name in CLUTTERED_METHODS]
-    results = evaluate_models(methods, split, vsd=False)
+    results = evaluate_models(methods, split, vsd=False, top_k=CLUTTERED_TOP_K)
     write_report(results, out_dir / "eval_cluttered")
-    return results
+    noisy = with_detector_boxes(split, box_noise_preset(DETECTOR_BOXES), seed=size.config.train.seed)
+    detector = evaluate_models([m for m in methods if m.name == POPCODE], noisy, vsd=False)
+    write_report(detector, out_dir / "eval_cluttered_detector_boxes")
+    return ClutteredResults(results, detector[0])
 
 
 def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, Any]]:
@@ -323,7 +331,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
         results = evaluate_models(demo_methods(models), split, translation=True)
         write_report(results, out_dir / "eval")
-    cluttered: list[MethodResult] = []
+    cluttered = None
     if size.cluttered_test_scenes:
         with stages.stage("cluttered test split"):
             cluttered = evaluate_cluttered(size, models, out_dir)
