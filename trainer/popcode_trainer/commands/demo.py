@@ -1,4 +1,4 @@
-"""``popcode-train demo``: the whole product on the built-in objects, into one run folder."""
+"""``popcode-train demo``: the whole product on the built-in objects or a user's parts, into one run folder."""
 
 from __future__ import annotations
 
@@ -9,19 +9,28 @@ from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
 
+from ..demo.parts import BUILTIN
 from ..demo.report import REPORT_FILE
-from ..demo.run import DEMO_SIZES, run_demo
+from ..demo.run import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS, describe_parts, prepare_parts, run_demo
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     sizes = "; ".join(f"{name}: {size.purpose}" for name, size in DEMO_SIZES.items())
     parser = subparsers.add_parser(
-        "demo", help="render, train, export, evaluate and benchmark on the built-in objects",
-        description="Render the six built-in parts, train the population code and the single-variable baseline "
-                    "with the same network and budget, export ONNX (float and int8), evaluate both with the BOP "
-                    f"metrics through the runtime, time the runtime, and write {REPORT_FILE} with tables and "
-                    "figures. Rerun with the same --out to resume an interrupted demo.")
-    parser.add_argument("--size", choices=list(DEMO_SIZES), default="quick", help=f"budget ({sizes})")
+        "demo", help="render, train, export, evaluate and benchmark on the built-in objects or your own parts",
+        description="Render the six built-in parts (or the parts of a BOP models folder, --objects), train the "
+                    "population code and the single-variable baseline with the same network and budget, one model "
+                    "per object group (parts with a continuous symmetry about one axis together, the others "
+                    "together), export ONNX (float and int8), evaluate both with the BOP metrics through the "
+                    f"runtime, time the runtime, and write {REPORT_FILE} with tables and figures. A models folder is "
+                    "checked before anything is rendered. Rerun with the same --out to resume an interrupted demo.")
+    parser.add_argument("--objects", default=BUILTIN, metavar="MODELS",
+                        help="'builtin' (default: the six built-in parts) or a BOP models folder with "
+                             "models_info.json and obj_XXXXXX.ply meshes in millimetres")
+    parser.add_argument("--check", action="store_true",
+                        help="check --objects, print the object groups and the code each trains with, and stop")
+    parser.add_argument("--size", choices=[*DEMO_SIZES, *HIDDEN_SIZES], default="quick",
+                        metavar="{" + ",".join(DEMO_SIZES) + "}", help=f"budget ({sizes})")
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default: runs/demo)")
     parser.add_argument("--epochs", type=int, help="train this many epochs instead of fitting them to the size's "
                                                    f"time budget (quick: {DEMO_SIZES['quick'].minutes:g} min) or "
@@ -34,18 +43,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    demo = DEMO_SIZES[args.size]
+    demo = {**DEMO_SIZES, **HIDDEN_SIZES}[args.size]
     size, minutes = demo.pipeline, demo.minutes
     for option, value in (("--epochs", args.epochs), ("--images", args.images), ("--minutes", args.minutes)):
         if value is not None and not (value >= 1 and math.isfinite(value)):
             raise PopcodeError(f"{option} must be at least 1 and finite, got {value}")
     if args.epochs is not None and args.minutes is not None:
         raise PopcodeError("--epochs and --minutes both set the training budget; give one")
+    if args.check:
+        print(describe_parts(*prepare_parts(args.objects, size.config.code)))
+        return 0
     if args.epochs is not None:
         size, minutes = size.with_epochs(args.epochs), None
     if args.minutes is not None:
         minutes = args.minutes
     if args.images is not None:
         size = dataclasses.replace(size, train_images_per_object=args.images)
-    run_demo(args.size, args.out, size, minutes=minutes)
+    latency_iterations = SMOKE_LATENCY_ITERATIONS if args.size in HIDDEN_SIZES else 50
+    run_demo(args.size, args.out, size, latency_iterations=latency_iterations, minutes=minutes, objects=args.objects)
     return 0

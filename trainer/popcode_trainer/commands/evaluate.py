@@ -14,7 +14,7 @@ from popcode_runtime.files import require_folder
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import evaluate_models
-from ..eval.pipeline.models import methods_from_paths
+from ..eval.pipeline.models import ARGMAX, methods_from_paths
 from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.report import report_markdown, write_report
 
@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "evaluate", help="score models on a BOP split with the BOP rotation metrics",
         description="Rotation from each model, translation from the ground truth (the paper's protocol). Writes "
                     "per-instance errors (CSV), the per-object and with/without-ambiguity tables (markdown, JSON) "
-                    "and, if asked, BOP19 results files. Models given the same --name form one method (e.g. one "
+                    "and, if asked, BOP19 results files (score: the calibrated confidence; time: the measured "
+                    "seconds of each image's estimates). Models given the same --name form one method (e.g. one "
                     "model per object group). With --translation, full 6-D poses too: the translation fitted to "
                     "each box as the runtime does it. With --box-noise, each crop from a detector-like box (scored "
                     "per box IoU too); with --top-k, population codes also by the best of their top K hypotheses.")
@@ -38,8 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--name", dest="names", action="append", default=[], metavar="NAME",
                         help="table row of each MODEL, in order (repeatable; default: the file name)")
     parser.add_argument("--obj-ids", nargs="+", type=int, metavar="ID", help="evaluate only these objects")
-    parser.add_argument("--decoder", choices=DECODERS, default="argmax",
-                        help="how a population code becomes a rotation (default: argmax, the paper's)")
+    parser.add_argument("--decoder", dest="decoders", nargs="+", choices=DECODERS, default=[ARGMAX],
+                        metavar="DECODER",
+                        help=f"how a population code becomes a rotation: {', '.join(DECODERS)} (default: argmax, "
+                             "the paper's). Several score each population-code method once per decoder, as NAME "
+                             "(argmax) and NAME (DECODER); other models once, with a warning")
     parser.add_argument("--out", type=Path, default=Path("eval"), help="output folder (default: ./eval)")
     parser.add_argument("--bop19-csv", action="store_true", help="also write a BOP19 results CSV per method")
     parser.add_argument("--translation", action="store_true",
@@ -78,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     require_folder(args.models_dir, "models folder")
     if args.out.exists() and not args.out.is_dir():
         raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
-    methods = methods_from_paths(args.models, args.names, args.decoder)
+    methods = methods_from_paths(args.models, args.names, args.decoders)
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
         split = with_detector_boxes(split, noise, args.box_noise_seed)

@@ -18,6 +18,7 @@ import trimesh
 
 from popcode_runtime.errors import PopcodeError
 
+PixelRegion = tuple[int, int, int, int]  # x0, y0, x1, y1 [px]: columns x0..x1-1, rows y0..y1-1
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward) -> OpenGL (y up, z back)
 
 
@@ -80,6 +81,15 @@ def _single_sample_framebuffers(pyrender: Any) -> Iterator[None]:
         module.glRenderbufferStorageMultisample = original
 
 
+def _linear_depth(window_z: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """Depth buffer values -> z [scene units], 0 where nothing is drawn (1.0, the far plane): pyrender's
+    conversion, with its float32 arithmetic in its order, so that both give the same bits."""
+    ndc_z = 2.0 * window_z - 1.0
+    depth = (2.0 * znear * zfar) / (zfar + znear - ndc_z * (zfar - znear))
+    depth[window_z == 1.0] = 0.0
+    return depth
+
+
 class CentreSampledDepth:
     """Depth sampled at pixel centres, as the BOP toolkit's renderer samples it.
 
@@ -89,20 +99,46 @@ class CentreSampledDepth:
     sampled, with its own pyrender ``Renderer`` in the OpenGL context of
     ``offscreen``: a second context would die with the first (they share one EGL
     display), and a mesh's buffers belong to one renderer, hence the own scene.
+
+    :meth:`render` can draw and read back one region of the image only: on a CPU
+    rasteriser reading the whole framebuffer back costs more than drawing a part.
     """
 
     def __init__(self, offscreen: Any, width: int, height: int) -> None:
         self._pyrender = import_pyrender()
+        from OpenGL import GL  # after import_pyrender: PyOpenGL picks its platform on its first import
+
+        self._gl = GL
         self._platform = offscreen._platform  # pyrender has no public handle on its OpenGL context
         self._renderer = self._pyrender.Renderer(width, height)
+        self._read_whole = self._renderer._read_main_framebuffer
+        self._renderer._read_main_framebuffer = self._read_back  # pyrender's read-back, or the region's
+        self.width, self.height = width, height
         self.scene = self._pyrender.Scene()
         self._framebuffer_ready = False
+        self._region: PixelRegion | None = None
 
-    def render(self) -> np.ndarray:
-        """Depth ``(H, W)`` float32 of ``scene`` [scene units], 0 where nothing is drawn."""
+    def render(self, region: PixelRegion | None = None) -> np.ndarray:
+        """Depth ``(H, W)`` float32 of ``scene`` [scene units], 0 where nothing is drawn.
+
+        With ``region`` ``(x0, y0, x1, y1)`` [px, ends exclusive, inside the image] only that
+        part, ``(y1 - y0, x1 - x0)``: equal to the same crop of the whole image, bit for bit,
+        because the scissor test drops the fragments outside after rasterising exactly as
+        for the whole image, and only the region is cleared and read back.
+        """
+        if region is not None:
+            x0, y0, x1, y1 = region
+            if not (0 <= x0 <= x1 <= self.width and 0 <= y0 <= y1 <= self.height):
+                raise ValueError(f"region {region} is not inside the {self.width}x{self.height} image")
+            if x0 == x1 or y0 == y1:
+                return np.zeros((y1 - y0, x1 - x0), np.float32)
         flags = self._pyrender.RenderFlags.DEPTH_ONLY | self._pyrender.RenderFlags.OFFSCREEN
         self._platform.make_current()
+        self._region = region
         try:
+            if region is not None:
+                self._gl.glEnable(self._gl.GL_SCISSOR_TEST)
+                self._gl.glScissor(x0, self.height - y1, x1 - x0, y1 - y0)  # OpenGL's rows go up
             if not self._framebuffer_ready:
                 with _single_sample_framebuffers(self._pyrender):
                     depth = self._renderer.render(self.scene, flags)
@@ -110,8 +146,22 @@ class CentreSampledDepth:
             else:
                 depth = self._renderer.render(self.scene, flags)
         finally:
+            self._gl.glDisable(self._gl.GL_SCISSOR_TEST)  # the context is shared with other renderers
+            self._region = None
             self._platform.make_uncurrent()
         return depth.astype(np.float32)
+
+    def _read_back(self, scene: Any, flags: Any) -> np.ndarray:
+        """In place of pyrender's ``Renderer._read_main_framebuffer``: depth of the current region [scene units]."""
+        if self._region is None:
+            return self._read_whole(scene, flags)
+        gl = self._gl
+        x0, y0, x1, y1 = self._region
+        gl.glBindFramebuffer(gl.GL_READ_FRAMEBUFFER, self._renderer._main_fb_ms)  # single-sampled: nothing to resolve
+        window_z = gl.glReadPixels(x0, self.height - y1, x1 - x0, y1 - y0, gl.GL_DEPTH_COMPONENT, gl.GL_FLOAT)
+        window_z = np.flip(np.frombuffer(window_z, np.float32).reshape(y1 - y0, x1 - x0), axis=0)
+        camera = scene.main_camera_node.camera
+        return _linear_depth(window_z, camera.znear, camera.zfar)
 
     def delete(self) -> None:
         self._platform.make_current()

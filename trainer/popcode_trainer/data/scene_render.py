@@ -33,7 +33,7 @@ from popcode_runtime.files import write_json_atomic, write_png_atomic
 from ..metrics.visibility import depth_to_distance, visible_mask_gt
 from .augment import procedural_texture
 from .bop import load_models_info, model_path
-from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
+from .gl import CentreSampledDepth, PixelRegion, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
 from .render import (
@@ -53,6 +53,7 @@ IMAGES_PER_SCENE_FOLDER = 1000
 BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tolerance
 DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
 MAX_CAMERA_TRIES = 10
+MARGIN_PX = 2  # around the projected mesh: far more than OpenGL's rounding of vertex positions
 MAX_SIDE_PX = 4096  # the border-cut silhouettes are rendered 3x larger: within OpenGL's usual 16384 limit
 SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
 
@@ -92,28 +93,43 @@ class SceneSettings:
 
 
 def instance_gt_info(depth_alone_mm: np.ndarray, depth_scene_mm: np.ndarray, K: np.ndarray, delta_mm: float,
-                     px_count_all: int | None = None, bbox_obj: list[int] | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                     px_count_all: int | None = None, bbox_obj: list[int] | None = None,
+                     region: PixelRegion | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """``mask``, ``mask_visib`` ``(H, W)`` bool and the ``scene_gt_info`` entry of one instance.
 
     ``depth_alone_mm``: the instance rendered alone; ``depth_scene_mm``: the whole scene (0 where
     nothing is). ``px_count_all`` and ``bbox_obj`` of the whole silhouette, when the border cuts it,
-    come from a larger rendering; by default they are the in-image mask's.
+    come from a larger rendering; by default they are the in-image mask's. With ``region``
+    ``(x0, y0, x1, y1)``, ``depth_alone_mm`` is only that part of the image, nothing outside it.
     """
-    mask = depth_alone_mm > 0
-    mask_visib = visible_mask_gt(depth_to_distance(depth_scene_mm, K), depth_to_distance(depth_alone_mm, K),
-                                 delta_mm)
-    px_count_all = int(mask.sum()) if px_count_all is None else int(px_count_all)
-    px_count_visib = int(mask_visib.sum())
+    height, width = depth_scene_mm.shape
+    x0, y0, x1, y1 = (0, 0, width, height) if region is None else region
+    K_region = np.array(K, dtype=np.float64)
+    K_region[:2, 2] -= [x0, y0]  # same distances as over the whole image: camera_matrix's cx, cy are multiples of 0.5
+    scene_mm = depth_scene_mm[y0:y1, x0:x1]
+    mask_in = depth_alone_mm > 0
+    visib_in = visible_mask_gt(depth_to_distance(scene_mm, K_region), depth_to_distance(depth_alone_mm, K_region),
+                               delta_mm)
+    mask, mask_visib = np.zeros((height, width), bool), np.zeros((height, width), bool)
+    mask[y0:y1, x0:x1], mask_visib[y0:y1, x0:x1] = mask_in, visib_in
+    px_count_all = int(mask_in.sum()) if px_count_all is None else int(px_count_all)
+    px_count_visib = int(visib_in.sum())
     info = {
-        "bbox_obj": (mask_box(mask) if bbox_obj is None else list(bbox_obj)) if px_count_visib else [-1] * 4,
-        "bbox_visib": mask_box(mask_visib),
+        "bbox_obj": (_moved_box(mask_in, x0, y0) if bbox_obj is None else list(bbox_obj)) if px_count_visib
+        else [-1] * 4,
+        "bbox_visib": _moved_box(visib_in, x0, y0),
         "px_count_all": px_count_all,
-        "px_count_valid": int((depth_scene_mm[mask] > 0).sum()),
+        "px_count_valid": int((scene_mm[mask_in] > 0).sum()),
         "px_count_visib": px_count_visib,
         "visib_fract": px_count_visib / px_count_all if px_count_all else 0.0,
     }
     return mask, mask_visib, info
+
+
+def _moved_box(mask: np.ndarray, dx: int, dy: int) -> list[int]:
+    """:func:`.render.mask_box` of ``mask`` with its first pixel moved by ``(dx, dy)``; no box stays ``[-1] * 4``."""
+    x, y, w, h = mask_box(mask)
+    return [x + dx, y + dy, w, h] if w >= 0 else [-1] * 4
 
 
 def _distractor_mesh(rng: np.random.Generator, size_mm: float) -> trimesh.Trimesh:
@@ -242,9 +258,11 @@ class _SceneRenderer:
         self._near_far_mm = (1.0, 2.0)  # of the current image
 
     def render(self, content: _SceneContent, meshes: dict[int, trimesh.Trimesh], K: np.ndarray,
-               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[tuple[int, list]]]:
-        """Colour ``(H, W, 3)`` uint8, scene depth [mm], each target's depth alone, and its whole silhouette's
-        pixel count and box (from a 3x larger image when the border cuts it)."""
+               rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, PixelRegion]], list[tuple[int, list]]]:
+        """Colour ``(H, W, 3)`` uint8, scene depth [mm], each target's depth alone [mm] in the region of
+        the image that it can cover (nothing outside), and its whole silhouette's pixel count and box
+        (from a 3x larger image when the border cuts it)."""
         pyrender = self.pyrender
         meshes = {**meshes, **content.distractor_meshes}
         colour_scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=np.full(3, rng.uniform(0.05, 0.3)))
@@ -282,35 +300,42 @@ class _SceneRenderer:
         self._depth.scene = depth_scene
         depth_scene_mm = self._depth.render()
         alone_mm, whole = [], []
-        for node in target_nodes:
+        for node, (mesh, pose) in zip(target_nodes, poses_c[:len(target_nodes)], strict=True):
             for other in depth_scene.mesh_nodes:
                 other.mesh.is_visible = other is node
-            alone = self._depth.render()
-            alone_mm.append(alone)
-            whole.append(self._whole_silhouette(node, K, alone))
+            # Reading the framebuffer back is most of a depth pass on a CPU: draw and read only the region.
+            region = _covered_region(mesh, pose, K, camera.znear, (self.width, self.height))
+            depth_mm = self._depth.render(region)
+            region = region or (0, 0, self.width, self.height)
+            alone_mm.append((depth_mm, region))
+            whole.append(self._whole_silhouette(mesh, pose, K, depth_mm, region))
         return colour, depth_scene_mm, alone_mm, whole
 
     def _camera(self, K: np.ndarray) -> Any:
         near_mm, far_mm = self._near_far_mm
         return pyrender_camera(self.pyrender, K, (far_mm - near_mm) / 2.0 + 1.0, (far_mm + near_mm) / 2.0)
 
-    def _whole_silhouette(self, node: Any, K: np.ndarray, alone_mm: np.ndarray) -> tuple[int, list]:
+    def _whole_silhouette(self, mesh: trimesh.Trimesh, pose_gl: np.ndarray, K: np.ndarray, alone_mm: np.ndarray,
+                          region: PixelRegion) -> tuple[int, list]:
         """Pixel count and box of the whole silhouette: the BOP toolkit renders 3x larger to count what the border
-        cuts off; that is only needed when the silhouette touches the border or lies outside the image."""
+        cuts off; that is only needed when the silhouette touches the border or lies outside the image.
+        ``alone_mm`` is the depth of the mesh in ``region`` of the image."""
         mask = alone_mm > 0
-        if mask.any() and not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
-            return int(mask.sum()), mask_box(mask)
+        x0, y0, x1, y1 = region
+        if mask.any() and not ((x0 == 0 and mask[:, 0].any()) or (y0 == 0 and mask[0].any())
+                               or (x1 == self.width and mask[:, -1].any()) or (y1 == self.height and mask[-1].any())):
+            return int(mask.sum()), _moved_box(mask, x0, y0)
         wide_K = K.copy()
         wide_K[:2, 2] += [self.width, self.height]
+        camera = self._camera(wide_K)
         scene = self.pyrender.Scene()
-        scene.add(_depth_mesh(self.pyrender, _node_trimesh(node)), pose=node.matrix)
-        scene.add(self._camera(wide_K), pose=np.eye(4))
+        scene.add(_depth_mesh(self.pyrender, mesh), pose=pose_gl)
+        scene.add(camera, pose=np.eye(4))
         self._wide_depth.scene = scene
-        wide_mask = self._wide_depth.render() > 0
-        if not wide_mask.any():
-            return 0, [-1, -1, -1, -1]
-        x, y, w, h = mask_box(wide_mask)
-        return int(wide_mask.sum()), [x - self.width, y - self.height, w, h]
+        wide_region = _covered_region(mesh, pose_gl, wide_K, camera.znear, (3 * self.width, 3 * self.height))
+        wide_mask = self._wide_depth.render(wide_region) > 0
+        x0, y0, _, _ = wide_region or (0, 0, 0, 0)
+        return int(wide_mask.sum()), _moved_box(wide_mask, x0 - self.width, y0 - self.height)
 
     def close(self) -> None:
         self._wide_depth.delete()
@@ -318,9 +343,26 @@ class _SceneRenderer:
         self._offscreen.delete()
 
 
-def _node_trimesh(node: Any) -> trimesh.Trimesh:
-    primitive = node.mesh.primitives[0]
-    return trimesh.Trimesh(primitive.positions, primitive.indices, process=False)
+def _covered_region(mesh: trimesh.Trimesh, pose_gl: np.ndarray, K: np.ndarray, znear_mm: float,
+                    size: tuple[int, int]) -> PixelRegion | None:
+    """Every pixel that ``mesh`` in ``pose_gl`` can cover in an image of ``size`` (width, height): the box
+    of its projected vertices plus :data:`MARGIN_PX`, clipped to the image (empty when it lies outside).
+
+    Pixel ``i`` samples ``x = i`` of ``K`` (see :func:`.gl.pyrender_camera`). None when a vertex is not
+    beyond the near plane: OpenGL clips such a mesh, and its projected vertices bound nothing.
+    """
+    in_camera = np.asarray(mesh.vertices) @ pose_gl[:3, :3].T + pose_gl[:3, 3]
+    z_mm = -in_camera[:, 2]  # GL looks along -z
+    if z_mm.min() <= znear_mm:
+        return None
+    u = K[0, 0] * in_camera[:, 0] / z_mm + K[0, 2]
+    v = -K[1, 1] * in_camera[:, 1] / z_mm + K[1, 2]  # GL's y is up, the image's rows go down
+    width, height = size
+    x0 = int(np.clip(np.floor(u.min()) - MARGIN_PX, 0, width))
+    y0 = int(np.clip(np.floor(v.min()) - MARGIN_PX, 0, height))
+    x1 = int(np.clip(np.ceil(u.max()) + 1 + MARGIN_PX, x0, width))
+    y1 = int(np.clip(np.ceil(v.max()) + 1 + MARGIN_PX, y0, height))
+    return x0, y0, x1, y1
 
 
 def _corners_in_camera(content: _SceneContent, meshes: dict[int, trimesh.Trimesh],
@@ -352,8 +394,8 @@ def _render_image(renderer: _SceneRenderer, layouts: _Layouts, meshes: dict[int,
     for _ in range(MAX_CAMERA_TRIES):  # a draw that shows no target (rare) is drawn again
         content = layouts.draw(rng, K)
         colour, depth_scene_mm, alone_mm, whole = renderer.render(content, meshes, K, rng)
-        results = [instance_gt_info(alone, depth_scene_mm, K, settings.visib_delta_mm, count, box)
-                   for alone, (count, box) in zip(alone_mm, whole, strict=True)]
+        results = [instance_gt_info(alone, depth_scene_mm, K, settings.visib_delta_mm, count, box, region)
+                   for (alone, region), (count, box) in zip(alone_mm, whole, strict=True)]
         if any(info["px_count_visib"] for _, _, info in results):
             break
     scene_id, im_id = _location(k)

@@ -68,6 +68,10 @@ class DemoRun:
     step_seconds: dict[str, float]
     cluttered: ClutteredResults | None = None  # the same methods on the cluttered test split
     epoch_fit: EpochFit | None = None  # how the epochs were fitted to a time budget, when they were
+    parts: str = "the six built-in parts"  # what was rendered, as the texts name it (demo.parts.Parts.describe)
+    objects_option: str = ""  # the `popcode-train demo` option that selects those parts (empty: the built-in ones)
+    code_notes: tuple[str, ...] = ()  # per object group, the code it trained with and why (demo.group_codes)
+    render_note: str = ""  # how the single-part renders frame the parts, where not as the renderer does by default
 
     @property
     def seconds(self) -> float:
@@ -103,7 +107,7 @@ def write_model_card(run: DemoRun) -> Path:
     """What a user of the population-code models needs: objects, symmetry, data, accuracy, speed, how to rebuild."""
     size = run.size
     train, network = size.config.train, size.config.network
-    lines = [f"# Model card: population-code models of the built-in objects (demo size `{run.size_name}`)", ""]
+    lines = [f"# Model card: population-code models of {_card_subject(run)} (demo size `{run.size_name}`)", ""]
     for path, quantised in zip(run.models.by_representation[POPCODE], run.models.quantised, strict=True):
         meta = read_onnx_metadata(path)
         objects = ", ".join(f"{o} ({symmetry_name(meta.objects[o])})" for o in sorted(meta.objects))
@@ -115,11 +119,12 @@ def write_model_card(run: DemoRun) -> Path:
     lines += [
         "",
         "## Training",
-        "Rendered grey 128 x 128 images of the six built-in parts (random rotation, position and lighting; "
+        f"Rendered grey 128 x 128 images of {run.parts} (random rotation, position and lighting; "
         f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation"
         f"{_scenes_text(size)}; "
         f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}, {train.loss} loss on the code; "
-        f"network {network_summary(network)}.",
+        f"network {network_summary(network)}." + (f" {run.render_note}" if run.render_note else ""),
+        *(["", *_code_lines(run)] if run.code_notes else []),
         "",
         f"## Accuracy (all objects; {size.test_images_per_object} rendered test images per object, other seed; "
         "rotation from the model, translation from the ground truth)",
@@ -134,7 +139,7 @@ def write_model_card(run: DemoRun) -> Path:
         "",
         "## Reproduce",
         "",
-        f"`popcode-train demo --size {run.size_name} --out DIR`; the models are "
+        f"`popcode-train demo --size {run.size_name}{run.objects_option} --out DIR`; the models are "
         "`DIR/runs/population_code_*/model*.onnx`.",
     ]
     path = run.out_dir / MODEL_CARD_FILE
@@ -183,13 +188,14 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
     eval_report = run.out_dir / "eval" / REPORT_MD
     return "\n\n".join(part for part in [
         f"# popcode demo (`--size {run.size_name}`)",
-        f"Rendered the six built-in parts ({size.train_images_per_object} training and "
+        f"Rendered {run.parts} ({size.train_images_per_object} training and "
         f"{size.test_images_per_object} test images per object{_scenes_text(size)}), trained "
         f"{', '.join(size.representations)} "
         f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores)"
-        f"{_step_path_text(example_metadata.training)}.",
+        f"{_step_path_text(example_metadata.training)}." + (f" {run.render_note}" if run.render_note else ""),
+        "\n".join(_code_lines(run)),
         "## Models\n\n" + "\n".join(model_lines)
         + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
         f"```bash\npopcode info {run.link(example)}\n"
@@ -206,6 +212,18 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         + latency_markdown(run.latency),
         "## Figures\n\n" + "\n\n".join(figure_lines),
     ] if part) + "\n"
+
+
+def _card_subject(run: DemoRun) -> str:
+    """The model card's title: "the built-in objects" (as before) or the user's parts."""
+    return "the built-in objects" if not run.objects_option else run.parts
+
+
+def _code_lines(run: DemoRun) -> list[str]:
+    """One line per object group: the code its models trained with, and why where it is not the size's."""
+    if not run.code_notes:
+        return []
+    return ["Code per object group (one model each):", "", *(f"- {note}" for note in run.code_notes)]
 
 
 def _scenes_text(size: PipelineSize) -> str:
@@ -319,6 +337,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
     report.write_text(report_markdown(run, model_card))
     summary = {
         "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
+        "objects": run.parts, "group_codes": list(run.code_notes),
         "epoch_fit": asdict(run.epoch_fit) if run.epoch_fit else None,
         "wall_seconds": run.seconds, "machine": machine_description(), "step_seconds": run.step_seconds,
         "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,

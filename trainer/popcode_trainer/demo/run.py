@@ -1,6 +1,8 @@
-"""The end-to-end demo: render the built-in objects, train the population code and the single-variable
-baseline the same way, export (float and quantised), evaluate with the BOP metrics, time the runtime,
-draw the figures and write one report, all under one run folder.
+"""The end-to-end demo: render the built-in objects (or the parts of a user's BOP models folder, checked first:
+:mod:`popcode_trainer.demo.parts`), train the population code and the single-variable baseline the same way,
+one model per object group (:func:`~popcode_trainer.demo.steps.object_groups`, each on the code
+:mod:`popcode_trainer.demo.group_codes` chooses), export (float and quantised), evaluate with the BOP metrics,
+time the runtime, draw the figures and write one report, all under one run folder.
 
 Every step resumes (see :mod:`popcode_trainer.demo.steps`), so rerunning an
 interrupted demo with the same folder continues where it stopped.
@@ -24,9 +26,7 @@ from popcode_runtime.metadata import Representation
 
 from ..data.bop import model_path
 from ..data.box_noise import box_noise_preset
-from ..data.objects import BUILTIN_PARTS
 from ..data.render import BUILTIN_MODELS_FOLDER
-from ..data.scene_render import render_cluttered_test_split
 from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import MethodResult, evaluate_models
 from ..eval.pipeline.instance_code import instance_code
@@ -37,9 +37,12 @@ from ..eval.reporting.figures import plot_instance_code, plot_sensitivity
 from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from ..eval.reporting.report import write_report
 from ..export.model_io import read_onnx_metadata
-from ..train.config import Config, DataConfig
+from ..train.config import CodeConfig, Config, DataConfig
+from ..train.network import NetworkConfig
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
+from .group_codes import GroupCode, choose_group_codes
+from .parts import BUILTIN, Parts, load_parts
 from .report import POPCODE, QUANTISATION, ClutteredResults, DemoRun, TrainedModels, write_outputs
 from .steps import (
     SMALL_NETWORK,
@@ -166,7 +169,7 @@ def _train_stage(representation: str, obj_ids: Sequence[int]) -> str:
 FIRST_EPOCHS = "time the first epoch of every model"
 
 
-def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int]], train_split: Path,
+def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], train_split: Path,
                out_dir: Path, started: float, stages: StagePlan) -> epoch_budget.EpochFit:
     """Train every model's first epoch and choose the epochs that fill ``demo.minutes`` counted from ``started``
     (see :mod:`popcode_trainer.demo.epoch_budget`); an interrupted run's earlier fit is kept."""
@@ -178,11 +181,11 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int
                            f"on the run's length (constant, anneal), not {size.config.train.schedule!r}: pass --epochs")
     first = {}
     for representation in size.representations:
-        for obj_ids in groups:
-            seconds = train_first_epoch(size, representation, obj_ids, train_split, out_dir)
-            first[run_dir(out_dir, representation, obj_ids).name] = seconds
+        for group in codes:
+            seconds = train_first_epoch(size, representation, group.obj_ids, train_split, out_dir, group.code)
+            first[run_dir(out_dir, representation, group.obj_ids).name] = seconds
     elapsed_s = time.perf_counter() - started
-    training = [_train_stage(r, g) for r in size.representations for g in groups]
+    training = [_train_stage(r, g.obj_ids) for r in size.representations for g in codes]
     exports = stages.scale * SECONDS_PER_EXPORT * len(training)
     other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports
     result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps,
@@ -191,15 +194,16 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, groups: Sequence[Sequence[int
     return result
 
 
-def train_models(size: PipelineSize, groups: Sequence[Sequence[int]], train_split: Path, out_dir: Path,
+def train_models(size: PipelineSize, codes: Sequence[GroupCode], train_split: Path, out_dir: Path,
                  stages: StagePlan) -> TrainedModels:
     by_representation: dict[str, list[Path]] = {}
     quantised = []
     for representation in size.representations:
-        for obj_ids in groups:
+        for group in codes:
             kinds = (QUANTISATION,) if representation == POPCODE else ()
-            with stages.stage(_train_stage(representation, obj_ids)):
-                path, _ = train_and_export(size, representation, obj_ids, train_split, out_dir, kinds)
+            with stages.stage(_train_stage(representation, group.obj_ids)):
+                path, _ = train_and_export(size, representation, group.obj_ids, train_split, out_dir, kinds,
+                                           group.code)
             by_representation.setdefault(representation, []).append(path)
             quantised += [path.with_name(f"{path.stem}.{kind}.onnx") for kind in kinds]
     return TrainedModels(by_representation, quantised)
@@ -216,12 +220,12 @@ def demo_methods(models: TrainedModels) -> list[Method]:
     return methods
 
 
-def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path) -> ClutteredResults:
+def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path, parts: Parts) -> ClutteredResults:
     """The population code and the baseline on a cluttered split (rendered once, fixed seed): rotation metrics
     without the depth-based ones, scored per visibility bin, with the code's best of its top-k hypotheses; then
     the population code again with detector-like boxes (:data:`DETECTOR_BOXES`)."""
-    split_dir = render_cluttered_test_split(out_dir / "test_cluttered", size.cluttered_test_scenes,
-                                            seed=size.config.train.seed + CLUTTERED_SEED_OFFSET, progress=True)
+    split_dir = parts.render_scenes(out_dir / "test_cluttered", size.cluttered_test_scenes,
+                                    size.config.train.seed + CLUTTERED_SEED_OFFSET, progress=True)
     split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER)
     methods = [m for m in demo_methods(models) if m.name in CLUTTERED_METHODS]
     results = evaluate_models(methods, split, vsd=False, top_k=CLUTTERED_TOP_K)
@@ -284,39 +288,73 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
     return figures
 
 
+# A size no help text offers: the README's own-parts test runs the one command at it, every step in seconds
+# (its scores mean nothing).
+SMOKE_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
+HIDDEN_SIZES = {
+    "smoke": DemoSize(PipelineSize(8, 2, small_config(epochs=2, n_axes=42, n_angles=12, network=SMOKE_NETWORK,
+                                                      sigma_deg=30.0, batch_size=4), (POPCODE, BASELINE),
+                                   cluttered_test_scenes=2, train_scenes=2, scene_share=0.5),
+                      "every step in seconds, for tests; its scores mean nothing"),
+}
+SMOKE_LATENCY_ITERATIONS = 3
+
+
+def prepare_parts(objects: str | Path, code: CodeConfig) -> tuple[Parts, list[GroupCode]]:
+    """The parts checked (:mod:`~popcode_trainer.demo.parts`), grouped, and each group's code chosen: every check
+    that comes before the long work. A user's parts may get a finer grid than ``code``'s; the built-in ones keep it."""
+    parts = load_parts(objects)
+    groups = object_groups(parts.models_info)
+    return parts, choose_group_codes(code, parts.models_info, groups, finer=not parts.builtin)
+
+
+def describe_parts(parts: Parts, codes: Sequence[GroupCode]) -> str:
+    """What the run will train: the parts, how they are framed where that differs from the renderer's default,
+    and per object group (one model each) its code."""
+    render_note = parts.fill_range()[1]
+    return "\n".join([f"{parts.describe()}; one model per object group:", *(f"- {g.note}" for g in codes),
+                      *([render_note] if render_note else [])])
+
+
 def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
-             latency_iterations: int = 50, minutes: float | None = None) -> dict[str, Any]:
+             latency_iterations: int = 50, minutes: float | None = None,
+             objects: str | Path = BUILTIN) -> dict[str, Any]:
     """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``).
 
     Without ``size`` the named size is used with its time budget; ``minutes`` sets a budget for any size
-    (the epochs are then fitted to it, within the named size's bounds).
+    (the epochs are then fitted to it, within the named size's bounds). ``objects``: ``"builtin"`` or a BOP
+    models folder, checked before anything is written.
     """
-    if size_name not in DEMO_SIZES and size is None:
+    sizes = {**DEMO_SIZES, **HIDDEN_SIZES}
+    if size_name not in sizes and size is None:
         raise PopcodeError(f"unknown demo size {size_name!r}; choose from {list(DEMO_SIZES)}")
-    demo = DEMO_SIZES.get(size_name, DemoSize(size, "a custom size"))
+    demo = sizes.get(size_name, DemoSize(size, "a custom size"))
     if minutes is None and size is None:
         minutes = demo.minutes
     demo = replace(demo, minutes=minutes)
     size = size or demo.pipeline
     if POPCODE not in size.representations:
         raise PopcodeError("the demo needs the population code among its representations")
+    started = time.perf_counter()
+    parts, codes = prepare_parts(objects, size.config.code)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    started = time.perf_counter()
-    groups = object_groups({part.obj_id: part.symmetries for part in BUILTIN_PARTS})
-    objects = sum(map(len, groups))
-    stages = plan(size, groups, objects, fit_epochs=minutes is not None)
+    groups = [list(group.obj_ids) for group in codes]
+    objects_count = len(parts.obj_ids)
+    stages = plan(size, groups, objects_count, fit_epochs=minutes is not None)
     duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
                 else f"{size.config.train.epochs} epochs, about {_minutes(stages.remaining_s())} on a 2-core CPU "
                      "(the estimate corrects itself as steps finish)")
     print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
           flush=True)
+    if not parts.builtin:
+        print(f"Checked {describe_parts(parts, codes)}", flush=True)
     with stages.stage("render"):
-        train_split, test_split = render_splits(size, out_dir)
+        train_split, test_split = render_splits(size, out_dir, parts=parts)
     epoch_fit = None
     if minutes is not None:
         with stages.stage(FIRST_EPOCHS):
-            epoch_fit = fit_epochs(size, demo, groups, train_split, out_dir, started, stages)
+            epoch_fit = fit_epochs(size, demo, codes, train_split, out_dir, started, stages)
         size = size.with_epochs(epoch_fit.epochs)
         # What is left of each model's training is now measured, not estimated: stated in reference seconds.
         stages.revise({_train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
@@ -326,7 +364,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
               f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
               f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
               flush=True)
-    models = train_models(size, groups, train_split, out_dir, stages)
+    models = train_models(size, codes, train_split, out_dir, stages)
     with stages.stage("evaluate"):
         split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
         results = evaluate_models(demo_methods(models), split, translation=True)
@@ -334,14 +372,15 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
     cluttered = None
     if size.cluttered_test_scenes:
         with stages.stage("cluttered test split"):
-            cluttered = evaluate_cluttered(size, models, out_dir)
+            cluttered = evaluate_cluttered(size, models, out_dir, parts)
     with stages.stage("latency"):
         latency = measure_latency(models, latency_iterations)
     with stages.stage("figures"):
         run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
         figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
     run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
-                  cluttered, epoch_fit)
+                  cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
+                  parts.fill_range()[1])
     summary = write_outputs(run)
     print(f"\ndone in {_minutes(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
     return summary

@@ -1,9 +1,11 @@
-"""Render -> train -> export for the built-in objects: the steps the demo and the benchmarks share.
+"""Render -> train -> export: the steps the demo and the benchmarks share (the built-in parts by default, or a
+user's, :mod:`popcode_trainer.demo.parts`).
 
 A ``PipelineSize`` fixes data, code, network and training budget, so every
 representation trained with it sees the same inputs. Objects are pooled as the
 paper pooled T-LESS objects: one model for the objects with a continuous
-symmetry about the same axis (axis-only code), one for the others (full code).
+symmetry about the same axis (axis-only code), one for the others (full code);
+a group may train on its own grid (:mod:`popcode_trainer.demo.group_codes`).
 Every step resumes: rendering skips finished images, training continues from
 its last checkpoint and a finished export is kept.
 """
@@ -23,8 +25,7 @@ from popcode_runtime.metadata import Representation
 from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
-from ..data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
-from ..data.scene_render import render_cluttered_test_split
+from ..data.render import BUILTIN_MODELS_FOLDER
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import load_trained_model
 from ..export.onnx_export import export_trained
@@ -34,6 +35,7 @@ from ..train.network import NetworkConfig
 from ..train.run_files import LAST_CHECKPOINT, MODEL_FILE
 from ..train.training_data import build_training_data, read_training_split, validation_crops
 from .epoch_budget import first_epoch_seconds
+from .parts import Parts, builtin_parts
 
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
@@ -96,16 +98,16 @@ def scene_split_of(train_split: Path) -> Path:
     return train_split.with_name(f"{train_split.name}_scenes")
 
 
-def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True) -> tuple[Path, Path]:
+def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True,
+                  parts: Parts | None = None) -> tuple[Path, Path]:
     """The training split (and its scenes, :func:`scene_split_of`) and a separate test split (other seed), all
-    with random object positions."""
-    train_split = render_builtin_split(out_dir / "train", size.train_images_per_object, seed=size.config.train.seed,
-                                       random_position=True, progress=progress)
+    with random object positions, of ``parts`` (default: the built-in ones); each split holds its models."""
+    parts = parts or builtin_parts()
+    seed = size.config.train.seed
+    train_split = parts.render_split(out_dir / "train", size.train_images_per_object, seed, progress)
     if size.train_scenes:
-        render_cluttered_test_split(scene_split_of(train_split), size.train_scenes, progress=progress,
-                                    seed=size.config.train.seed + TRAIN_SCENES_SEED_OFFSET)
-    test_split = render_builtin_split(out_dir / "test", size.test_images_per_object, seed=size.config.train.seed + 1000,
-                                      random_position=True, progress=progress)
+        parts.render_scenes(scene_split_of(train_split), size.train_scenes, seed + TRAIN_SCENES_SEED_OFFSET, progress)
+    test_split = parts.render_split(out_dir / "test", size.test_images_per_object, seed + 1000, progress)
     return train_split, test_split
 
 
@@ -124,16 +126,17 @@ def object_groups(models_info: Mapping[int, Mapping[str, Any]]) -> list[list[int
 
 
 def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
-                    out_dir: Path) -> Config:
+                    out_dir: Path, code: CodeConfig | None = None) -> Config:
     """The training config of one model of the run: the size's settings, this model's data and output.
 
-    ``train.loss`` chooses the population code's loss; the other representations keep their own.
+    ``train.loss`` chooses the population code's loss; the other representations keep their own. ``code``
+    replaces the size's grid for this model's objects (:mod:`popcode_trainer.demo.group_codes`).
     """
     loss = size.config.train.loss if representation == Representation.POPULATION_CODE else TrainConfig.loss
     splits, weights = (str(split),), ()
     if size.train_scenes:
         splits, weights = (*splits, str(scene_split_of(split))), (1.0 - size.scene_share, size.scene_share)
-    config = replace(size.config,
+    config = replace(size.config, code=code or size.config.code,
                      data=replace(size.config.data, splits=splits, split_weights=weights, obj_ids=tuple(obj_ids),
                                   models_dir=str(split / BUILTIN_MODELS_FOLDER)),
                      train=replace(size.config.train, representation=representation, out_dir=str(out_dir), loss=loss))
@@ -146,7 +149,7 @@ def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
 
 
 def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
-                      out_dir: Path) -> float:
+                      out_dir: Path, code: CodeConfig | None = None) -> float:
     """Train the first epoch of one model of ``size``; returns its seconds (training loop, validation, checkpoint).
 
     :func:`train_and_export` later resumes it to the epochs it is given, which is the same as training them
@@ -157,7 +160,7 @@ def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence
     folder = run_dir(out_dir, representation, obj_ids)
     if (folder / LAST_CHECKPOINT).exists():
         return first_epoch_seconds(folder)
-    config = training_config(size, representation, obj_ids, split, folder)
+    config = training_config(size, representation, obj_ids, split, folder, code)
     data = build_training_data(config)
     started = time.perf_counter()
     train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances,
@@ -166,14 +169,14 @@ def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence
 
 
 def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path, out_dir: Path,
-                     quantisations: tuple[str, ...] = ()) -> tuple[Path, float]:
+                     quantisations: tuple[str, ...] = (), code: CodeConfig | None = None) -> tuple[Path, float]:
     """Train (resuming an interrupted run) and export one model; returns the float ONNX path and the seconds.
 
-    Quantised variants are written beside it as ``model.<kind>.onnx``.
+    Quantised variants are written beside it as ``model.<kind>.onnx``; ``code`` as in :func:`training_config`.
     """
     folder = run_dir(out_dir, representation, obj_ids)
     onnx_path = folder / MODEL_FILE
-    config = training_config(size, representation, obj_ids, split, folder)
+    config = training_config(size, representation, obj_ids, split, folder, code)
     started = time.perf_counter()
     quantised = [folder / f"{onnx_path.stem}.{kind}.onnx" for kind in quantisations]
     if not onnx_path.exists() or not all(path.exists() for path in quantised):

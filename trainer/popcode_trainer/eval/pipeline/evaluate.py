@@ -67,6 +67,8 @@ class MethodResult:
     by_box_iou: dict[str, dict[str, float]] = field(default_factory=dict)  # IoU bin -> scores, count; detector boxes
     top_k: int = 1  # hypotheses asked for
     best_of_top_k: BestOfTopK | None = None  # with top_k > 1, for population codes
+    score: np.ndarray | None = None  # (N,) each estimate's score (Estimates.bop19_score); None: given rotations
+    image_s: np.ndarray | None = None  # (N,) seconds of the estimates of the instance's image; None: given rotations
 
 
 def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
@@ -117,7 +119,8 @@ def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progre
         result = dataclasses.replace(result, metric_s=result.metric_s + time.perf_counter() - started)
     return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
                                                                         method.confidence_thresholds_deg),
-                               top_k=top_k, best_of_top_k=best)
+                               top_k=top_k, best_of_top_k=best, score=estimates.bop19_score(),
+                               image_s=estimates.image_s)
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,

@@ -9,6 +9,8 @@ routed to the model that knows its object.
 
 from __future__ import annotations
 
+import warnings
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from popcode_runtime.decoding import DECODERS, check_decoder
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator, Prediction
 from popcode_runtime.image_loop import estimate_images, group_by_image, route_objects
@@ -27,6 +30,8 @@ from ...export.torch_engine import checkpoint_estimator
 from .estimates import Estimates
 from .results_file import RESULTS_SUFFIX, ResultsMethod, read_results_method
 from .translation import object_points
+
+ARGMAX = DECODERS[0]  # the paper's decoder: a method's plain name
 
 
 @dataclass(frozen=True)
@@ -51,8 +56,15 @@ class RotationModel:
         calibrator = self.estimator.metadata.confidence
         return None if calibrator is None else calibrator.threshold_deg
 
+    def with_decoder(self, decoder: str) -> RotationModel:
+        """The same model (its engine shared) decoded by ``decoder``; itself where it already is."""
+        if decoder == self.estimator.decoder:
+            return self
+        return RotationModel(self.path, PoseEstimator.from_engine(self.estimator.engine, self.estimator.metadata,
+                                                                  decoder))
 
-def load_model(path: str | Path, decoder: str = "argmax") -> RotationModel:
+
+def load_model(path: str | Path, decoder: str = ARGMAX) -> RotationModel:
     """A ``.pt`` checkpoint (run by torch) or an ``.onnx`` model (run by onnxruntime), by file suffix."""
     path = Path(path)
     if not path.is_file():
@@ -100,6 +112,19 @@ class Method:
     def estimators(self) -> list[PoseEstimator]:
         return [model.estimator for model in self.models]
 
+    def accepts_decoder(self, decoder: str) -> bool:
+        """Whether every model of the method can be decoded by ``decoder``."""
+        try:
+            for estimator in self.estimators:
+                check_decoder(decoder, estimator.metadata)
+        except PopcodeError:
+            return False
+        return True
+
+    def with_decoder(self, decoder: str, name: str) -> Method:
+        """The same models (their engines shared, not reopened) decoded by ``decoder``, as method ``name``."""
+        return Method(name, tuple(model.with_decoder(decoder) for model in self.models))
+
     @property
     def population_code(self) -> bool:
         """Whether every model of the method outputs a population code (and so can list hypotheses)."""
@@ -124,7 +149,8 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
     """The method's estimate of every instance, through the runtime's per-image loop (each image read once).
 
     ``top_k > 1`` (population codes only) adds each instance's ``top_k`` candidate
-    rotations (:attr:`Estimates.hypotheses`). The seconds per crop count the
+    rotations (:attr:`Estimates.hypotheses`). The seconds per crop, and each
+    image's seconds (:attr:`Estimates.image_s`, the sum over its crops), count the
     models' predict calls only, not reading the images (with hypotheses, their search too).
     """
     known = method.known_objects()
@@ -134,6 +160,7 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
                            f"(its models know {sorted(known)}); pass --obj-ids to evaluate fewer objects")
     images = group_by_image(instances)
     R_est, confidence, score = np.empty((len(instances), 3, 3)), np.empty(len(instances)), np.empty(len(instances))
+    image_s = np.empty(len(instances))
     hypotheses = np.empty((top_k, len(instances), 3, 3)) if top_k > 1 else None
     options = {"top_k": top_k} if top_k > 1 else {}
     predict_s = 0.0
@@ -141,10 +168,11 @@ def predict_rotations(method: Method, instances: Sequence[Instance], progress: b
                      desc=f"predict {method.name}", unit="img", disable=not progress):
         rows = list(done.key)
         R_est[rows], confidence[rows], score[rows] = _arrays(done.predictions)
+        image_s[rows] = done.predict_s  # all of the image's crops: BOP19's time, on every row of the image
         if hypotheses is not None:
             hypotheses[:, rows] = np.stack([ranked_rotations(p, top_k) for p in done.predictions], axis=1)
         predict_s += done.predict_s
-    return Estimates(R_est, confidence, score, predict_s / max(len(instances), 1), hypotheses)
+    return Estimates(R_est, confidence, score, predict_s / max(len(instances), 1), image_s, hypotheses)
 
 
 def ranked_rotations(prediction: Prediction, top_k: int) -> np.ndarray:
@@ -160,15 +188,38 @@ def _arrays(predictions: Sequence[Prediction]) -> tuple[np.ndarray, np.ndarray, 
     return np.stack([p.R_m2c for p in predictions]), np.array(confidence), np.array([p.score for p in predictions])
 
 
+def decoder_method_name(name: str, decoder: str) -> str:
+    """The table row of method ``name`` decoded by ``decoder``: the name itself for the paper's argmax, else
+    ``NAME (decoder)``, e.g. ``population_code (refined)``."""
+    return name if decoder == ARGMAX else f"{name} ({decoder})"
+
+
+def _decoder_list(decoders: str | Sequence[str]) -> tuple[str, ...]:
+    """The decoders asked for, each once, in order; each is known (refused now, not after the first model)."""
+    listed = (decoders,) if isinstance(decoders, str) else tuple(dict.fromkeys(decoders))
+    if not listed:
+        raise PopcodeError(f"no decoder given; choose one or more of {DECODERS}")
+    for decoder in listed:
+        check_decoder(decoder)
+    return listed
+
+
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,
-                       decoder: str = "argmax") -> list[Method | ResultsMethod]:
+                       decoders: str | Sequence[str] = ARGMAX) -> list[Method | ResultsMethod]:
     """Methods from model files and BOP19 results files (``.csv``); model files given the same name form one
     method (one table row), a results file is a method of its own.
 
-    Without names each file is its own method, named after the file.
+    Without names each file is its own method, named after the file. With
+    several ``decoders`` each method of population codes becomes one method
+    per decoder, named by :func:`decoder_method_name`, in the order given (the
+    models are opened once); a method that cannot use a decoder (any but
+    argmax for other representations; a results file has no decoder) is kept
+    once, with one warning for all such. A single decoder keeps the plain name.
     """
+    decoders = _decoder_list(decoders)
     if names and len(names) != len(paths):
         raise PopcodeError(f"{len(names)} names for {len(paths)} models: give one --name per model, or none")
+    opened_with = decoders[0] if len(decoders) == 1 else ARGMAX  # argmax: every model can; then one per decoder
     grouped: dict[str, list[RotationModel]] = {}
     results: dict[str, ResultsMethod] = {}
     for index, path in enumerate(paths):
@@ -180,6 +231,33 @@ def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None 
         elif name in results:
             raise PopcodeError(f"{path}: the name {name!r} is a results file's; give the model another")
         else:
-            grouped.setdefault(name, []).append(load_model(path, decoder))
+            grouped.setdefault(name, []).append(load_model(path, opened_with))
     methods = {name: Method(name, tuple(models)) for name, models in grouped.items()} | results
-    return [methods[name] for name in dict.fromkeys(names or [Path(p).stem for p in paths])]
+    ordered = [methods[name] for name in dict.fromkeys(names or [Path(p).stem for p in paths])]
+    return ordered if len(decoders) == 1 else _per_decoder(ordered, decoders)
+
+
+def _per_decoder(methods: Sequence[Method | ResultsMethod], decoders: Sequence[str]) -> list[Method | ResultsMethod]:
+    """Each method once per decoder it can use (see :func:`methods_from_paths`)."""
+    expanded: list[Method | ResultsMethod] = []
+    once: list[str] = []
+    for method in methods:
+        if isinstance(method, ResultsMethod):
+            expanded.append(method)
+            once.append(f"{method.name!r} (a results file)")
+            continue
+        usable = [decoder for decoder in decoders if method.accepts_decoder(decoder)]
+        if len(usable) < len(decoders):
+            representations = sorted({str(estimator.metadata.representation) for estimator in method.estimators})
+            once.append(f"{method.name!r} ({', '.join(representations)})")
+        expanded += [method.with_decoder(d, decoder_method_name(method.name, d)) for d in usable] or [method]
+    repeated = sorted(name for name, count in Counter(m.name for m in expanded).items() if count > 1)
+    if repeated:
+        raise PopcodeError(f"with --decoder {' '.join(decoders)} two methods would be named {repeated[0]!r}; "
+                           "give the models other names")
+    if once:
+        skipped = [d for d in decoders if d != ARGMAX]
+        warnings.warn(f"decoder {', '.join(skipped)} applies to population-code models only; scored once: "
+                      f"{', '.join(once)}", stacklevel=3)
+    return expanded
+

@@ -25,7 +25,7 @@ from popcode_runtime.errors import PopcodeError
 
 from ...data.bop import Instance
 from ...metrics.confidence import rotation_errors_deg
-from .estimates import Estimates
+from .estimates import UNKNOWN_TIME_S, Estimates
 
 RESULTS_SUFFIX = ".csv"
 
@@ -54,7 +54,8 @@ class ResultsMethod:
 
     def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
                  progress: bool = True, top_k: int = 1) -> Estimates:
-        """Each instance's matched estimate (see the module docstring); an instance without one is an error.
+        """Each instance's matched estimate (see the module docstring), with the file's score and time; an
+        instance without an estimate is an error.
 
         A results file lists no hypotheses: ``top_k`` is accepted and ignored.
         """
@@ -65,6 +66,7 @@ class ResultsMethod:
         for est in self.estimates:
             estimates_of[(est.scene_id, est.im_id, est.obj_id)].append(est)
         R_est, score = np.full((len(instances), 3, 3), np.nan), np.full(len(instances), np.nan)
+        image_s = np.full(len(instances), UNKNOWN_TIME_S)
         for key, rows in rows_of.items():
             candidates = sorted(estimates_of.get(key, []), key=lambda est: -est.score)[: len(rows)]
             for est in candidates:
@@ -72,14 +74,14 @@ class ResultsMethod:
                                              np.stack([instances[row].R_m2c for row in rows]),
                                              np.full(len(rows), key[2]), models_info)
                 row = rows.pop(int(np.argmin(errors)))
-                R_est[row], score[row] = est.R_m2c, est.score
+                R_est[row], score[row], image_s[row] = est.R_m2c, est.score, est.time_s
         missing = [i for i, inst in enumerate(instances) if np.isnan(score[i])]
         if missing:
             first = instances[missing[0]]
             raise PopcodeError(f"{self.path} has no estimate for {len(missing)} of {len(instances)} instances "
                                f"(first: scene {first.scene_id} image {first.im_id} object {first.obj_id}); "
                                "evaluate scores ground-truth-box results (popcode run --gt-boxes)")
-        return Estimates(R_est, np.full(len(instances), np.nan), score, float("nan"))
+        return Estimates(R_est, np.full(len(instances), np.nan), score, float("nan"), image_s)
 
 
 def read_results_method(path: Path, name: str) -> ResultsMethod:

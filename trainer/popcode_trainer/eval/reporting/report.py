@@ -23,6 +23,7 @@ from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
 
+from ...metrics.confidence import rotation_errors_deg
 from ...metrics.pose_errors import rotation_error_deg, translation_error_mm
 from ...metrics.recall import (
     METRICS,
@@ -32,6 +33,7 @@ from ...metrics.recall import (
     ambiguous_objects,
     tightest_thresholds,
 )
+from ..pipeline.estimates import UNKNOWN_TIME_S
 from ..pipeline.evaluate import MethodResult
 from ..pipeline.split import EvalSplit
 from ..pipeline.translation import relative_translation_error, translation_summary
@@ -72,11 +74,17 @@ def _error_columns(errors: InstanceErrors, i: int, thresholds: Thresholds, suffi
 
 
 def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str, Any]]:
-    """One row per ground-truth instance: its ids and every error; with full poses also te and the 6-D errors."""
+    """One row per ground-truth instance: its ids and every error; with full poses also te and the 6-D errors.
+
+    ``re_deg`` is the raw rotation angle between estimate and ground truth (BOP's
+    re); ``re_sym_deg`` the same up to the object's symmetries (the smallest over
+    its equivalent poses; the axis angle for a continuous symmetry), never larger.
+    """
     split, pose = result.split, result.full_pose
     R_gt = np.stack([inst.R_m2c for inst in split.instances])
     t_gt = np.stack([inst.t_m2c_mm for inst in split.instances])
     re_deg = rotation_error_deg(result.R_est, R_gt)
+    re_sym_deg = rotation_errors_deg(result.R_est, R_gt, result.errors.obj_id, split.models_info)
     te = {} if pose is None else {
         name: (translation_error_mm(t, t_gt), relative_translation_error(t, t_gt))
         for name, t in (("te", pose.t_est_mm), ("te_gt_rotation", pose.t_gt_rotation_mm))
@@ -87,7 +95,8 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
             "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index}
         if split.detector_boxes is not None:
             row["box_iou"] = float(split.detector_boxes.iou[i])
-        row |= {"re_deg": float(re_deg[i]), **_error_columns(result.errors, i, thresholds)}
+        row |= {"re_deg": float(re_deg[i]), "re_sym_deg": float(re_sym_deg[i]),
+                **_error_columns(result.errors, i, thresholds)}
         if result.best_of_top_k is not None:
             row[f"mssd_mm_best_of_top{result.top_k}"] = float(result.best_of_top_k.mssd_mm[-1, i])
         for name, (mm, fraction) in te.items():
@@ -272,6 +281,19 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
     return report | {"methods": methods}
 
 
+def bop19_estimates(result: MethodResult, t_m2c_mm: Sequence[np.ndarray]) -> list[PoseEstimate]:
+    """The method's estimates as BOP19 results lines, with the given translations: ``score`` the calibrated
+    confidence (the raw score for a model without a calibrator, the file's for a results file), ``time`` the
+    seconds of the method's estimates of the instance's image, the same on each of its rows (crop, network and
+    decoding, not reading the image). Given rotations know neither: score 1, time -1."""
+    count = len(result.split.instances)
+    score = np.ones(count) if result.score is None else result.score
+    image_s = np.full(count, UNKNOWN_TIME_S) if result.image_s is None else result.image_s
+    return [PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, float(score[i]), result.R_est[i], t_m2c_mm[i],
+                         float(image_s[i]))
+            for i, inst in enumerate(result.split.instances)]
+
+
 def write_report(results: Sequence[MethodResult], out_dir: str | Path,
                  thresholds: Thresholds | None = None, bop19_csv: bool = False) -> list[Path]:
     """Write every file of an evaluation into ``out_dir``; returns their paths."""
@@ -292,10 +314,7 @@ def write_report(results: Sequence[MethodResult], out_dir: str | Path,
             files.append((BOP19_6D_CSV, list(result.full_pose.t_est_mm)))
         for pattern, translations in files:
             path = out_dir / pattern.format(name=stem)
-            write_bop19_results(path, [
-                PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, 1.0, R, t)
-                for inst, R, t in zip(split.instances, result.R_est, translations, strict=True)
-            ])
+            write_bop19_results(path, bop19_estimates(result, translations))
             written.append(path)
     reliability = plot_reliability(results, out_dir / RELIABILITY_PNG)
     if reliability is not None:
