@@ -40,8 +40,8 @@ def test_a_region_is_the_crop_of_the_whole_image_bit_for_bit() -> None:
 
 
 def _written(split: Path) -> dict[str, bytes]:
-    """Every file of the split but the images: where surfaces meet at equal depth (the bin's corners) the
-    colour pass depends on pyrender's draw order, which varies from run to run, with or without regions."""
+    """Every file of the split but the images: the colour pass varies by a pixel here and there from run to
+    run, with or without regions (see bench/results/scene-render-speed.md); no depth pass does."""
     return {str(path.relative_to(split)): path.read_bytes() for path in sorted(split.rglob("*"))
             if path.is_file() and path.parent.name not in ("gray", "rgb") and path.name != "popcode_render.json"}
 
