@@ -122,17 +122,17 @@ class Parts:
             return (low, high), ""
         side = RENDER_SIDE_PX
         focal_px = float(camera_matrix(side, side)[0, 0])
-        per_mm = FIT_MARGIN * focal_px / (side * np.hypot(1.0, 2.0 * focal_px / (side - 1)))
-        fits = {obj_id: per_mm * float(self.models_info[obj_id]["diameter"]) / reach
+        fill_per_ratio = FIT_MARGIN * focal_px / (side * np.hypot(1.0, 2.0 * focal_px / (side - 1)))
+        fits = {obj_id: fill_per_ratio * float(self.models_info[obj_id]["diameter"]) / reach
                 for obj_id, reach in self.reach_mm.items()}
         obj_id = min(fits, key=fits.__getitem__)
         if fits[obj_id] >= high:
             return (low, high), ""
         fill = (min(low, fits[obj_id]), fits[obj_id])
         reach = self.reach_mm[obj_id] / float(self.models_info[obj_id]["diameter"])
-        return fill, (f"Object {obj_id} reaches {reach:.2f} of its diameter from its origin (more than half), so the "
-                      f"single-part renders frame every part at {fill[0]:.2f}-{fill[1]:.2f} of the image instead of "
-                      f"{low:g}-{high:g}: every view then fits.")
+        return fill, (f"Object {obj_id} reaches {reach:.2f} of its diameter from its origin, so the single-part "
+                      f"renders frame every part at {fill[0]:.2f}-{fill[1]:.2f} of the image (diameter / side) instead "
+                      f"of {low:g}-{high:g}: every view of it then fits.")
 
     def render_split(self, out_dir: Path, images_per_object: int, seed: int, progress: bool) -> Path:
         """Single-part images at random rotations and positions (128 x 128), models in ``out_dir/models``."""
@@ -204,8 +204,8 @@ def check_models_folder(models_dir: Path) -> Parts:
         raise PopcodeError(f"{models_dir} has no {MODELS_INFO}: a BOP models folder lists each part's id, diameter, "
                            "box and symmetries there; write it with popcode_trainer.data.objects.model_info "
                            "(README: Training on your own CAD models)")
+    models_info = load_models_info(models_dir)  # first: it refuses files too large or not JSON
     _check_unique_ids(info_path)
-    models_info = load_models_info(models_dir)
     if not models_info:
         raise PopcodeError(f"{info_path} lists no parts")
     reach_mm = {obj_id: check_part(models_dir, obj_id, models_info[obj_id]) for obj_id in sorted(models_info)}

@@ -56,6 +56,7 @@ from .steps import (
 )
 
 BASELINE = Representation.SINGLE_VARIABLE
+SCENE_SHARE = 0.25  # of every epoch's crops from the training scenes (bench/results/scene-mix-quick.md)
 CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
 LATENCY_BATCHES = (1, 8)
 
@@ -74,21 +75,25 @@ DEMO_SIZES = {
     # quick's minutes leave the 15 of `make demo` room for creating .venv (about a minute) and the estimate's error.
     # 2000 images a part rather than 1000 and half the epochs: +3 to +5 MSSD at equal crop-updates on a
     # validation split, 4000 only 1 to 1.5 more at twice the rendering (bench/results/recipe.md, fourth round).
+    # A quarter of the crops from cluttered scenes: +5 MSSD on a cluttered validation split for -2 on the clean
+    # one (within its noise) at equal crop-updates; half or three quarters gain less, crops of detector-like
+    # boxes lose on both at this budget (bench/results/scene-mix-quick*.md).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=40), "about 15 minutes on a 2-core CPU", minutes=13.5,
-                      epoch_bounds=(5, 40)),
+                                   cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE),
+                      "about 15 minutes on a 2-core CPU", minutes=13.5, epoch_bounds=(4, 40)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
-                                    cluttered_test_scenes=100), "four times quick's time budget: about an hour",
-                       minutes=54.0, epoch_bounds=(5, 100)),
+                                    cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE),
+                       "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
     # The paper's defaults (Config()), with data-loader workers for a GPU.
     "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=200), "the paper's code, network and schedule; for a GPU"),
+                                   cluttered_test_scenes=200, train_scenes=4000, scene_share=SCENE_SHARE),
+                      "the paper's code, network and schedule; for a GPU"),
 }
 
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.008
-SECONDS_PER_TRAINING_SCENE = 0.6  # 720 x 540, about seven parts
+SECONDS_PER_TRAINING_SCENE = 0.45  # 720 x 540, about seven parts (bench/results/scene-render-speed.md)
 SECONDS_PER_TRAINING_SAMPLE = 0.0035
 SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
@@ -336,6 +341,8 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
     if POPCODE not in size.representations:
         raise PopcodeError("the demo needs the population code among its representations")
     started = time.perf_counter()
+    if str(objects) != BUILTIN:
+        print(f"checking the parts of {objects} and choosing each group's code", flush=True)
     parts, codes = prepare_parts(objects, size.config.code)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
