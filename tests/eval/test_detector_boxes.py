@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SCENE_SIZE, scene_objects
 from onnx_models import linear_model, save
 
 from popcode_runtime.bop19_csv import read_bop19_results
@@ -24,40 +25,15 @@ from popcode_runtime.metadata import ModelMetadata, Representation
 from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.rotations import matrix_to_sixd
 from popcode_trainer.cli import main
-from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.box_noise import IOU_BINS, box_iou, box_noise_preset, iou_bin_label
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
-from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.eval.pipeline.detector_boxes import with_detector_boxes
 from popcode_trainer.eval.pipeline.evaluate import evaluate_models
 from popcode_trainer.eval.pipeline.models import methods_from_paths
 from popcode_trainer.eval.pipeline.split import read_eval_split, restrict_to_objects
 from popcode_trainer.metrics.recall import GROUPS
 
-OBJECTS = [3, 6]  # a 2-fold symmetric part and one without symmetry
-SIZE = (160, 120)
 QUARTER_TURN_X = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-
-
-@pytest.fixture(scope="module")
-def scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Three cluttered images of parts 3 and 6, repeats and border-cut boxes included."""
-    return render_cluttered_test_split(tmp_path_factory.mktemp("scenes"), scenes=3, size=SIZE, obj_ids=OBJECTS,
-                                       parts=(2, 3))
-
-
-def _objects(scenes: Path) -> dict[int, dict]:
-    info = load_models_info(scenes / BUILTIN_MODELS_FOLDER)
-    return {obj_id: info[obj_id] for obj_id in OBJECTS}
-
-
-@pytest.fixture(scope="module")
-def code_model(scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A population code whose peak the crop's pixels move: another box, another rotation."""
-    layout = CodeLayout(n_axes=162, n_angles=12, sigma_deg=30.0)
-    meta = ModelMetadata(Representation.POPULATION_CODE, layout, _objects(scenes))
-    bias = PopulationCode(layout).encode(np.eye(3))
-    return save(linear_model(bias, weight_scale=1.0, metadata=meta, seed=3), tmp_path_factory.mktemp("m") / "code.onnx")
 
 
 def evaluate(scenes: Path, out: Path, *args: str) -> int:
@@ -111,12 +87,13 @@ def test_loose_boxes_are_scored_per_iou_bin(scenes: Path, code_model: Path, tmp_
 
 def test_detector_boxes_stay_in_the_image_and_follow_their_instances(scenes: Path) -> None:
     split = read_eval_split([scenes], scenes / BUILTIN_MODELS_FOLDER)
-    assert any(inst.box[1] + inst.box[3] > SIZE[1] or inst.box[0] + inst.box[2] > SIZE[0] or min(inst.box[:2]) < 0
+    width, height = SCENE_SIZE
+    assert any(inst.box[1] + inst.box[3] > height or inst.box[0] + inst.box[2] > width or min(inst.box[:2]) < 0
                for inst in split.instances), "no box cut by the border"
     noisy = with_detector_boxes(split, box_noise_preset("loose"), seed=1)
     for inst, moved, iou in zip(split.instances, noisy.instances, noisy.detector_boxes.iou, strict=True):
         x, y, w, h = moved.box
-        assert x >= 0 and y >= 0 and x + w <= SIZE[0] and y + h <= SIZE[1]
+        assert x >= 0 and y >= 0 and x + w <= SCENE_SIZE[0] and y + h <= SCENE_SIZE[1]
         assert iou == box_iou(inst.box, moved.box) and moved.scene_id == inst.scene_id and moved.R_m2c is inst.R_m2c
     # Each box is drawn for its instance alone: fewer instances, the same boxes and IoUs.
     only_6 = restrict_to_objects(noisy, [6])
@@ -168,12 +145,12 @@ def _two_peak_model(scenes: Path, path: Path) -> tuple[Path, int]:
     layout = CodeLayout(n_axes=642, n_angles=36, sigma_deg=20.0)
     code = PopulationCode(layout)
     bias = code.encode(R_gt @ QUARTER_TURN_X) + 0.6 * code.encode(R_gt)
-    meta = ModelMetadata(Representation.POPULATION_CODE, layout, _objects(scenes))
+    meta = ModelMetadata(Representation.POPULATION_CODE, layout, scene_objects(scenes))
     return save(linear_model(bias, metadata=meta), path), index
 
 
 def _single_variable_model(scenes: Path, path: Path) -> Path:
-    meta = ModelMetadata(Representation.SINGLE_VARIABLE, CodeLayout(n_axes=42, n_angles=12), _objects(scenes))
+    meta = ModelMetadata(Representation.SINGLE_VARIABLE, CodeLayout(n_axes=42, n_angles=12), scene_objects(scenes))
     return save(linear_model(matrix_to_sixd(np.eye(3)).astype(np.float32), metadata=meta), path)
 
 

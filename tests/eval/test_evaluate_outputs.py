@@ -16,51 +16,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 from onnx_models import linear_model, save
+from scene_fixtures import SCENE_OBJECTS, scene_objects
 
 from popcode_runtime import PoseEstimator, read_image
 from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
+from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_sixd, random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.cli import main
-from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
-from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
 from popcode_trainer.eval.reporting.report import write_report
 
-OBJECTS = [3, 6]  # a 2-fold symmetric part and one without symmetry
-SIZE = (160, 120)
 CALIBRATED = Path(__file__).resolve().parents[2] / "models" / "builtin-parts-3-6.onnx"
 
 
 @pytest.fixture(scope="module")
-def scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Three cluttered images of parts 3 and 6, two or three parts each."""
-    return render_cluttered_test_split(tmp_path_factory.mktemp("scenes"), scenes=3, size=SIZE, obj_ids=OBJECTS,
-                                       parts=(2, 3))
-
-
-def _objects(scenes: Path) -> dict[int, dict]:
-    info = load_models_info(scenes / BUILTIN_MODELS_FOLDER)
-    return {obj_id: info[obj_id] for obj_id in OBJECTS}
-
-
-@pytest.fixture(scope="module")
-def code_model(scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A population code without a calibrator whose peak the crop's pixels move."""
-    layout = CodeLayout(n_axes=162, n_angles=12, sigma_deg=30.0)
-    meta = ModelMetadata(Representation.POPULATION_CODE, layout, _objects(scenes))
-    bias = PopulationCode(layout).encode(np.eye(3))
-    return save(linear_model(bias, weight_scale=1.0, metadata=meta, seed=3), tmp_path_factory.mktemp("m") / "code.onnx")
-
-
-@pytest.fixture(scope="module")
 def single_model(scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    meta = ModelMetadata(Representation.SINGLE_VARIABLE, CodeLayout(n_axes=42, n_angles=12), _objects(scenes))
+    meta = ModelMetadata(Representation.SINGLE_VARIABLE, CodeLayout(n_axes=42, n_angles=12), scene_objects(scenes))
     return save(linear_model(matrix_to_sixd(np.eye(3)).astype(np.float32), metadata=meta),
                 tmp_path_factory.mktemp("m") / "single.onnx")
 
@@ -140,7 +116,7 @@ def test_rotation_error_up_to_symmetry_beside_the_raw_one(scenes: Path, tmp_path
     split = read_eval_split([scenes], scenes / BUILTIN_MODELS_FOLDER)
     R_gt = np.stack([inst.R_m2c for inst in split.instances])
     obj_ids = np.array([inst.obj_id for inst in split.instances])
-    assert set(obj_ids.tolist()) == set(OBJECTS)
+    assert set(obj_ids.tolist()) == set(SCENE_OBJECTS)
     half_turn = symmetry_rotations(split.models_info[3])[1]  # part 3's declared symmetry
     symmetric = np.where((obj_ids == 3)[:, None, None], R_gt @ half_turn, R_gt)
     tilt = axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.radians(7.0))
