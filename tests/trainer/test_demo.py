@@ -20,9 +20,10 @@ from popcode_trainer.cli import main as cli_main
 from popcode_trainer.data import hull
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget
+from popcode_trainer.demo.parts import builtin_parts
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import StagePlan, run_demo
-from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export
+from popcode_trainer.demo.steps import PipelineSize, render_splits, run_dir, small_config, train_and_export
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.train import training_data
 from popcode_trainer.train.network import NetworkConfig
@@ -197,3 +198,18 @@ def test_cli_refuses_unknown_size(tmp_path: Path, capsys: pytest.CaptureFixture)
         cli_main(["demo", "--out", str(tmp_path), "--size", "huge"])
     assert exit_info.value.code == 2
     assert "invalid choice: 'huge'" in capsys.readouterr().err
+
+
+def test_splits_rendered_in_processes_equal_one_process(tmp_path: Path) -> None:
+    """The demo renders a split's shards side by side; the split is the one a single process writes."""
+    size = dataclasses.replace(TINY, train_images_per_object=5, test_images_per_object=1, train_scenes=0,
+                               scene_share=0.0)
+    parallel, _ = render_splits(size, tmp_path / "parallel", progress=False)
+    single = builtin_parts().render_split(tmp_path / "single" / "train", 5, size.config.train.seed, False)
+    names = sorted(p.relative_to(parallel) for p in parallel.rglob("*") if p.is_file() and "records" not in p.parts)
+    assert names == sorted(p.relative_to(single) for p in single.rglob("*")
+                           if p.is_file() and "records" not in p.parts)
+    for name in names:
+        if name.suffix == ".json" and name.name != "popcode_render.json":
+            assert json.loads((parallel / name).read_text()) == json.loads((single / name).read_text()), name
+    assert len(list(parallel.glob("*/gray/*.png"))) == 6 * 5

@@ -489,7 +489,8 @@ def _plain(settings: dict[str, Any]) -> dict[str, Any]:
 
 def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tuple[int, int] = (720, 540),
                                 seed: int = 1015, sensor: str = "industrial", progress: bool = False,
-                                obj_ids: Sequence[int] | None = None, **settings: Any) -> Path:
+                                obj_ids: Sequence[int] | None = None, shard: tuple[int, int] = (0, 1),
+                                **settings: Any) -> Path:
     """A cluttered test split of the built-in parts (models in ``out_dir/models``) with a fixed seed; for the demo.
 
     ``obj_ids`` picks the parts that appear as targets (default: all six); ``settings`` are further
@@ -499,6 +500,6 @@ def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tup
     out_dir = Path(out_dir)
     models_dir = write_builtin_models(out_dir / BUILTIN_MODELS_FOLDER)
     scene_settings = SceneSettings(scenes, width=size[0], height=size[1], seed=seed, sensor=sensor, **settings)
-    render_scene_split(models_dir, out_dir, scene_settings, obj_ids=obj_ids, progress=progress)
+    render_scene_split(models_dir, out_dir, scene_settings, obj_ids=obj_ids, shard=shard, progress=progress)
     return out_dir
 

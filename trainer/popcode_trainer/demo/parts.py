@@ -134,23 +134,25 @@ class Parts:
                       f"renders frame every part at {fill[0]:.2f}-{fill[1]:.2f} of the image (diameter / side) instead "
                       f"of {low:g}-{high:g}: every view of it then fits.")
 
-    def render_split(self, out_dir: Path, images_per_object: int, seed: int, progress: bool) -> Path:
+    def render_split(self, out_dir: Path, images_per_object: int, seed: int, progress: bool,
+                     shard: tuple[int, int] = (0, 1)) -> Path:
         """Single-part images at random rotations and positions (128 x 128), models in ``out_dir/models``."""
         if self.source is None:
             return render_builtin_split(out_dir, images_per_object, seed=seed, random_position=True,
-                                        progress=progress)
+                                        progress=progress, shard=shard)
         models_dir = self.write_models(out_dir / BUILTIN_MODELS_FOLDER)
         settings = RenderSettings(images_per_object, seed=seed, random_position=True,
                                   fill_range=self.fill_range()[0])
-        return render_split(models_dir, out_dir, settings, progress=progress)
+        return render_split(models_dir, out_dir, settings, shard=shard, progress=progress)
 
-    def render_scenes(self, out_dir: Path, scenes: int, seed: int, progress: bool) -> Path:
+    def render_scenes(self, out_dir: Path, scenes: int, seed: int, progress: bool,
+                      shard: tuple[int, int] = (0, 1)) -> Path:
         """Cluttered bin scenes (720 x 540, industrial camera), models in ``out_dir/models``."""
         if self.source is None:
-            return render_cluttered_test_split(out_dir, scenes, seed=seed, progress=progress)
+            return render_cluttered_test_split(out_dir, scenes, seed=seed, progress=progress, shard=shard)
         models_dir = self.write_models(out_dir / BUILTIN_MODELS_FOLDER)
         render_scene_split(models_dir, out_dir, SceneSettings(scenes, seed=seed, sensor=CLUTTERED_SENSOR),
-                           progress=progress)
+                           shard=shard, progress=progress)
         return out_dir
 
 
