@@ -72,7 +72,8 @@ class DemoSize:
 
 
 DEMO_SIZES = {
-    # quick's minutes leave the 15 of `make demo` room for creating .venv (about a minute) and the estimate's error.
+    # quick's minutes leave the 15 of `make demo` room for creating .venv (about two minutes on a slow VM) and the
+    # estimate's error: 13.5 took 15.8 minutes in all on an AVX2-only VM (README, Results).
     # 2000 images a part rather than 1000 and half the epochs: +3 to +5 MSSD at equal crop-updates on a
     # validation split, 4000 only 1 to 1.5 more at twice the rendering (bench/results/recipe.md, fourth round).
     # A quarter of the crops from cluttered scenes: +5 MSSD on a cluttered validation split for -2 on the clean
@@ -80,7 +81,7 @@ DEMO_SIZES = {
     # boxes lose on both at this budget (bench/results/scene-mix-quick*.md).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                    cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE),
-                      "about 15 minutes on a 2-core CPU", minutes=13.5, epoch_bounds=(4, 40)),
+                      "about 15 minutes on a 2-core CPU", minutes=12.5, epoch_bounds=(4, 40)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                     cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE),
                        "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
