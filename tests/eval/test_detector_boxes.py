@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SCENE_SIZE, scene_objects
 from onnx_models import linear_model, save
+from scene_fixtures import SCENE_SIZE, scene_objects
 
 from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.cli import main as popcode_main

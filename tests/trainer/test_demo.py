@@ -6,6 +6,7 @@ import dataclasses
 import json
 import re
 import shutil
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from popcode_trainer.demo import epoch_budget
 from popcode_trainer.demo.parts import builtin_parts
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import StagePlan, run_demo
-from popcode_trainer.demo.steps import PipelineSize, render_splits, run_dir, small_config, train_and_export
+from popcode_trainer.demo.steps import PipelineSize, in_processes, run_dir, small_config, train_and_export
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.train import training_data
 from popcode_trainer.train.network import NetworkConfig
@@ -201,11 +202,10 @@ def test_cli_refuses_unknown_size(tmp_path: Path, capsys: pytest.CaptureFixture)
 
 
 def test_splits_rendered_in_processes_equal_one_process(tmp_path: Path) -> None:
-    """The demo renders a split's shards side by side; the split is the one a single process writes."""
-    size = dataclasses.replace(TINY, train_images_per_object=5, test_images_per_object=1, train_scenes=0,
-                               scene_share=0.0)
-    parallel, _ = render_splits(size, tmp_path / "parallel", progress=False)
-    single = builtin_parts().render_split(tmp_path / "single" / "train", 5, size.config.train.seed, False)
+    """The demo renders a large split's shards side by side; the split is the one a single process writes."""
+    seed = TINY.config.train.seed
+    parallel = in_processes(partial(builtin_parts().render_split, tmp_path / "parallel", 5, seed), False, 2)
+    single = builtin_parts().render_split(tmp_path / "single", 5, seed, False)
     names = sorted(p.relative_to(parallel) for p in parallel.rglob("*") if p.is_file() and "records" not in p.parts)
     assert names == sorted(p.relative_to(single) for p in single.rglob("*")
                            if p.is_file() and "records" not in p.parts)

@@ -42,6 +42,8 @@ from .epoch_budget import first_epoch_seconds
 from .parts import Parts, builtin_parts
 
 RENDER_PROCESSES = 2  # a split's shards rendered side by side (the progress bar shows the first)
+MIN_IMAGES_PER_PROCESS_START = 400  # a process starts in seconds (spawn, imports): smaller splits render in this one
+IMAGES_PER_SCENE = 25  # a 720 x 540 scene costs about as much as this many 128 x 128 single-part images
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
@@ -109,23 +111,29 @@ def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True,
     with random object positions, of ``parts`` (default: the built-in ones); each split holds its models."""
     parts = parts or builtin_parts()
     seed = size.config.train.seed
+    images = size.train_images_per_object * len(parts.obj_ids)
     train_split = in_processes(partial(parts.render_split, out_dir / "train", size.train_images_per_object, seed),
-                               progress)
+                               progress, _render_processes(images))
     if size.train_scenes:
         in_processes(partial(parts.render_scenes, scene_split_of(train_split), size.train_scenes,
-                             seed + TRAIN_SCENES_SEED_OFFSET), progress)
+                             seed + TRAIN_SCENES_SEED_OFFSET), progress,
+                     _render_processes(size.train_scenes * IMAGES_PER_SCENE))
     test_split = parts.render_split(out_dir / "test", size.test_images_per_object, seed + 1000, progress)
     return train_split, test_split
 
 
-def in_processes(render: Callable[..., Path], progress: bool, processes: int | None = None) -> Path:
-    """Call ``render(progress, shard=(i, n))`` for the n shards of a split in n processes (default: one per core,
-    at most :data:`RENDER_PROCESSES`), then once more in this one, which renders whatever a shard left and
-    writes the split's JSON from every image's record (shards finishing together could race there).
+def _render_processes(images: int) -> int:
+    """One process per core (at most :data:`RENDER_PROCESSES`) for a split worth it, else one."""
+    return min(RENDER_PROCESSES, os.cpu_count() or 1) if images >= MIN_IMAGES_PER_PROCESS_START else 1
+
+
+def in_processes(render: Callable[..., Path], progress: bool, processes: int) -> Path:
+    """Call ``render(progress, shard=(i, n))`` for the n shards of a split in n processes, then once more in this
+    one, which renders whatever a shard left and writes the split's JSON from every image's record (shards
+    finishing together could race there).
 
     Rendering runs on one core per process (llvmpipe), so a 2-core machine renders twice as fast.
     """
-    processes = processes or min(RENDER_PROCESSES, os.cpu_count() or 1)
     if processes > 1:
         with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
             shards = [pool.submit(render, progress and index == 0, shard=(index, processes))
