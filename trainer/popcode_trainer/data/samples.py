@@ -115,27 +115,28 @@ class CropDataset(Dataset):
             augment = dataclasses.replace(augment, background=False)
         return augment, rng
 
+    def _stored(self, index: int) -> tuple[np.ndarray, tuple[int, int]]:
+        """The stored crop (:meth:`stored_crop`) and its image's (width, height), from one read."""
+        if self.cache is not None:
+            return self.cache[index], self.cache.image_size(index)
+        return crop_with_margin(self.instances[index], self.crop_size, self.margin)
+
     def stored_crop(self, index: int) -> np.ndarray:
         """Image and visible mask ``(2, S + 2 margin, S + 2 margin)`` uint8 of one instance."""
-        if self.cache is not None:
-            return self.cache[index]
-        return crop_with_margin(self.instances[index], self.crop_size, self.margin)[0]
+        return self._stored(index)[0]
 
     def image_size(self, index: int) -> tuple[int, int]:
-        if self.cache is not None:
-            return self.cache.image_size(index)
-        return crop_with_margin(self.instances[index], self.crop_size, 0)[1]
+        return self._stored(index)[1]
 
     def _window(self, index: int, shift: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
         """The stored crop's ``(2, S, S)`` window: the true box shifted, or a detector-like box's crop."""
-        size, stored = self.crop_size, self.stored_crop(index)
+        size, (stored, image_size) = self.crop_size, self._stored(index)
         if self.box_noise is None:  # the shift (the paper's +-5 crop px), to the nearest pixel: a slice
             dx, dy = (int(round(v)) for v in shift)
             return stored[:, self.margin + dy : self.margin + dy + size, self.margin + dx : self.margin + dx + size]
         box = self.instances[index].box
         for _ in range(BOX_NOISE_TRIES):
-            affine = window_affine(box, noisy_box(box, self.box_noise, rng, self.image_size(index)), size,
-                                   self.margin, shift)
+            affine = window_affine(box, noisy_box(box, self.box_noise, rng, image_size), size, self.margin, shift)
             if affine is not None:
                 break
         else:
