@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation
@@ -41,7 +42,8 @@ from ..train.training_data import build_training_data, read_training_split, vali
 from .epoch_budget import first_epoch_seconds
 from .parts import Parts, builtin_parts
 
-RENDER_PROCESSES = 2  # a split's shards rendered side by side (the progress bar shows the first)
+RENDER_PROCESSES = 8  # at most this many shards of a split rendered side by side (the progress bar shows the first)
+GPU_LOADER_WORKERS = 8
 MIN_IMAGES_PER_PROCESS_START = 400  # a process starts in seconds (spawn, imports): smaller splits render in this one
 IMAGES_PER_SCENE = 25  # a 720 x 540 scene costs about as much as this many 128 x 128 single-part images
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
@@ -132,7 +134,8 @@ def in_processes(render: Callable[..., Path], progress: bool, processes: int) ->
     one, which renders whatever a shard left and writes the split's JSON from every image's record (shards
     finishing together could race there).
 
-    Rendering runs on one core per process (llvmpipe), so a 2-core machine renders twice as fast.
+    Rendering runs on one core per process (llvmpipe; on a GPU, pyrender's Python), so a 2-core machine renders
+    twice as fast.
     """
     if processes > 1:
         with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -170,9 +173,18 @@ def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[i
         splits, weights = (*splits, str(scene_split_of(split))), (1.0 - size.scene_share, size.scene_share)
     config = replace(size.config, code=code or size.config.code,
                      data=replace(size.config.data, splits=splits, split_weights=weights, obj_ids=tuple(obj_ids),
-                                  models_dir=str(split / BUILTIN_MODELS_FOLDER)),
+                                  models_dir=str(split / BUILTIN_MODELS_FOLDER),
+                                  num_workers=loader_workers(size.config)),
                      train=replace(size.config.train, representation=representation, out_dir=str(out_dir), loss=loss))
     return Config.from_dict(config.to_dict())  # checked like a config file
+
+
+def loader_workers(config: Config) -> int:
+    """The size's loader workers, or on a CUDA device with none set, one per spare core (at most
+    :data:`GPU_LOADER_WORKERS`): the GPU's step is faster than one core prepares crops."""
+    if config.data.num_workers or config.train.device == "cpu" or not torch.cuda.is_available():
+        return config.data.num_workers
+    return max(0, min(GPU_LOADER_WORKERS, (os.cpu_count() or 1) - 2))
 
 
 def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
