@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -23,13 +25,31 @@ GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward
 
 
 def import_pyrender() -> Any:
-    """pyrender, on headless EGL unless ``PYOPENGL_PLATFORM`` says otherwise (PyOpenGL reads it once, at import)."""
+    """pyrender, on headless EGL unless ``PYOPENGL_PLATFORM`` says otherwise (PyOpenGL reads it once, at import).
+
+    pyglet, which pyrender imports for its viewer, is made headless too: otherwise it needs X11's libraries,
+    which a server (a GPU machine, say) may not have.
+    """
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    os.environ.setdefault("PYGLET_HEADLESS", "1")
     try:
         import pyrender
     except Exception as error:  # PyOpenGL raises assorted errors when no EGL library is present
         raise PopcodeError(_egl_help(error)) from error
+    _warn_old_pyopengl()
     return pyrender
+
+
+def _warn_old_pyopengl() -> None:
+    """PyOpenGL before 3.1.7 (pyrender pins 3.1.0) cannot pass pointers on Python 3.12 and later: textured scenes
+    fail deep inside it ("No array-type handler for type _ctypes.CArgObject")."""
+    import OpenGL
+
+    version = tuple(int(part) for part in OpenGL.__version__.split(".")[:3] if part.isdigit())
+    if sys.version_info >= (3, 12) and version < (3, 1, 7):
+        warnings.warn(f"PyOpenGL {OpenGL.__version__} cannot render scenes on Python "
+                      f"{sys.version_info.major}.{sys.version_info.minor}: pip install 'PyOpenGL>=3.1.7' "
+                      "(pyrender pins 3.1.0, which works up to Python 3.11)", stacklevel=3)
 
 
 def _egl_help(error: BaseException) -> str:
