@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .bop19_csv import PoseEstimate, format_estimate, write_bop19_lines
-from .bop_split import SplitImage
+from .bop_split import SplitImage, name_id
 from .detections import Detection
 from .drawing import draw_predictions
 from .errors import PopcodeError
@@ -63,8 +63,8 @@ def file_digest(path: Path) -> str:
 
 def _done_key(line: str) -> ImageKey | None:
     """The image a whole ``#done scene_id im_id`` line closes; None for any other line (a torn mark too)."""
-    fields = line[len(DONE_MARK):].split() if line.startswith(DONE_MARK) else []
-    return (int(fields[0]), int(fields[1])) if len(fields) == 2 and all(f.isdigit() for f in fields) else None
+    ids = [name_id(field) for field in line[len(DONE_MARK):].split()] if line.startswith(DONE_MARK) else []
+    return (ids[0], ids[1]) if len(ids) == 2 and None not in ids else None
 
 
 class PartialResults:

@@ -11,7 +11,7 @@ trainer's reader (:mod:`popcode_trainer.data.bop`) builds on these functions;
 from __future__ import annotations
 
 import os
-from collections.abc import Container, Iterator, Mapping
+from collections.abc import Container, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,27 +43,65 @@ def json_field(entry: Any, key: str, path: Path, where: str, size: int | None = 
     return array
 
 
+def name_id(name: str) -> int | None:
+    """The id a BOP file or folder name (``000003``, ``3``) or JSON key stands for; None for any other name.
+
+    ASCII digits only: Python's ``int`` also takes ``" 3"``, ``"+3"``, ``"3_0"`` and other scripts' digits.
+    """
+    return int(name) if name.isascii() and name.isdigit() else None
+
+
+def unique_ids(names: Iterable[str], what: str) -> dict[int, str]:
+    """Id -> name for the names that are ids; two names of one id (``1`` and ``000001``) are refused."""
+    ids: dict[int, str] = {}
+    for name in names:
+        found = name_id(name)
+        if found is None:
+            continue
+        if found in ids:
+            raise PopcodeError(f"{what}: '{ids[found]}' and '{name}' both stand for id {found}; keep one")
+        ids[found] = name
+    return ids
+
+
 def int_keys(data: Any, path: Path) -> dict[int, Any]:
     """A JSON object keyed by integer ids (``"3": ...``) as a dict keyed by int."""
     if not isinstance(data, Mapping):
         raise PopcodeError(f"{path}: expected a JSON object keyed by id, got {type(data).__name__}")
-    try:
-        return {int(key): value for key, value in data.items()}
-    except ValueError as error:
-        raise PopcodeError(f"{path}: keys must be integer ids ({error})") from error
+    bad = next((key for key in data if name_id(key) is None), None)
+    if bad is not None:
+        raise PopcodeError(f"{path}: keys must be integer ids (digits 0-9), got {bad[:40]!r}")
+    return {found: data[name] for found, name in unique_ids(data, str(path)).items()}
+
+
+def bop_id(entry: Any, key: str, path: Path, where: str) -> int:
+    """``entry[key]`` as an id: a JSON integer >= 0; ``1.7``, ``"1"``, ``[1]`` or ``true`` are named, not coerced."""
+    value = json_field(entry, key, path, where)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise PopcodeError(f"{path}: key '{key}' in {where} must be a non-negative integer, got {value!r}")
+    return value
 
 
 def folder_index(folder: Path) -> dict[str, Path]:
     """File stem -> path for every file in a folder (one listdir instead of a stat per image)."""
     if not folder.is_dir():
         return {}
-    return {name.rsplit(".", 1)[0]: folder / name for name in os.listdir(folder) if not name.startswith(".")}
+    files: dict[str, Path] = {}
+    for name in os.listdir(folder):
+        stem = name.rsplit(".", 1)[0]
+        if name.startswith("."):
+            continue
+        if stem in files:
+            raise PopcodeError(f"{folder}: '{files[stem].name}' and '{name}' are two files of one image; keep one")
+        files[stem] = folder / name
+    return files
 
 
 def scene_folders(split_dir: Path) -> list[Path]:
     """The split's scene folders in id order; a folder without any is not a BOP split."""
     require_folder(split_dir, "split folder")
-    scenes = sorted(path for path in split_dir.iterdir() if path.is_dir() and path.name.isdigit())
+    folders = unique_ids((path.name for path in split_dir.iterdir() if path.is_dir()), f"scene folders of {split_dir}")
+    scenes = [split_dir / folders[scene_id] for scene_id in sorted(folders)]
     if not scenes:
         raise PopcodeError(f"{split_dir} has no scene folders (000000, 000001, ...); is it a BOP split?")
     return scenes
@@ -104,10 +142,9 @@ def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
         scene_id = int(scene_dir.name)
         camera_path = scene_dir / "scene_camera.json"
         cameras = int_keys(read_json(camera_path), camera_path) if camera_path.is_file() else {}
-        for stem, path in sorted(folder_index(image_folder(scene_dir)).items()):
-            if not stem.isdigit():
-                continue
-            im_id = int(stem)
+        files = folder_index(image_folder(scene_dir))
+        for im_id, stem in sorted(unique_ids(files, f"images of {scene_dir}").items()):
+            path = files[stem]
             K = read_cam_K(cameras[im_id], camera_path, im_id) if im_id in cameras else None
             images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K)
     return images
@@ -155,7 +192,7 @@ def scene_ground_truth(scene_dir: Path, box_kind: str, min_visib_fract: float,
         selected = []
         for gt_index, (gt, info) in enumerate(zip(gts, infos, strict=True)):
             where = _where(im_id, gt_index)
-            obj_id = int(json_field(gt, "obj_id", gt_path, where))
+            obj_id = bop_id(gt, "obj_id", gt_path, where)
             if obj_ids is not None and obj_id not in obj_ids:
                 continue
             visib_fract = float(json_field(info, "visib_fract", info_path, where, size=1)[0])

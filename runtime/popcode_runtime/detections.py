@@ -53,6 +53,15 @@ def _finite(entry: Mapping[str, Any], key: str, where: str, default: float | Non
     return float(value)
 
 
+def _score(entry: Mapping[str, Any], where: str) -> float:
+    """The detector's confidence in [0, 1]: it scales each estimate's score, so a value outside would rank a more
+    confident estimate lower (a logit or a percentage, say)."""
+    score = _finite(entry, "score", where)
+    if not 0.0 <= score <= 1.0:
+        raise PopcodeError(f"{where}: 'score' must lie in [0, 1] (a confidence), got {score!r}")
+    return score
+
+
 def _box(entry: Mapping[str, Any], where: str) -> tuple[float, float, float, float]:
     value = entry.get("bbox")
     if not isinstance(value, list) or len(value) != 4 or any(
@@ -82,7 +91,7 @@ def read_detections(path: str | Path) -> list[Detection]:
         detections.append(Detection(
             scene_id=_integer(entry, "scene_id", where), im_id=_integer(entry, "image_id", where),
             obj_id=_integer(entry, "category_id", where), box=_box(entry, where),
-            score=_finite(entry, "score", where), time_s=_finite(entry, "time", where, default=-1.0),
+            score=_score(entry, where), time_s=_finite(entry, "time", where, default=-1.0),
         ))
     return detections
 

@@ -7,6 +7,7 @@ The trainer writes its images, JSON and models through these functions too.
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,10 @@ import numpy as np
 from .checks import path as checked_path
 from .errors import PopcodeError, library_step
 
-MAX_JSON_BYTES = 1 << 28  # a BOP annotation or detections file larger than this is refused before it is parsed
+# A JSON file larger than this is refused before it is parsed: Python holds about 25 bytes per byte of JSON,
+# so this bounds a parse at about 1.6 GB (a BOP dataset's largest annotation or detections file is tens of MB).
+MAX_JSON_BYTES = 1 << 26
+MAX_JSON_INTEGER_DIGITS = 18  # ids, sizes and counts; longer integers are a corrupt or crafted file
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
@@ -31,17 +35,44 @@ def require_folder(path: Path, what: str) -> Path:
 
 
 def read_json(path: Path) -> Any:
-    """Parsed JSON, or a PopcodeError that names the file (missing, too large, not JSON)."""
+    """Parsed JSON, or a PopcodeError that names the file (missing, too large, not JSON, nested too deep, numbers
+    outside what JSON of this project holds: NaN/Infinity, floats that overflow, integers of many digits).
+
+    The one reader of BOP annotations, detections and run files, so every reader has the same bounds.
+    """
     if not path.is_file():
         raise PopcodeError(f"missing file {path}")
     if path.stat().st_size > MAX_JSON_BYTES:
         raise PopcodeError(f"{path} is {path.stat().st_size >> 20} MiB; JSON files over {MAX_JSON_BYTES >> 20} MiB "
                            "are refused")
     try:
-        with path.open() as file:
-            return json.load(file)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        text = path.read_bytes().decode("utf-8")
+        return json.loads(text, parse_int=_bounded_int, parse_float=_finite_float, parse_constant=_no_constant)
+    except (json.JSONDecodeError, UnicodeDecodeError, _BadNumberError) as error:
         raise PopcodeError(f"{path} is not valid JSON: {error}") from error
+    except RecursionError as error:  # the parser recurses once per level of nesting
+        raise PopcodeError(f"{path} nests JSON too deeply; refused") from error
+
+
+class _BadNumberError(ValueError):
+    """A number JSON allows but this project's files never hold."""
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_JSON_INTEGER_DIGITS:
+        raise _BadNumberError(f"an integer of {len(text.lstrip('-'))} digits (at most {MAX_JSON_INTEGER_DIGITS})")
+    return int(text)
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _BadNumberError(f"the number {text[:20]}{'...' if len(text) > 20 else ''} overflows a float")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise _BadNumberError(f"{name} is not a JSON number")
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:
