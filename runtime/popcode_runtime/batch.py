@@ -19,13 +19,14 @@ import os
 import sys
 import time
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
 
-from .bop19_csv import PoseEstimate, format_estimate, write_bop19_lines
+from .bop19_csv import PoseEstimate, format_estimate, parse_estimate, write_bop19_lines
 from .bop_split import SplitImage, name_id
 from .detections import Detection
 from .drawing import draw_predictions
@@ -34,7 +35,15 @@ from .estimator import PoseEstimator, Prediction
 from .files import write_bytes_atomic, write_picture_atomic
 from .image_loop import ImageBoxes, estimate_images, route_objects
 
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None  # type: ignore[assignment]
+
 PARTIAL_SUFFIX = ".partial"
+LOCK_SUFFIX = ".lock"
+CHECKSUM_CHARS = 16  # hex digits of SHA-256 closing each image in a partial file
+MAX_WEIGHT_FILES = 1000  # files beside a model looked at for its external weights
 RUN_MARK = "#popcode-run "  # first line of a partial file: what the run was made from
 DONE_MARK = "#done "  # closes one image's estimates
 
@@ -61,48 +70,108 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _done_key(line: str) -> ImageKey | None:
-    """The image a whole ``#done scene_id im_id`` line closes; None for any other line (a torn mark too)."""
-    ids = [name_id(field) for field in line[len(DONE_MARK):].split()] if line.startswith(DONE_MARK) else []
-    return (ids[0], ids[1]) if len(ids) == 2 and None not in ids else None
+def model_digest(path: Path) -> str:
+    """SHA-256 of a model and of the weights it keeps in other files (ONNX external data): the files in its folder,
+    two levels down, whose relative path the model names (a location is stored as plain text in the model)."""
+    data = path.read_bytes()
+    digest = hashlib.sha256(data)
+    folder = path.resolve().parent
+    nearby = (found for pattern in ("*", "*/*") for found in folder.glob(pattern))
+    candidates = sorted(found for found in islice(nearby, MAX_WEIGHT_FILES) if found.is_file())
+    for candidate in candidates:
+        name = candidate.relative_to(folder).as_posix()
+        if candidate != path.resolve() and name.encode() in data:
+            digest.update(f"\n{name}\n{file_digest(candidate)}".encode())
+    return digest.hexdigest()
+
+
+def split_digest(images: Mapping[ImageKey, SplitImage]) -> str:
+    """SHA-256 of what a split gives a run: each image's file name and size, and every scene's annotation files
+    (cameras, boxes) by content. Cheap (one stat per image), and another split or a changed image is told apart."""
+    digest = hashlib.sha256()
+    for key in sorted(images):
+        path = images[key].path
+        digest.update(f"{key} {path.name} {path.stat().st_size}\n".encode())
+    for scene in sorted({images[key].path.parent.parent for key in images}):
+        for annotation in sorted(scene.glob("*.json")):
+            digest.update(f"{scene.name}/{annotation.name} {file_digest(annotation)}\n".encode())
+    return digest.hexdigest()
+
+
+def _done_key(line: str) -> tuple[ImageKey, str] | None:
+    """The image a whole ``#done scene_id im_id checksum`` line closes, and its checksum; None for any other line
+    (a torn mark too)."""
+    fields = line[len(DONE_MARK):].split(" ") if line.startswith(DONE_MARK) else []
+    ids = [name_id(field) for field in fields[:2]]
+    if len(fields) != 3 or None in ids or len(fields[2]) != CHECKSUM_CHARS:
+        return None
+    return (ids[0], ids[1]), fields[2]
+
+
+def _checksum(lines: Sequence[str]) -> str:
+    """What closes an image's lines: a torn, edited or foreign line no longer matches it."""
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:CHECKSUM_CHARS]
 
 
 class PartialResults:
-    """``<out>.partial``: the estimate lines of finished images, each image closed by a ``#done`` line.
+    """``<out>.partial``: the estimate lines of finished images, each image closed by a ``#done`` line that carries
+    a checksum of its lines; ``<out>.lock`` held while a run writes them.
 
-    Opening it keeps every closed image (a torn tail from a killed run is
-    dropped) and refuses a file made from other models, detections or options.
+    Opening it keeps every closed image (a torn tail from a killed run is dropped) and refuses a file made from
+    other models, detections, split or options, one whose closed images were edited, and a second run writing the
+    same ``out``. ``expected`` (image -> the object ids of its detections, in order) checks each kept image's
+    lines against what this run would write for it.
     """
 
-    def __init__(self, out: Path, fingerprint: str) -> None:
+    def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
         self.out, self.path = out, out.with_name(out.name + PARTIAL_SUFFIX)
-        if out.exists() and not self.path.exists():
-            raise PopcodeError(f"{out} exists already (a finished run); remove it or choose another --out")
-        self.lines: list[str] = []
-        self.done: set[ImageKey] = set()
-        if self.path.exists():
-            self._resume(fingerprint)
-        write_bytes_atomic(self.path, "\n".join([RUN_MARK + fingerprint, *self.lines]).encode() + b"\n")
-        self._handle = self.path.open("a")
+        self._lock = _OutputLock(out.with_name(out.name + LOCK_SUFFIX))
+        try:
+            if out.exists() and not self.path.exists():
+                raise PopcodeError(f"{out} exists already (a finished run); remove it or choose another --out")
+            self.lines: list[str] = []
+            self.done: set[ImageKey] = set()
+            if self.path.exists():
+                self._resume(fingerprint, expected)
+            write_bytes_atomic(self.path, "\n".join([RUN_MARK + fingerprint, *self.lines]).encode() + b"\n")
+            self._handle = self.path.open("a")
+        except BaseException:
+            self._lock.release()
+            raise
 
-    def _resume(self, fingerprint: str) -> None:
-        text = self.path.read_text(errors="replace").split("\n")
-        if not text or text[0] != RUN_MARK + fingerprint:
-            raise PopcodeError(f"{self.path} holds the partial results of a run with other models, detections or "
-                               "options; remove it to start again, or rerun the command that made it")
+    def _refuse(self, why: str) -> PopcodeError:
+        return PopcodeError(f"{self.path} {why}; remove it to start again, or rerun the command that made it")
+
+    def _resume(self, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
+        try:
+            text = self.path.read_bytes().decode("utf-8").split("\n")
+        except UnicodeDecodeError as error:
+            raise self._refuse(f"is not text ({error.reason} at byte {error.start})") from error
+        if text[0] != RUN_MARK + fingerprint:
+            raise self._refuse("holds the partial results of a run with other models, detections, split or options")
+        blocks: list[tuple[list[str], tuple[ImageKey, str] | None]] = []
         pending: list[str] = []
         for line in text[1:]:
-            key = _done_key(line)
-            if key is not None:
-                self.lines += [*pending, line]
-                self.done.add(key)
+            if line.startswith(DONE_MARK):
+                blocks.append((pending, _done_key(line)))
                 pending = []
             elif line:
-                pending.append(line)  # lines of an image that was not closed (or a torn mark) are dropped
+                pending.append(line)  # lines after the last mark: an image a killed run did not close
+        # A killed run can tear only its last image (lines, mark or both); anything wrong before that was changed.
+        while blocks and _block_problem(*blocks[-1], expected, self.done) is not None:
+            blocks.pop()
+        for lines, mark in blocks:
+            problem = _block_problem(lines, mark, expected, self.done)
+            if problem is not None or mark is None:
+                raise self._refuse(f"was changed after it was written ({problem})")
+            key, checksum = mark
+            self.lines += [*lines, f"{DONE_MARK}{key[0]} {key[1]} {checksum}"]
+            self.done.add(key)
 
     def add(self, key: ImageKey, estimates: Sequence[PoseEstimate]) -> None:
         """Append one image's estimates and its closing mark, flushed to disk."""
-        lines = [format_estimate(est) for est in estimates] + [f"{DONE_MARK}{key[0]} {key[1]}"]
+        lines = [format_estimate(est) for est in estimates]
+        lines.append(f"{DONE_MARK}{key[0]} {key[1]} {_checksum(lines)}")
         self._handle.write("\n".join(lines) + "\n")
         self._handle.flush()
         os.fsync(self._handle.fileno())
@@ -117,6 +186,53 @@ class PartialResults:
 
     def close(self) -> None:
         self._handle.close()
+        self._lock.release()
+
+
+def _block_problem(lines: Sequence[str], mark: tuple[ImageKey, str] | None,
+                   expected: Mapping[ImageKey, Sequence[int]], done: set[ImageKey]) -> str | None:
+    """What is wrong with one image's lines in a partial file, or None."""
+    if mark is None:
+        return "a closing mark is torn or malformed"
+    key, checksum = mark
+    if key not in expected:
+        return f"scene {key[0]} image {key[1]} is not among this run's images"
+    if key in done:
+        return f"scene {key[0]} image {key[1]} is closed twice"
+    if _checksum(lines) != checksum:
+        return f"the lines of scene {key[0]} image {key[1]} do not match their checksum"
+    try:
+        estimates = [parse_estimate(line, f"scene {key[0]} image {key[1]}") for line in lines]
+    except PopcodeError as error:
+        return str(error)
+    if [(e.scene_id, e.im_id) for e in estimates] != [key] * len(estimates) or \
+            [e.obj_id for e in estimates] != list(expected[key]):
+        return f"the lines of scene {key[0]} image {key[1]} are not its detections' estimates"
+    return None
+
+
+class _OutputLock:
+    """An exclusive lock on ``<out>.lock`` (POSIX ``flock``; the system drops it when the process ends, a kill
+    too): of two runs writing one ``out``, the second is refused in one line."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self._handle = path, None
+        if fcntl is None:  # no flock (Windows): runs are not guarded against each other
+            return
+        handle = path.open("a")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            handle.close()
+            raise PopcodeError(f"another popcode run is writing {path.with_suffix('')} (it holds {path.name}); wait "
+                               "for it or choose another --out") from error
+        self._handle = handle
+
+    def release(self) -> None:
+        if self._handle is not None:
+            self.path.unlink(missing_ok=True)  # while still held: a run that opens it later locks a new file
+            self._handle.close()
+            self._handle = None
 
 
 class Progress:
@@ -190,7 +306,7 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
         by_image[detection.image_key].append(detection)
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
-    results = PartialResults(out, fingerprint)
+    results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys})
     try:
         todo = [key for key in keys if key not in results.done]
         bar, written = Progress(len(todo), progress), 0

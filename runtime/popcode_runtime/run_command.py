@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from .batch import file_digest, run_detections
-from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, split_images
+from .batch import ImageKey, file_digest, model_digest, run_detections, split_digest
+from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, SplitImage, split_images
 from .decoding import DECODERS
 from .detections import ground_truth_boxes, read_detections
 from .errors import PopcodeError
@@ -55,9 +55,11 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     run.set_defaults(handler=handle)
 
 
-def _fingerprint(args: argparse.Namespace) -> str:
-    """What the results depend on: the models' and detections' bytes and the options."""
-    parts = {"models": [file_digest(path) for path in args.models], "decoder": args.decoder,
+def _fingerprint(args: argparse.Namespace, images: Mapping[ImageKey, SplitImage]) -> str:
+    """What the results depend on: the models' bytes (external weights too), the detections' bytes, the split's
+    images and annotations, and the options that change a line. A resume with any of them changed is refused."""
+    parts = {"models": [model_digest(path) for path in args.models], "decoder": args.decoder,
+             "providers": args.provider, "max_images": args.max_images, "split": split_digest(images),
              "detections": file_digest(args.detections) if args.detections else
              {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
@@ -76,8 +78,9 @@ def handle(args: argparse.Namespace) -> int:
                   for path in args.models]
     detections = read_detections(args.detections) if args.detections else \
         ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
-    summary = run_detections(estimators, [str(path) for path in args.models], split_images(args.split), detections,
-                             args.out, _fingerprint(args), args.max_images, not args.quiet, args.draw)
+    images = split_images(args.split)
+    summary = run_detections(estimators, [str(path) for path in args.models], images, detections,
+                             args.out, _fingerprint(args, images), args.max_images, not args.quiet, args.draw)
     skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "

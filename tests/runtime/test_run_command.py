@@ -144,7 +144,7 @@ def test_bad_splits_and_outputs_are_refused_in_one_line(split: Path, tmp_path: P
     other = tmp_path / "other.csv"
     other.with_name("other.csv.partial").write_text("#popcode-run 0123\n")
     assert _run(split, other, "--gt-boxes") == 2
-    assert "other models, detections or options" in capsys.readouterr().err
+    assert "other models, detections, split or options" in capsys.readouterr().err
 
 
 def test_evaluate_scores_the_results_file_as_it_scores_the_models(split: Path, tmp_path: Path) -> None:
