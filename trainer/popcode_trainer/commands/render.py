@@ -52,8 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     scenes.add_argument("--bin-size-mm", type=float,
                         help="side of the bin (default: from the largest part and the most objects per image)")
     scenes.add_argument("--sensor", choices=sorted(SENSOR_PRESETS),
-                        help="camera effects (noise, blur, exposure, gamma, JPEG) resembling a camera kind "
-                             "(default none; see the README)")
+                        help="camera effects (noise, blur, exposure, gamma, JPEG) and a depth camera's depth "
+                             "(noise, holes, quantisation) resembling a camera kind (default none: exact depth; "
+                             "see the README)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(handler=run)
 

@@ -12,6 +12,13 @@ that mask where the part is not more than ``visib_delta_mm`` behind the scene's 
 boxes of an instance with no visible pixel are ``[-1, -1, -1, -1]``. A draw in which no target is
 visible (rare: the camera aims at the bin) is drawn again, up to :data:`MAX_CAMERA_TRIES` times;
 after that it is written as it is, every instance with ``visib_fract`` 0, which readers skip.
+
+Masks and visibility are ground truth, computed from the exact rendered depth. The depth written to
+``depth/`` is what the sensor preset's depth camera measures (:mod:`.depth_noise`: noise, holes,
+quantisation; exact with ``none``), as a real split's depth is; ``px_count_valid`` counts the written
+depth's measured pixels, as the toolkit counts a real split's. The preset's depth noise is recorded
+in the split's settings (``popcode_render.json``, ``depth_noise``); a split without that entry has
+exact depth.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ from popcode_runtime.files import write_json_atomic, write_png_atomic
 from ..metrics.visibility import depth_to_distance, visible_mask_gt
 from .augment import procedural_texture
 from .bop import load_models_info, model_path
+from .depth_noise import apply_depth_noise, depth_noise_preset
 from .gl import CentreSampledDepth, PixelRegion, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
@@ -407,8 +415,15 @@ def _render_image(renderer: _SceneRenderer, layouts: _Layouts, meshes: dict[int,
     else:
         image = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY) if settings.gray else colour
     write_png_atomic(scene_dir / ("gray" if settings.gray else "rgb") / f"{stem}.png", image)
-    write_png_atomic(scene_dir / "depth" / f"{stem}.png",
-                     np.clip(np.round(depth_scene_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16))
+    # Drawn after every annotation: the ground truth above stays the exact depth's (module docstring).
+    depth_noise = depth_noise_preset(settings.sensor)
+    measured_mm = depth_scene_mm if depth_noise is None else apply_depth_noise(depth_scene_mm, K, colour, rng,
+                                                                               depth_noise)
+    depth_png = np.clip(np.round(measured_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
+    write_png_atomic(scene_dir / "depth" / f"{stem}.png", depth_png)
+    if depth_noise is not None:
+        for mask, _, info in results:
+            info["px_count_valid"] = int((depth_png[mask] > 0).sum())
     scene_gt = []
     for gt_index, (placed, (mask, mask_visib, _)) in enumerate(zip(content.targets, results, strict=True)):
         write_png_atomic(scene_dir / "mask" / f"{stem}_{gt_index:06d}.png", mask.astype(np.uint8) * 255)
@@ -459,7 +474,8 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
         raise PopcodeError(f"object ids {unknown or '[]'} are not in {models_dir / 'models_info.json'} "
                            f"(it lists {sorted(models_info)})")
     out_dir.mkdir(parents=True, exist_ok=True)
-    check_settings(out_dir, {**_plain(asdict(settings)), "obj_ids": obj_ids, "kind": "scenes"})
+    check_settings(out_dir, {**_plain(asdict(settings)), "obj_ids": obj_ids, "kind": "scenes",
+                             **_depth_noise_record(settings.sensor)})
     shard_index, shard_count = shard
     todo = [k for k in range(shard_index, settings.scenes, shard_count)
             if not (out_dir / f"{_location(k)[0]:06d}" / RECORDS_FOLDER / f"{_location(k)[1]:06d}.json").is_file()]
@@ -485,6 +501,13 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
 
 def _plain(settings: dict[str, Any]) -> dict[str, Any]:
     return {key: list(value) if isinstance(value, tuple) else value for key, value in settings.items()}
+
+
+def _depth_noise_record(sensor: str) -> dict[str, Any]:
+    """The sensor's depth noise for the split's settings; nothing for exact depth, as splits made before depth
+    noise existed (whose depth is exact whatever their sensor) say by not having it."""
+    noise = depth_noise_preset(sensor)
+    return {} if noise is None else {"depth_noise": _plain(asdict(noise))}
 
 
 def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tuple[int, int] = (720, 540),
