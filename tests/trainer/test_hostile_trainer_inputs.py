@@ -67,6 +67,10 @@ BROKEN_MODELS = {
     "mesh_off_centre": (_ply("1000 0 0\n1010 0 0\n1000 10 0\n1000 0 10"), _BOX_INFO),
     "mesh_diameter_tiny": (_ply("-5 -5 -5\n5 -5 -5\n-5 5 -5\n-5 -5 5"), {**_BOX_INFO, "diameter": 1e-6}),
     "mesh_not_ply": ("not a mesh\n", _BOX_INFO),
+    "mesh_in_metres": (_ply("-0.005 -0.005 -0.005\n0.005 -0.005 -0.005\n-0.005 0.005 -0.005\n-0.005 -0.005 0.005"),
+                       {**_BOX_INFO, "diameter": 0.0173}),
+    "mesh_in_micrometres": (_ply("-5e6 -5e6 -5e6\n5e6 -5e6 -5e6\n-5e6 5e6 -5e6\n-5e6 -5e6 5e6"),
+                            {**_BOX_INFO, "diameter": 1.73e7}),
 }
 
 # split folder -> (image width and height [px], cam_R_m2c, bbox_obj, cx = cy [px]); "split" is right
@@ -241,6 +245,8 @@ CASES = [
         ("mesh_off_centre", "reaches 1010 mm from its origin, more than its diameter 17.4 mm"),
         ("mesh_diameter_tiny", "more than its diameter 1e-06 mm in models_info.json"),
         ("mesh_not_ply", "cannot load model"),
+        ("mesh_in_metres", "is 0.01 mm across; models are in millimetres"),
+        ("mesh_in_micrometres", "is 1e+07 mm across; models are in millimetres"),
     )),
     ("render-objects-is-a-checkpoint", lambda f: ["render", "--objects", str(f / "keys.pt"), "--images", "1",
                                                   "--out", str(f / "r")], "no such models folder"),
@@ -271,6 +277,23 @@ CASES = [
                                                    "train.batch_size=1"], "BatchNorm needs two crops per rank"),
     ("render-size-huge", lambda f: ["render", "--objects", "builtin", "--images", "1", "--out", str(f / "r"),
                                     "--size", "100000", "100000"], "at most 8192 px a side"),
+    # Bounded before any work: a billion scenes used to list (and stat) every image before writing one.
+    ("render-scenes-a-billion", lambda f: ["render", "--objects", "builtin", "--scenes", "1000000000", "--out",
+                                           str(f / "r")], "scenes must lie in [1, 1000000], got 1000000000"),
+    ("render-images-a-billion", lambda f: ["render", "--objects", "builtin", "--images", "1000000000", "--out",
+                                           str(f / "r")], "images per object must lie in [1, 1000000]"),
+    ("render-seed-negative", lambda f: ["render", "--objects", "builtin", "--images", "1", "--seed", "-1", "--out",
+                                        str(f / "r")], "seed must lie in [0, 2**62), got -1"),
+    ("render-scenes-seed-negative", lambda f: ["render", "--objects", "builtin", "--scenes", "1", "--seed", "-1",
+                                               "--out", str(f / "r")], "seed must lie in [0, 2**62), got -1"),
+    *((f"render-bin-size-{value}", lambda f, value=value: [
+        "render", "--objects", "builtin", "--scenes", "1", "--bin-size-mm", value, "--out", str(f / "r")],
+       f"0 <= bin_size_mm <= 100000 and 0 < visib_delta_mm <= 100000, got 35.0, {shown} and")
+      for value, shown in (("nan", "nan"), ("inf", "inf"), ("-3.0", "-3.0"), ("1e9", "1000000000.0"))),
+    # A split whose parts are too small to see used to be written and exit 0.
+    ("render-scenes-nothing-visible", lambda f: ["render", "--objects", "builtin", "--scenes", "1", "--size", "64",
+                                                 "48", "--bin-size-mm", "100000", "--out", str(f / "specks")],
+     "scene image 0: no target part is visible in 10 draws of the bin"),
     ("train-split-box-huge", lambda f: _train(f, split="split_box_huge"),
      "scene 0, image 0, object 0 (scene_gt_info.json): box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x"),
     ("train-split-focal-zero", lambda f: _train(f, split="split_focal_zero"),

@@ -40,6 +40,16 @@ DEPTH_SCALE_MM = 0.1  # depth png value * 0.1 = mm: 0.1 mm steps up to 6.5 m
 
 
 MAX_RENDER_SIDE = 8192  # px; Mesa's framebuffers stop at 16384, and BOP images are at most 2560 px wide
+MAX_RENDERED_IMAGES = 1_000_000  # per object or scene split: checked before any work (a split's list of images)
+MAX_SEED = 2**62  # seeds are stored in the split's JSON, whose reader takes integers of up to 18 digits
+
+
+def check_count_and_seed(count: int, what: str, seed: int) -> None:
+    """Refuse a count or seed that would make a render allocate without bound or fail deep in numpy."""
+    if not 1 <= count <= MAX_RENDERED_IMAGES:
+        raise PopcodeError(f"{what} must lie in [1, {MAX_RENDERED_IMAGES}], got {count}")
+    if not 0 <= seed < MAX_SEED:
+        raise PopcodeError(f"seed must lie in [0, 2**62), got {seed}")
 
 
 def camera_matrix(width: int, height: int) -> np.ndarray:
@@ -62,8 +72,9 @@ class RenderSettings:
     fill_range: tuple[float, float] = (0.45, 0.75)  # object diameter / min(width, height)
 
     def __post_init__(self) -> None:
-        if self.images_per_object < 1 or self.width < 8 or self.height < 8:
-            raise PopcodeError(f"need at least 1 image per object and 8x8 pixels, got {self}")
+        check_count_and_seed(self.images_per_object, "images per object", self.seed)
+        if self.width < 8 or self.height < 8:
+            raise PopcodeError(f"need at least 8x8 pixels, got {self}")
         if max(self.width, self.height) > MAX_RENDER_SIDE:
             raise PopcodeError(f"images of {self.width}x{self.height} px: at most {MAX_RENDER_SIDE} px a side "
                                f"(OpenGL's framebuffers and each image held in memory)")

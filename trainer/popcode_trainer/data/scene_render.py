@@ -50,6 +50,7 @@ from .render import (
     RECORDS_FOLDER,
     add_random_lights,
     camera_matrix,
+    check_count_and_seed,
     check_settings,
     finalize_scene,
     mask_box,
@@ -62,6 +63,7 @@ BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tole
 DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
 MAX_CAMERA_TRIES = 10
 MARGIN_PX = 2  # around the projected mesh: far more than OpenGL's rounding of vertex positions
+MAX_BIN_MM = 100_000.0  # a 100 m bin: beyond it a part is a speck in the image
 MAX_SIDE_PX = 4096  # the border-cut silhouettes are rendered 3x larger: within OpenGL's usual 16384 limit
 SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
 
@@ -85,9 +87,9 @@ class SceneSettings:
     sensor: str = "none"  # a name in sensor.SENSOR_PRESETS
 
     def __post_init__(self) -> None:
-        if self.scenes < 1 or not 8 <= self.width <= MAX_SIDE_PX or not 8 <= self.height <= MAX_SIDE_PX:
-            raise PopcodeError(f"need at least 1 scene and 8 to {MAX_SIDE_PX} pixels a side, got {self.scenes} "
-                               f"scenes at {self.width}x{self.height}")
+        check_count_and_seed(self.scenes, "scenes", self.seed)
+        if not 8 <= self.width <= MAX_SIDE_PX or not 8 <= self.height <= MAX_SIDE_PX:
+            raise PopcodeError(f"need 8 to {MAX_SIDE_PX} pixels a side, got {self.width}x{self.height}")
         if not 1 <= self.parts[0] <= self.parts[1] or not 0 <= self.distractors[0] <= self.distractors[1]:
             raise PopcodeError(f"parts need 1 <= min <= max and distractors 0 <= min <= max, got parts "
                                f"{self.parts}, distractors {self.distractors}")
@@ -95,8 +97,11 @@ class SceneSettings:
             raise PopcodeError(f"at most 200 objects per image, got up to {self.parts[1] + self.distractors[1]}")
         if not 0.1 <= self.fill_range[0] <= self.fill_range[1] <= 3.0:
             raise PopcodeError(f"fill_range must satisfy 0.1 <= low <= high <= 3, got {self.fill_range}")
-        if not 0.0 <= self.max_tilt_deg <= 70.0 or self.bin_size_mm < 0 or self.visib_delta_mm <= 0:
-            raise PopcodeError(f"need 0 <= max_tilt_deg <= 70, bin_size_mm >= 0 and visib_delta_mm > 0, got {self}")
+        if not 0.0 <= self.max_tilt_deg <= 70.0 or not 0 <= self.bin_size_mm <= MAX_BIN_MM or \
+                not 0 < self.visib_delta_mm <= MAX_BIN_MM:  # NaN fails these tests too
+            raise PopcodeError(f"need 0 <= max_tilt_deg <= 70, 0 <= bin_size_mm <= {MAX_BIN_MM:g} and "
+                               f"0 < visib_delta_mm <= {MAX_BIN_MM:g}, got {self.max_tilt_deg}, {self.bin_size_mm} "
+                               f"and {self.visib_delta_mm}")
         sensor_preset(self.sensor)
 
 
@@ -406,6 +411,9 @@ def _render_image(renderer: _SceneRenderer, layouts: _Layouts, meshes: dict[int,
                    for (alone, region), (count, box) in zip(alone_mm, whole, strict=True)]
         if any(info["px_count_visib"] for _, _, info in results):
             break
+    else:
+        raise PopcodeError(f"scene image {k}: no target part is visible in {MAX_CAMERA_TRIES} draws of the bin; are "
+                           "the models in millimetres and the bin (--bin-size-mm) in proportion to them?")
     scene_id, im_id = _location(k)
     scene_dir = out_dir / f"{scene_id:06d}"
     stem = f"{im_id:06d}"
