@@ -223,7 +223,8 @@ def _attach_negative_values(argv: list[str]) -> list[str]:
 
 
 def run_handler(args: argparse.Namespace, prog: str) -> int:
-    """Run ``args.handler``; a ``PopcodeError`` becomes one line on stderr and exit code 2.
+    """Run ``args.handler``; a ``PopcodeError`` or a failing system call (``OSError``) becomes one line on stderr
+    and exit code 2.
 
     A reader that stops early (``| head``) is not an error: the rest of the
     output is dropped quietly and the exit code is the shell's for SIGPIPE.
@@ -236,6 +237,10 @@ def run_handler(args: argparse.Namespace, prog: str) -> int:
     except BrokenPipeError:
         _silence_stdout()
         return 141
+    except OSError as error:  # a full disk, a read-only folder, a name too long: the system's words, one line
+        where = f" {error.filename}" if error.filename else ""
+        print(f"{prog}: error: cannot use{where}: {error.strerror or error}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

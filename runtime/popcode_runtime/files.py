@@ -22,6 +22,7 @@ from .errors import PopcodeError, library_step
 # so this bounds a parse at about 1.6 GB (a BOP dataset's largest annotation or detections file is tens of MB).
 MAX_JSON_BYTES = 1 << 26
 MAX_JSON_INTEGER_DIGITS = 18  # ids, sizes and counts; longer integers are a corrupt or crafted file
+MAX_NAME_BYTES = 200  # an output's name; ".<name>.<pid>.tmp" and "<name>.partial" must stay within 255
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
@@ -102,6 +103,9 @@ def check_writable_file(value: str | os.PathLike, what: str) -> Path:
         raise PopcodeError(f"{what} {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PopcodeError(f"{what} {path}: folder {folder} is not writable")
+    if len(path.name.encode()) > MAX_NAME_BYTES:
+        raise PopcodeError(f"{what} {path}: the name is {len(path.name.encode())} bytes; at most {MAX_NAME_BYTES} "
+                           "(its temporary and partial files add to it, and file systems stop at 255)")
     return path
 
 
