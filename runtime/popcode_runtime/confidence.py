@@ -27,6 +27,9 @@ from .rotations import matrix_to_axis_angle
 FEATURES = ("peak", "margin", "concentration")
 DEFAULT_THRESHOLD_DEG = 10.0
 RIVAL_RADIUS_SIGMAS = 2.5  # in code space, neurons further than this from every equivalent peak are rival poses
+# A fitted weight or bias is a few units (features lie in [0, 1] or so); beyond this, exp() overflows and every
+# confidence is 0 or 1: a corrupt calibrator, refused when the model loads.
+MAX_LOGIT_TERM = 1000.0
 NEAR_POSE_BUDGET = 1 << 22  # float32 distances held at once (16 MiB), whatever the batch and the symmetries
 
 
@@ -54,14 +57,15 @@ class Calibrator:
         object.__setattr__(self, "threshold_deg", number(self.threshold_deg, "confidence threshold_deg", 0.0, 180.0))
         object.__setattr__(self, "rival_radius_deg",
                            number(self.rival_radius_deg, "confidence rival_radius_deg", 0.0, 180.0))
-        object.__setattr__(self, "bias", number(self.bias, "confidence bias"))
+        object.__setattr__(self, "bias", number(self.bias, "confidence bias", -MAX_LOGIT_TERM, MAX_LOGIT_TERM))
         object.__setattr__(self, "weights", _weights(self.weights, "confidence"))
         if self.refined is not None:
             if isinstance(self.refined, (str, bytes)) or not isinstance(self.refined, Sequence) \
                     or len(self.refined) != 2:
                 raise PopcodeError(f"confidence refined must be (weights, bias), got {self.refined!r}")
             object.__setattr__(self, "refined", (_weights(self.refined[0], "confidence refined"),
-                                                 number(self.refined[1], "confidence refined bias")))
+                                                 number(self.refined[1], "confidence refined bias",
+                                                        -MAX_LOGIT_TERM, MAX_LOGIT_TERM)))
         mapping(self.fitted_on, "confidence fitted_on")
         if self.threshold_deg == 0.0 or self.rival_radius_deg == 0.0:
             raise PopcodeError("confidence threshold_deg and rival_radius_deg must be positive")
@@ -103,7 +107,8 @@ def _weights(values: Any, what: str) -> tuple[float, ...]:
     """One non-negative number per feature (the confidence never falls when a feature improves)."""
     if isinstance(values, (str, bytes)) or not isinstance(values, Sequence) or len(values) != len(FEATURES):
         raise PopcodeError(f"{what} weights must be {len(FEATURES)} numbers ({', '.join(FEATURES)}), got {values!r}")
-    return tuple(number(w, f"{what} weight of {name}", 0.0) for w, name in zip(values, FEATURES, strict=True))
+    return tuple(number(w, f"{what} weight of {name}", 0.0, MAX_LOGIT_TERM)
+                 for w, name in zip(values, FEATURES, strict=True))
 
 
 def default_rival_radius_deg(layout: CodeLayout) -> float:

@@ -72,6 +72,9 @@ def test_calibrator_is_monotone_bounded_and_refuses_negative_weights() -> None:
     ({"weights": None}, "weights"),
     ({"refined": {"weights": [1.0, 1.0, 1.0]}}, "refined needs weights and bias"),
     ({"refined": {"weights": [1.0, -1.0, 1.0], "bias": 0.0}}, "refined weight of margin"),
+    ({"weights": [1e308, 1.0, 1.0]}, r"weight of peak must lie in \[0, 1000\]"),  # every confidence 0 or 1
+    ({"bias": -1e300}, r"confidence bias must lie in \[-1000, 1000\]"),
+    ({"refined": {"weights": [1.0, 1.0, 1.0], "bias": 5e3}}, "refined bias must lie in"),
 ])
 def test_a_broken_calibrator_in_the_metadata_is_refused_at_load(tmp_path, entry: dict, message: str) -> None:
     meta = ModelMetadata(Representation.POPULATION_CODE, LAYOUT, {1: CASES["none"]}, confidence=_calibrator())
