@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bop_split import name_id
 from .errors import PopcodeError
 from .files import write_bytes_atomic
 
@@ -68,10 +69,14 @@ def parse_estimate(line: str, where: str) -> PoseEstimate:
         t = np.array(fields[5].split(), dtype=np.float64)
         if R.size != 9 or t.size != 3:
             raise ValueError(f"R has {R.size} numbers (needs 9) and t {t.size} (needs 3)")
-        return PoseEstimate(
-            scene_id=int(fields[0]), im_id=int(fields[1]), obj_id=int(fields[2]), score=float(fields[3]),
-            R_m2c=R.reshape(3, 3), t_m2c_mm=t, time_s=float(fields[6]),
-        )
+        ids = [name_id(field) for field in fields[:3]]
+        if None in ids:
+            raise ValueError(f"scene_id, im_id and obj_id must be whole numbers >= 0, got {fields[:3]}")
+        score, time_s = float(fields[3]), float(fields[6])
+        if not (np.isfinite(R).all() and np.isfinite(t).all() and np.isfinite([score, time_s]).all()):
+            raise ValueError("score, R, t and time must be finite numbers (NaN or inf found)")
+        return PoseEstimate(scene_id=ids[0], im_id=ids[1], obj_id=ids[2], score=score,  # type: ignore[arg-type]
+                            R_m2c=R.reshape(3, 3), t_m2c_mm=t, time_s=time_s)
     except ValueError as error:
         raise PopcodeError(f"{where}: {error}") from error
 

@@ -49,3 +49,18 @@ def test_bad_files_name_the_line(tmp_path):
         read_bop19_results(path)
     with pytest.raises(PopcodeError, match="R must be 3x3"):
         write_bop19_results(path, [PoseEstimate(1, 2, 3, 1.0, np.eye(4), np.zeros(3))])
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ("1,2,3,nan,1 0 0 0 1 0 0 0 1,0 0 700,-1", "must be finite numbers"),  # evaluate scored it as "no estimate"
+    ("1,2,3,1.0,1 0 0 0 1 0 0 0 1,0 inf 700,-1", "must be finite numbers"),
+    ("1,2,3,1.0,1 0 0 0 1 0 0 0 1,0 0 700,nan", "must be finite numbers"),
+    ("1,2,3.5,1.0,1 0 0 0 1 0 0 0 1,0 0 700,-1", "must be whole numbers >= 0"),
+    ("1,-2,3,1.0,1 0 0 0 1 0 0 0 1,0 0 700,-1", "must be whole numbers >= 0"),
+    ("\u0661,2,3,1.0,1 0 0 0 1 0 0 0 1,0 0 700,-1", "must be whole numbers >= 0"),  # an Arabic-Indic one
+])
+def test_values_outside_the_format_name_the_line(tmp_path, line: str, message: str) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(f"{HEADER}\n{line}\n")
+    with pytest.raises(PopcodeError, match=f"bad.csv:2: .*{message}"):
+        read_bop19_results(path)
