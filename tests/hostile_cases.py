@@ -143,6 +143,8 @@ CLI_CASES: list[CliCase] = [
     CliCase("model-wrong-input-name", ("info", "{folder}/wrong_input.onnx"), "exactly one input named 'image'"),
     CliCase("model-wrong-width", ("info", "{folder}/wrong_width.onnx"), "values per crop"),
     CliCase("model-fails-at-run-time", _predict(model="run_fails.onnx"), "cannot run"),
+    CliCase("model-loops", _predict(model="loops.onnx"), "has a 'Loop' op, whose run time nothing bounds"),
+    CliCase("model-fixes-a-huge-batch", _predict(model="batch_huge.onnx"), "fixes the batch at 100000 crops"),
     CliCase("image-missing", _predict(image="missing.png"), "image file not found"),
     CliCase("image-directory", _predict(image=""), "image file not found"),
     CliCase("image-text", _predict(image="text.png"), "cannot read image"),

@@ -84,6 +84,39 @@ def _runtime_failure_model() -> onnx.ModelProto:
     return model
 
 
+def _looping_model() -> onnx.ModelProto:
+    """The linear model plus a ``Loop`` of 10^15 iterations whose count reaches the output (times zero)."""
+    model = linear_model(_bias(), weight_scale=0.1, metadata=_metadata())
+    body = helper.make_graph(
+        [helper.make_node("Identity", ["cond_in"], ["cond_out"]),
+         helper.make_node("Add", ["count_in", "one"], ["count_out"])],
+        "body",
+        [helper.make_tensor_value_info("i", TensorProto.INT64, []),
+         helper.make_tensor_value_info("cond_in", TensorProto.BOOL, []),
+         helper.make_tensor_value_info("count_in", TensorProto.FLOAT, [])],
+        [helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
+         helper.make_tensor_value_info("count_out", TensorProto.FLOAT, [])],
+        initializer=[helper.make_tensor("one", TensorProto.FLOAT, [], [1.0])],
+    )
+    graph = model.graph
+    graph.initializer.extend([helper.make_tensor("trips", TensorProto.INT64, [], [10**15]),
+                              helper.make_tensor("go", TensorProto.BOOL, [], [True]),
+                              helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0])])
+    graph.node[-1].output[0] = "linear"
+    graph.node.extend([helper.make_node("Loop", ["trips", "go", "zero"], ["count"], body=body),
+                       helper.make_node("Mul", ["count", "zero"], ["nothing"]),
+                       helper.make_node("Add", ["linear", "nothing"], [OUTPUT_NAME])])
+    onnx.checker.check_model(model)
+    return model
+
+
+def _fixed_batch_model(batch: int) -> onnx.ModelProto:
+    model = linear_model(_bias(), weight_scale=0.1, metadata=_metadata())
+    model.graph.input[0].type.tensor_type.shape.dim[0].dim_value = batch
+    model.graph.output[0].type.tensor_type.shape.dim[0].dim_value = batch
+    return model
+
+
 def write_hostile_files(folder: Path) -> Path:
     """Every file the catalogue names, in ``folder``; returns ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -104,6 +137,8 @@ def write_hostile_files(folder: Path) -> Path:
     onnx.save(wrong_input, str(folder / "wrong_input.onnx"))
     onnx.save(linear_model(_bias(), metadata=_metadata(), output_dim=LAYOUT.size - 1), str(folder / "wrong_width.onnx"))
     onnx.save(_runtime_failure_model(), str(folder / "run_fails.onnx"))
+    onnx.save(_looping_model(), str(folder / "loops.onnx"))
+    onnx.save(_fixed_batch_model(100_000), str(folder / "batch_huge.onnx"))
     single = ModelMetadata(representation=Representation.SINGLE_VARIABLE, code=LAYOUT, objects={7: OBJECT})
     onnx.save(linear_model(matrix_to_sixd(np.eye(3)).astype(np.float32), metadata=single),
               str(folder / "single_variable.onnx"))

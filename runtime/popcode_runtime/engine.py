@@ -19,6 +19,8 @@ from .checks import integer, path
 from .errors import PopcodeError, library_step
 from .metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
+UNBOUNDED_OPS = ("Loop",)
+MAX_FIXED_BATCH = 1024  # crops a model's fixed batch axis may ask for (a box is padded to a whole batch)
 Engine = Callable[[np.ndarray], np.ndarray]  # crops (N, 1, S, S) float32 in [0, 1] -> outputs (N, D) float32
 
 PROVIDER_NAMES = {
@@ -76,8 +78,19 @@ def onnx_session(model: str | Path | bytes, providers: Sequence[str] | None = No
         options.enable_profiling = True
         options.profile_file_prefix = profile_prefix
     resolved = resolve_providers(providers)
+    _refuse_unbounded_ops(model if isinstance(model, bytes) else model.read_bytes(), name)
     with library_step(f"load {name} as an ONNX model"):
         return ort.InferenceSession(model if isinstance(model, bytes) else str(model), options, providers=resolved)
+
+
+def _refuse_unbounded_ops(data: bytes, name: str) -> None:
+    """Refuse a graph whose run time its inputs do not bound: a ``Loop`` runs as often as a number in the model
+    says (forever, for a crafted one). An op's type is stored as plain text after its field tag (protobuf field 4,
+    length-delimited), so this needs no ONNX parser in the runtime; popcode's networks have no control flow."""
+    for op in UNBOUNDED_OPS:
+        if b"\x22" + bytes([len(op)]) + op.encode() in data:
+            raise PopcodeError(f"{name}: the graph has a '{op}' op, whose run time nothing bounds; popcode models "
+                               "are feed-forward networks")
 
 
 def check_threads(threads: int) -> int:
@@ -118,6 +131,9 @@ class OnnxEngine:
         if len(shape) != 4 or [d for d in shape[1:]] != [1, size, size]:
             raise PopcodeError(f"input '{INPUT_NAME}' must be [N, 1, {size}, {size}], the model declares {shape}")
         if isinstance(shape[0], int) and shape[0] > 0:
+            if shape[0] > MAX_FIXED_BATCH:
+                raise PopcodeError(f"input '{INPUT_NAME}' fixes the batch at {shape[0]} crops; at most "
+                                   f"{MAX_FIXED_BATCH} (every call is padded to it, one box too)")
             self.max_batch = shape[0]  # a fixed batch axis: run in chunks of it
         if inputs[INPUT_NAME].type != "tensor(float)":
             raise PopcodeError(f"input '{INPUT_NAME}' must be float32, the model declares {inputs[INPUT_NAME].type}")
