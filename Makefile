@@ -10,7 +10,7 @@ export PYOPENGL_PLATFORM ?= egl
 $(BIN)/.installed: pyproject.toml runtime/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet "$(TORCH)"
-	$(BIN)/python -m pip install --quiet -e ./runtime -e ".[dev]"
+	$(BIN)/python -m pip install --quiet -e "./runtime[depth]" -e ".[dev]"
 	touch $@
 
 .PHONY: install demo test lint
@@ -19,8 +19,12 @@ install: $(BIN)/.installed
 demo: $(BIN)/.installed
 	$(BIN)/popcode-train demo --out runs/demo
 
+# One pytest-xdist worker per core of the 2-core machine the suite must finish on in 10 minutes (tests/conftest.py
+# gives each one thread); a test module stays in one worker, so a module's fixtures (a demo run, a rendered split)
+# are built once.
+TEST_WORKERS ?= 2
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check runtime trainer tests bench

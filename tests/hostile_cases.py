@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,11 +22,18 @@ from symmetry_cases import CASES
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PoseEstimator, parse_camera_matrix, read_image
 from popcode_runtime.cli import main
 from popcode_runtime.crop import crop_square
+from popcode_runtime.depth import read_depth
 
 LAYOUT = CodeLayout(n_axes=42, n_angles=12)
 OBJECT = {**CASES["two_fold"], "hull_points_mm": [[x, y, z] for x in (-40, 40) for y in (-40, 40) for z in (-30, 30)]}
 IMAGE_SHAPE = (120, 160)  # (H, W) of scene.png
 GOOD_BOX = "20,20,60,50"
+GOOD_K = "200,200,80,60"
+# 16 surface points (the fewest a model may carry) and their outward normals, as an export writes them
+SURFACE = [[x, y, z] for x in (-40, -10, 10, 40) for y in (-40, 40) for z in (-30, 30)]
+NORMALS = (np.asarray(SURFACE) / np.linalg.norm(SURFACE, axis=1, keepdims=True)).tolist()
+DEPTH_OBJECT = {**OBJECT, "surface_points_mm": SURFACE, "surface_normals": NORMALS}  # of depth_model.onnx
+DEPTH_MM = 500  # every pixel of depth.png [mm at depth scale 1]
 
 
 def _code(**changes: object) -> str:
@@ -114,6 +122,18 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
     "deep_json": ("popcode.training", "[" * 100_000 + "]" * 100_000, "'popcode.training' is not valid JSON"),
     "axis_only_mismatch": ("popcode.code", _code(axis_only=True, symmetry_axis=[0, 0, 1]),
                            "axis_only must be true exactly when"),
+    "surface_short": ("popcode.objects", _objects(surface_points_mm=SURFACE[:15], surface_normals=NORMALS[:15]),
+                      "surface_points_mm must be a list of 16 to 512"),
+    "surface_too_many": ("popcode.objects", _objects(surface_points_mm=SURFACE * 33, surface_normals=NORMALS * 33),
+                         "surface_points_mm must be a list of 16 to 512"),
+    "surface_words": ("popcode.objects", _objects(surface_points_mm="abc", surface_normals=NORMALS),
+                      "surface_points_mm must be a list"),
+    "surface_normals_missing": ("popcode.objects", _objects(surface_points_mm=SURFACE),
+                                "surface_normals must be 16 finite vectors"),
+    "surface_normals_without_points": ("popcode.objects", _objects(surface_normals=NORMALS),
+                                       "surface_points_mm must be a list"),
+    "surface_normals_not_unit": ("popcode.objects", _objects(surface_points_mm=SURFACE,
+                                                             surface_normals=[[0, 0, 2]] * 16), "unit vectors"),
 }
 
 
@@ -179,6 +199,32 @@ CLI_CASES: list[CliCase] = [
     CliCase("K-bad-last-row", _predict("--K", "500,0,80,0,500,60,1,1,1"), "last row 0 0 1"),
     CliCase("K-far-principal-point", _predict("--K", "500,500,1e9,60"), "not physical"),
     CliCase("translation-without-K", _predict("--translation"), "pass the camera matrix K"),
+    CliCase("depth-missing", _predict("--K", GOOD_K, "--depth", "{folder}/missing.png"), "depth image file not found"),
+    CliCase("depth-text-file", _predict("--K", GOOD_K, "--depth", "{folder}/text.png"), "cannot read depth image"),
+    CliCase("depth-colour", _predict("--K", GOOD_K, "--depth", "{folder}/depth_colour.png"), "has 3 channels"),
+    CliCase("depth-wrong-size", _predict("--K", GOOD_K, "--depth", "{folder}/depth_small.png"),
+            "depth is 80x60 but the image is 160x120"),
+    CliCase("depth-huge", _predict("--K", GOOD_K, "--depth", "{folder}/huge.png"), "more than the limit"),
+    CliCase("depth-scale-nan", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png", "--depth-scale", "nan"),
+            "depth_scale must be finite"),
+    CliCase("depth-scale-negative", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png", "--depth-scale", "-1"),
+            "depth_scale must lie in"),
+    CliCase("depth-scale-zero", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png", "--depth-scale", "0"),
+            "depth_scale must lie in"),
+    CliCase("depth-scale-absurd", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png", "--depth-scale", "1e6"),
+            "depth_scale must lie in"),
+    CliCase("depth-scale-word", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png", "--depth-scale", "far"),
+            "invalid float value"),
+    CliCase("depth-beyond-100-m", _predict("--K", GOOD_K, "--depth", "{folder}/depth_far.png", "--depth-scale", "10"),
+            "beyond 100 m"),
+    CliCase("depth-without-K", _predict("--depth", "{folder}/depth.png"), "translation from depth: pass the camera"),
+    CliCase("depth-model-without-surface-points", _predict("--K", GOOD_K, "--depth", "{folder}/depth.png"),
+            "carries no surface points for object 7"),
+    CliCase("refine-without-depth", _predict("--K", GOOD_K, "--refine"), "--refine is about the depth image"),
+    CliCase("depth-scale-without-depth", _predict("--K", GOOD_K, "--depth-scale", "0.1"),
+            "--depth-scale is about the depth image"),
+    CliCase("run-refine-without-depth", ("run", "{folder}/model.onnx", "--split", "{folder}", "--gt-boxes",
+                                         "--refine"), "--refine refines the pose against each image's depth"),
     CliCase("threads-2000", _predict("--threads", "2000"), "more than this machine's"),
     CliCase("threads-negative", _predict("--threads", "-1"), "threads must be >= 0"),
     CliCase("threads-float", _predict("--threads", "1.5"), "invalid int value"),
@@ -234,6 +280,28 @@ def _scene() -> np.ndarray:
     return np.random.default_rng(0).integers(0, 256, size=IMAGE_SHAPE, dtype=np.uint8)
 
 
+def _depth() -> np.ndarray:
+    return np.full(IMAGE_SHAPE, DEPTH_MM, np.uint16)
+
+
+GOOD_K_LIST = [float(v) for v in GOOD_K.split(",")]
+
+
+def _without_small_gicp(folder: Path) -> object:
+    """Refinement asked of a model that can use depth, with small_gicp not importable (the runtime alone)."""
+    missing = object()
+    saved = sys.modules.get("small_gicp", missing)
+    sys.modules["small_gicp"] = None  # importing it raises ImportError, as where it is not installed
+    try:
+        return PoseEstimator(folder / "depth_model.onnx", threads=1).predict(
+            _scene(), [[20, 20, 60, 50]], K=GOOD_K_LIST, depth=_depth(), refine_depth=True)
+    finally:
+        if saved is missing:
+            del sys.modules["small_gicp"]
+        else:
+            sys.modules["small_gicp"] = saved
+
+
 def _predict_with(**kwargs: object) -> Callable[[Path], object]:
     def call(folder: Path) -> object:
         arguments = {"image": _scene(), "boxes": [[20, 20, 60, 50]], **kwargs}
@@ -284,6 +352,36 @@ API_CASES: list[tuple[str, Callable[[Path], object], str]] = [
     ("obj-ids-unknown", _predict_with(obj_ids=[99]), "not in this model"),
     ("return-code-text", _predict_with(return_code="yes"), "return_code must be true or false"),
     ("translation-int", _predict_with(translation=1), "translation must be true or false"),
+    ("depth-list", _predict_with(K=GOOD_K_LIST, depth=[[500]]), "depth must be a numpy array"),
+    ("depth-3d", _predict_with(K=GOOD_K_LIST, depth=np.zeros((*IMAGE_SHAPE, 3), np.uint16)), "must be a 2-D array"),
+    ("depth-bool", _predict_with(K=GOOD_K_LIST, depth=np.ones(IMAGE_SHAPE, bool)), "must hold integers or floats"),
+    ("depth-complex", _predict_with(K=GOOD_K_LIST, depth=np.ones(IMAGE_SHAPE, np.complex64)),
+     "must hold integers or floats"),
+    ("depth-wrong-size", _predict_with(K=GOOD_K_LIST, depth=np.ones((60, 80), np.uint16)),
+     "depth is 80x60 but the image is 160x120"),
+    ("depth-transposed", _predict_with(K=GOOD_K_LIST, depth=np.ones(IMAGE_SHAPE[::-1], np.uint16)),
+     "depth is 120x160 but the image is 160x120"),
+    ("depth-nan", _predict_with(K=GOOD_K_LIST, depth=np.full(IMAGE_SHAPE, np.nan, np.float32)), "NaN or inf"),
+    ("depth-inf", _predict_with(K=GOOD_K_LIST, depth=np.full(IMAGE_SHAPE, np.inf)), "NaN or inf"),
+    ("depth-negative", _predict_with(K=GOOD_K_LIST, depth=np.full(IMAGE_SHAPE, -1.0, np.float32)),
+     "negative values"),
+    ("depth-scale-zero", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale=0.0), "depth_scale must lie in"),
+    ("depth-scale-negative", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale=-0.1), "depth_scale must lie in"),
+    ("depth-scale-nan", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale=float("nan")),
+     "depth_scale must be finite"),
+    ("depth-scale-text", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale="0.1"), "must be a number"),
+    ("depth-scale-none", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale=None), "must be a number"),
+    ("depth-scale-huge", _predict_with(K=GOOD_K_LIST, depth=_depth(), depth_scale=1e9), "depth_scale must lie in"),
+    ("depth-beyond-100-m", _predict_with(K=GOOD_K_LIST, depth=np.full(IMAGE_SHAPE, 65535, np.uint16),
+                                         depth_scale=10.0), "beyond 100 m"),
+    ("depth-without-K", _predict_with(depth=_depth()), "translation from depth: pass the camera matrix K"),
+    ("depth-model-without-surface-points", _predict_with(K=GOOD_K_LIST, depth=_depth()),
+     "carries no surface points for object 7"),
+    ("refine-without-depth", _predict_with(K=GOOD_K_LIST, refine_depth=True), "refine_depth refines the pose"),
+    ("refine-int", _predict_with(K=GOOD_K_LIST, depth=_depth(), refine_depth=1), "refine_depth must be true or false"),
+    ("refine-without-small-gicp", _without_small_gicp, "pip install ./runtime[depth]"),
+    ("read-depth-colour", lambda folder: read_depth(folder / "depth_colour.png"), "has 3 channels"),
+    ("read-depth-missing", lambda folder: read_depth(folder / "missing.png"), "depth image file not found"),
     ("threads-float", lambda folder: PoseEstimator(folder / "model.onnx", threads=1.5), "threads must be an integer"),
     ("threads-text", lambda folder: PoseEstimator(folder / "model.onnx", threads="2"), "threads must be an integer"),
     ("threads-2000", lambda folder: PoseEstimator(folder / "model.onnx", threads=2000), "more than this machine's"),

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import onnx
-from hostile_cases import IMAGE_SHAPE, LAYOUT, METADATA_CASES, OBJECT
+from hostile_cases import DEPTH_MM, DEPTH_OBJECT, IMAGE_SHAPE, LAYOUT, METADATA_CASES, OBJECT
 from onnx import TensorProto, helper
 from onnx_models import ONNX_IR_VERSION, ONNX_OPSET, linear_model
 
@@ -151,4 +151,11 @@ def write_hostile_files(folder: Path) -> Path:
     (folder / "huge.png").write_bytes(_png_header(100_000, 100_000) + b"\x00" * 64)
     (folder / "huge.jpg").write_bytes(_jpeg_header(60_000, 60_000) + b"\x00" * 64)
     (folder / "over_opencv_limit.png").write_bytes(_png_claiming(40_000, 30_000))  # 1.2e9 > 2^30 pixels
+
+    depth_meta = ModelMetadata(representation=Representation.POPULATION_CODE, code=LAYOUT, objects={7: DEPTH_OBJECT})
+    onnx.save(linear_model(_bias(), weight_scale=0.1, metadata=depth_meta), str(folder / "depth_model.onnx"))
+    cv2.imwrite(str(folder / "depth.png"), np.full(IMAGE_SHAPE, DEPTH_MM, np.uint16))
+    cv2.imwrite(str(folder / "depth_small.png"), np.full((60, 80), DEPTH_MM, np.uint16))
+    cv2.imwrite(str(folder / "depth_colour.png"), np.full((*IMAGE_SHAPE, 3), 100, np.uint8))
+    cv2.imwrite(str(folder / "depth_far.png"), np.full(IMAGE_SHAPE, 65535, np.uint16))
     return folder

@@ -10,11 +10,21 @@ measured seconds of popcode's work on it (read, crop, network, decode,
 translation) plus the detector's own time when the detections give one; the
 ``score`` is the detection score times the calibrated confidence where the
 model has a calibrator.
+
+With depth (``popcode run --depth``) each image's depth image gives the
+translation (:mod:`.depth`), refined with ``--refine``. The BOP19 format has no
+place to say where a translation came from, so ``<out stem>.translation.csv``
+does, one line per estimate in the same order: ``scene_id,im_id,obj_id,source,
+depth_fit,note`` (source ``box``, ``depth`` or ``refined``; the note says why an
+instance kept the box's translation). In the partial file these lines follow
+the image's estimates, marked, under the image's checksum.
 """
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import os
 import sys
 import time
@@ -28,12 +38,14 @@ import numpy as np
 
 from .bop19_csv import PoseEstimate, format_estimate, parse_estimate, write_bop19_lines
 from .bop_split import SplitImage, name_id
+from .depth_refine import require_small_gicp
 from .detections import Detection
 from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
 from .files import write_bytes_atomic, write_picture_atomic
 from .image_loop import ImageBoxes, estimate_images, route_objects
+from .rotations import is_rotation
 
 try:
     import fcntl
@@ -43,9 +55,12 @@ except ImportError:  # Windows
 PARTIAL_SUFFIX = ".partial"
 LOCK_SUFFIX = ".lock"
 CHECKSUM_CHARS = 16  # hex digits of SHA-256 closing each image in a partial file
+MAX_PARTIAL_LINE_BYTES = 1024  # a partial file's line is about 400; bounds what a resume reads
 MAX_WEIGHT_FILES = 1000  # files beside a model looked at for its external weights
 RUN_MARK = "#popcode-run "  # first line of a partial file: what the run was made from
 DONE_MARK = "#done "  # closes one image's estimates
+SOURCE_MARK = "#translation "  # a line of the translation file, kept in the partial file with its image's estimates
+SOURCE_HEADER = "scene_id,im_id,obj_id,source,depth_fit,note"
 
 ImageKey = tuple[int, int]  # (scene_id, im_id)
 
@@ -59,10 +74,14 @@ class RunSummary:
     estimates: int  # lines written in this call
     skipped: dict[int, int]  # object id -> detections no model knows
     seconds: float
+    sources: dict[str, int]  # translation source -> estimates of this call that took their translation from it
 
 
 def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes (a resumed run must use the same models and detections)."""
+    """SHA-256 of a file's bytes (a resumed run must use the same models and detections); a FIFO or a device, whose
+    read would never end, is refused."""
+    if not path.is_file():
+        raise PopcodeError(f"{path} is not a regular file (a FIFO or a device, say); replace it with a file")
     digest = hashlib.sha256()
     with path.open("rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -85,13 +104,15 @@ def model_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def split_digest(images: Mapping[ImageKey, SplitImage]) -> str:
-    """SHA-256 of what a split gives a run: each image's file name and size, and every scene's annotation files
-    (cameras, boxes) by content. Cheap (one stat per image), and another split or a changed image is told apart."""
+def split_digest(images: Mapping[ImageKey, SplitImage], depth: bool = False) -> str:
+    """SHA-256 of what a split gives a run: each image's file name and size (``depth``: its depth image's too), and
+    every scene's annotation files (cameras, boxes) by content. Cheap (one stat per image), and another split or a
+    changed image is told apart."""
     digest = hashlib.sha256()
     for key in sorted(images):
-        path = images[key].path
-        digest.update(f"{key} {path.name} {path.stat().st_size}\n".encode())
+        paths = [images[key].path] + ([images[key].depth_path] if depth and images[key].depth_path else [])
+        for path in paths:
+            digest.update(f"{key} {path.name} {path.stat().st_size}\n".encode())
     for scene in sorted({images[key].path.parent.parent for key in images}):
         for annotation in sorted(scene.glob("*.json")):
             digest.update(f"{scene.name}/{annotation.name} {file_digest(annotation)}\n".encode())
@@ -143,8 +164,16 @@ class PartialResults:
         return PopcodeError(f"{self.path} {why}; remove it to start again, or rerun the command that made it")
 
     def _resume(self, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
+        if not self.path.is_file():  # a FIFO would block the read forever, /dev/zero never end it
+            raise self._refuse("is not a regular file")
+        # at most an estimate and a translation line per detection and a closing mark per image, and the header
+        limit = MAX_PARTIAL_LINE_BYTES * (2 * sum(len(ids) for ids in expected.values()) + len(expected) + 1)
+        with self.path.open("rb") as handle:
+            data = handle.read(limit + 1)
+        if len(data) > limit:
+            raise self._refuse(f"is larger than this run's results can be ({limit} bytes)")
         try:
-            text = self.path.read_bytes().decode("utf-8").split("\n")
+            text = data.decode("utf-8").split("\n")
         except UnicodeDecodeError as error:
             raise self._refuse(f"is not text ({error.reason} at byte {error.start})") from error
         if text[0] != RUN_MARK + fingerprint:
@@ -168,9 +197,10 @@ class PartialResults:
             self.lines += [*lines, f"{DONE_MARK}{key[0]} {key[1]} {checksum}"]
             self.done.add(key)
 
-    def add(self, key: ImageKey, estimates: Sequence[PoseEstimate]) -> None:
-        """Append one image's estimates and its closing mark, flushed to disk."""
-        lines = [format_estimate(est) for est in estimates]
+    def add(self, key: ImageKey, estimates: Sequence[PoseEstimate], sources: Sequence[str] = ()) -> None:
+        """Append one image's estimates, its lines of the translation file (``sources``) and its closing mark,
+        flushed to disk."""
+        lines = [format_estimate(est) for est in estimates] + [SOURCE_MARK + line for line in sources]
         lines.append(f"{DONE_MARK}{key[0]} {key[1]} {_checksum(lines)}")
         self._handle.write("\n".join(lines) + "\n")
         self._handle.flush()
@@ -182,6 +212,9 @@ class PartialResults:
         """Write the results file (header and every estimate) atomically and remove the partial file."""
         self._handle.close()
         write_bop19_lines(self.out, [line for line in self.lines if not line.startswith("#")])
+        sources = [line[len(SOURCE_MARK):] for line in self.lines if line.startswith(SOURCE_MARK)]
+        if sources:
+            write_bytes_atomic(sources_path(self.out), "\n".join([SOURCE_HEADER, *sources]).encode() + b"\n")
         self.path.unlink()
 
     def close(self) -> None:
@@ -202,12 +235,17 @@ def _block_problem(lines: Sequence[str], mark: tuple[ImageKey, str] | None,
     if _checksum(lines) != checksum:
         return f"the lines of scene {key[0]} image {key[1]} do not match their checksum"
     try:
-        estimates = [parse_estimate(line, f"scene {key[0]} image {key[1]}") for line in lines]
+        estimates = [parse_estimate(line, f"scene {key[0]} image {key[1]}") for line in lines
+                     if not line.startswith(SOURCE_MARK)]
     except PopcodeError as error:
         return str(error)
     if [(e.scene_id, e.im_id) for e in estimates] != [key] * len(estimates) or \
             [e.obj_id for e in estimates] != list(expected[key]):
         return f"the lines of scene {key[0]} image {key[1]} are not its detections' estimates"
+    for e in estimates:  # what popcode writes: a score that is a confidence, a measured time, a rotation
+        if not 0.0 <= e.score <= 1.0 or e.time_s < 0.0 or not is_rotation(e.R_m2c):
+            return (f"the line of scene {key[0]} image {key[1]} object {e.obj_id} holds values popcode never writes "
+                    f"(score {e.score!r}, time {e.time_s!r}, R {'a' if is_rotation(e.R_m2c) else 'no'} rotation)")
     return None
 
 
@@ -219,6 +257,8 @@ class _OutputLock:
         self.path, self._handle = path, None
         if fcntl is None:  # no flock (Windows): runs are not guarded against each other
             return
+        if path.exists() and not path.is_file():  # opening a FIFO would wait for a reader forever
+            raise PopcodeError(f"{path} is not a regular file; remove it (popcode run keeps its lock there)")
         handle = path.open("a")
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -273,6 +313,38 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
                            "translation from the box needs the camera")
 
 
+def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
+                 by_image: dict[ImageKey, list[Detection]], estimators: Sequence[PoseEstimator],
+                 owner: Mapping[int, int], refine: bool) -> None:
+    """Before any work: every image has a depth image, every model the surface points of its detected objects, and
+    refinement its library."""
+    lacking = [key for key in keys if images[key].depth_path is None]
+    if lacking:
+        scene_id, im_id = lacking[0]
+        more = f" (and {len(lacking) - 1} more images)" if len(lacking) > 1 else ""
+        raise PopcodeError(f"scene {scene_id} image {im_id} has no depth image in its depth/ folder{more}: --depth "
+                           "reads each image's depth")
+    for obj_id in sorted({d.obj_id for key in keys for d in by_image[key]}):
+        estimators[owner[obj_id]].object_surface(obj_id)
+    if refine:
+        require_small_gicp()
+
+
+def sources_path(out: Path) -> Path:
+    """Where a run with depth says each estimate's translation source: ``<out stem>.translation.csv``."""
+    return out.with_name(out.stem + ".translation.csv")
+
+
+def _source_lines(key: ImageKey, detections: Sequence[Detection], predictions: Sequence[Prediction]) -> list[str]:
+    """One image's lines of the translation file (see the module docstring)."""
+    rows = io.StringIO()
+    writer = csv.writer(rows, lineterminator="\n")
+    for d, p in zip(detections, predictions, strict=True):
+        writer.writerow([key[0], key[1], d.obj_id, p.t_source, "" if p.depth_fit is None else f"{p.depth_fit:.4f}",
+                         p.depth_note or ""])
+    return rows.getvalue().splitlines()
+
+
 def _estimates(key: ImageKey, detections: Sequence[Detection], predictions: Sequence[Prediction], detector_s: float,
                popcode_s: float) -> list[PoseEstimate]:
     """One image's results lines: score = detection score x calibrated confidence (where there is one)."""
@@ -292,10 +364,12 @@ def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
 
 def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], images: dict[ImageKey, SplitImage],
                    detections: Sequence[Detection], out: Path, fingerprint: str, max_images: int | None = None,
-                   progress: bool = True, draw_dir: Path | None = None) -> RunSummary:
+                   progress: bool = True, draw_dir: Path | None = None, depth: bool = False,
+                   refine: bool = False) -> RunSummary:
     """Estimate every detection whose object a model knows; write ``out`` (BOP19 CSV). See the module docstring.
 
-    ``draw_dir``: also a picture of each image's estimates there (``<scene_id>_<im_id>.png``).
+    ``draw_dir``: also a picture of each image's estimates there (``<scene_id>_<im_id>.png``). ``depth``: the
+    translation from each image's depth image, and ``refine`` (with depth): the pose refined against it.
     """
     started = time.perf_counter()
     owner = route_objects(estimators, names)
@@ -306,17 +380,21 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
         by_image[detection.image_key].append(detection)
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
+    if depth:
+        _check_depth(keys, images, by_image, estimators, owner, refine)
     results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys})
     try:
         todo = [key for key in keys if key not in results.done]
-        bar, written = Progress(len(todo), progress), 0
+        bar, written, sources = Progress(len(todo), progress), 0, Counter()
         work = (ImageBoxes(key, images[key].path, images[key].K, [d.box for d in by_image[key]],
-                           [d.obj_id for d in by_image[key]]) for key in todo)
-        for done in estimate_images(estimators, names, work, translation=True):
+                           [d.obj_id for d in by_image[key]], images[key].depth_path if depth else None,
+                           images[key].depth_scale) for key in todo)
+        for done in estimate_images(estimators, names, work, translation=True, refine_depth=depth and refine):
             key, chosen = done.key, by_image[done.key]
             detector_s = max(d.time_s for d in chosen)
             estimates = _estimates(key, chosen, done.predictions, detector_s, done.seconds)
-            results.add(key, estimates)
+            results.add(key, estimates, _source_lines(key, chosen, done.predictions) if depth else ())
+            sources.update(str(p.t_source) for p in done.predictions)
             written += len(estimates)
             if draw_dir is not None:
                 draw_image(draw_dir / f"{key[0]:06d}_{key[1]:06d}.png", done.image, images[key], done.by_model)
@@ -325,4 +403,4 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
     finally:
         results.close()
     return RunSummary(len(todo), len(keys) - len(todo), written, dict(sorted(skipped.items())),
-                      time.perf_counter() - started)
+                      time.perf_counter() - started, dict(sorted(sources.items())))

@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from .camera import parse_camera_matrix
+from .checks import number
+from .depth import MAX_DEPTH_SCALE, MIN_DEPTH_SCALE
 from .errors import PopcodeError
 from .files import read_json, require_folder
 
@@ -125,28 +127,47 @@ def read_cam_K(camera: Any, path: Path, im_id: int) -> np.ndarray:
         raise PopcodeError(f"{path}: 'cam_K' in image {im_id}: {error}") from error
 
 
+def read_depth_scale(camera: Any, path: Path, im_id: int) -> float:
+    """``depth_scale`` (mm per depth unit, default 1) of one ``scene_camera.json`` entry, checked as the runtime
+    checks one."""
+    value = camera.get("depth_scale", 1.0) if isinstance(camera, Mapping) else 1.0
+    try:
+        return number(value, "depth_scale", MIN_DEPTH_SCALE, MAX_DEPTH_SCALE)
+    except PopcodeError as error:
+        raise PopcodeError(f"{path}: image {im_id}: {error}") from error
+
+
 @dataclass(frozen=True)
 class SplitImage:
-    """One image of a split and its camera (None where the split has no ``scene_camera.json``)."""
+    """One image of a split, its camera (None where the split has no ``scene_camera.json``) and its depth image
+    (None where the split has none)."""
 
     scene_id: int
     im_id: int
     path: Path
     K: np.ndarray | None
+    depth_path: Path | None = None
+    depth_scale: float = 1.0  # mm per depth unit
 
 
 def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
-    """Every image of the split by ``(scene_id, im_id)``, with its camera matrix where the split has one."""
+    """Every image of the split by ``(scene_id, im_id)``, with its camera matrix and depth image where the split
+    has them."""
     images: dict[tuple[int, int], SplitImage] = {}
     for scene_dir in scene_folders(Path(split_dir)):
         scene_id = int(scene_dir.name)
         camera_path = scene_dir / "scene_camera.json"
         cameras = int_keys(read_json(camera_path), camera_path) if camera_path.is_file() else {}
         files = folder_index(image_folder(scene_dir))
+        depths = folder_index(scene_dir / "depth")
+        depth_ids = unique_ids(depths, f"depth images of {scene_dir}")
         for im_id, stem in sorted(unique_ids(files, f"images of {scene_dir}").items()):
             path = files[stem]
             K = read_cam_K(cameras[im_id], camera_path, im_id) if im_id in cameras else None
-            images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K)
+            depth_path = depths[depth_ids[im_id]] if im_id in depth_ids else None
+            depth_scale = read_depth_scale(cameras[im_id], camera_path, im_id) if depth_path and im_id in cameras \
+                else 1.0
+            images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K, depth_path, depth_scale)
     return images
 
 

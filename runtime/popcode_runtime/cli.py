@@ -9,6 +9,7 @@ import re
 import sys
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from . import __version__, run_command
@@ -16,9 +17,10 @@ from .benchmark import MAX_BENCH_BATCH, benchmark_estimator, machine_description
 from .camera import parse_camera_matrix
 from .crop import MAX_IMAGE_PIXELS, read_image
 from .decoding import DECODERS
+from .depth import object_surface, read_depth
 from .drawing import draw_predictions
 from .errors import PopcodeError
-from .estimator import MAX_BOXES_PER_CALL, PoseEstimator
+from .estimator import MAX_BOXES_PER_CALL, PoseEstimator, Prediction
 from .files import check_picture_path, write_picture_atomic
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
@@ -56,9 +58,12 @@ def _predict(args: argparse.Namespace) -> int:
         check_picture_path(args.draw, "--draw")  # before the model runs: a typo costs a line, not the run
     estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
     image = read_image(args.image, args.max_pixels)
+    depth = read_depth(args.depth, args.max_pixels) if args.depth else None
     K = parse_camera_matrix(args.K) if args.K else None
     predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
-                                    top_k=args.top_k, translation=args.translation)
+                                    top_k=args.top_k, translation=args.translation, depth=depth,
+                                    depth_scale=1.0 if args.depth_scale is None else args.depth_scale,
+                                    refine_depth=args.refine)
     if args.draw:
         write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, K))
     if args.json:
@@ -73,13 +78,20 @@ def _predict(args: argparse.Namespace) -> int:
         for row in prediction.R_m2c:
             print("    " + "  ".join(f"{v:+.4f}" for v in row))
         if prediction.t_m2c_mm is not None:
-            print("    t_m2c_mm " + "  ".join(f"{v:+.1f}" for v in prediction.t_m2c_mm))
+            print("    t_m2c_mm " + "  ".join(f"{v:+.1f}" for v in prediction.t_m2c_mm) + _source_text(prediction))
         for rank, hypothesis in enumerate(prediction.hypotheses or []):
             axis, angle = matrix_to_axis_angle(hypothesis.R_m2c)
             print(f"    hypothesis {rank}: score {hypothesis.score:.2f}, activation {hypothesis.activation:.3f}, "
                   f"angle {np.degrees(angle):.1f} deg about ({', '.join(f'{v:+.3f}' for v in axis)}), "
                   f"{len(hypothesis.equivalent)} equivalent peak(s)")
     return 0
+
+
+def _source_text(prediction: Prediction) -> str:
+    """Where a translation came from, its depth fit and any note, as printed after it."""
+    details = [] if prediction.depth_fit is None else [f"depth fit {prediction.depth_fit:.2f}"]
+    details += [] if prediction.depth_note is None else [prediction.depth_note]
+    return f"  ({prediction.t_source}{': ' if details else ''}{'; '.join(details)})"
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -101,7 +113,9 @@ def _info(args: argparse.Namespace) -> int:
     for obj_id, info in sorted(meta.objects.items()):
         diameter = info.get("diameter")
         size = f", diameter {diameter:.1f} mm" if isinstance(diameter, (int, float)) else ""
-        print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}")
+        surface = object_surface(info)
+        depth = f", {len(surface.points_mm)} surface points for depth" if surface else ", no surface points for depth"
+        print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}{depth}")
     for key, value in sorted(meta.training.items()):
         print(f"training.{key:<8} {_short(value)}")
     return 0
@@ -155,6 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
                          help="also list up to K distinct poses of the code (symmetric peaks merged)")
     predict.add_argument("--translation", action="store_true",
                          help="estimate the translation from the box too (needs --K)")
+    predict.add_argument("--depth", metavar="PNG",
+                         help="depth image registered to IMAGE (16-bit PNG; 0: no reading): the translation from the "
+                              "object's observed surface instead of the box (needs --K)")
+    predict.add_argument("--depth-scale", type=float, metavar="S",
+                         help="mm per depth unit, as BOP's depth_scale (default 1)")
+    predict.add_argument("--refine", action="store_true",
+                         help="with --depth: also refine rotation and translation against the observed points "
+                              "(ICP; needs pip install ./runtime[depth]); with --top-k, from each hypothesis")
     predict.add_argument("--obj-id", type=int, action="append", metavar="ID",
                          help="object id of each box, in order (for models of several objects)")
     predict.add_argument("--draw", metavar="PICTURE",
@@ -196,6 +218,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
     if args.command == "predict" and args.code and not args.json:
         parser.error("--code prints the raw network output in the JSON; add --json")
+    if args.command == "predict" and not args.depth and (args.refine or args.depth_scale is not None):
+        parser.error(f"{'--refine' if args.refine else '--depth-scale'} is about the depth image: add --depth PNG")
     if args.command == "predict" and args.max_pixels < 1:
         parser.error(f"--max-pixels must be positive, got {args.max_pixels}")
     if getattr(args, "batch", None) is None and args.command == "bench":
@@ -228,7 +252,11 @@ def run_handler(args: argparse.Namespace, prog: str) -> int:
 
     A reader that stops early (``| head``) is not an error: the rest of the
     output is dropped quietly and the exit code is the shell's for SIGPIPE.
+    OpenCV is kept from logging to stderr itself (a torn PNG's "readHeader"
+    complaint): the line that follows says what went wrong.
     """
+    opencv_log_level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         return int(args.handler(args) or 0)
     except PopcodeError as error:
@@ -244,6 +272,8 @@ def run_handler(args: argparse.Namespace, prog: str) -> int:
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        cv2.utils.logging.setLogLevel(opencv_log_level)
 
 
 def _silence_stdout() -> None:

@@ -36,30 +36,36 @@ _GREY_WEIGHTS_RGB = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
 def read_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
-    """Read an image file as grey float32 ``(H, W)`` in [0, 1] (8- or 16-bit, grey or colour).
+    """Read an image file as grey float32 ``(H, W)`` in [0, 1] (8- or 16-bit, grey or colour)."""
+    return to_grey(read_image_file(path, max_pixels))
+
+
+def read_image_file(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS, what: str = "image") -> np.ndarray:
+    """An image file's pixels as stored (any bit depth; colour as RGB ``(H, W, 3)``): the one reader of images and
+    depth images.
 
     Files of more than ``max_pixels`` pixels are refused from their header,
-    before OpenCV decodes (and allocates) them.
+    before OpenCV decodes (and allocates) them. ``what`` names the file in errors.
     """
-    path = checked_path(path, "image path")
+    path = checked_path(path, f"{what} path")
     max_pixels = integer(max_pixels, "max_pixels", 1)
     if not path.is_file():
-        raise PopcodeError(f"image file not found: {path}")
-    with library_step(f"read the header of image {path}"):
+        raise PopcodeError(f"{what} file not found: {path}")
+    with library_step(f"read the header of {what} {path}"):
         size = image_size(path)
     if size is not None and size[0] * size[1] > max_pixels:
-        raise PopcodeError(f"image {path} is {size[0]}x{size[1]} = {size[0] * size[1]} pixels, more than the "
+        raise PopcodeError(f"{what} {path} is {size[0]}x{size[1]} = {size[0] * size[1]} pixels, more than the "
                            f"limit of {max_pixels}")
-    with library_step(f"decode image {path} with OpenCV"):
+    with library_step(f"decode {what} {path} with OpenCV"):
         image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if image is None:
-        raise PopcodeError(f"cannot read image {path}: not an image format OpenCV can decode")
+        raise PopcodeError(f"cannot read {what} {path}: not an image format OpenCV can decode")
     if image.shape[0] * image.shape[1] > max_pixels:
-        raise PopcodeError(f"image {path} has {image.shape[0] * image.shape[1]} pixels, more than the limit of "
+        raise PopcodeError(f"{what} {path} has {image.shape[0] * image.shape[1]} pixels, more than the limit of "
                            f"{max_pixels}")
     if image.ndim == 3:
         image = image[..., :3][..., ::-1]  # OpenCV reads BGR(A); popcode works in RGB
-    return to_grey(image)
+    return image
 
 
 def check_image(image: np.ndarray) -> np.ndarray:

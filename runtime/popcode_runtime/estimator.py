@@ -14,6 +14,9 @@ from .checks import flag, integer
 from .confidence import code_features
 from .crop import box_centre, check_image, crop_batch
 from .decoding import check_decoder, decode_output
+from .depth import ObjectSurface, TranslationSource, check_depth, object_surface
+from .depth_pose import pose_with_depth
+from .depth_refine import require_small_gicp
 from .engine import Engine, OnnxEngine
 from .errors import PopcodeError
 from .hypotheses import Hypothesis, find_hypotheses
@@ -31,7 +34,12 @@ MEMORY_BUDGET_BYTES = 1 << 30  # crops + outputs held at once by one call
 
 @dataclass(frozen=True)
 class Prediction:
-    """The rotation of one object instance (model-to-camera, OpenCV camera frame)."""
+    """The rotation of one object instance (model-to-camera, OpenCV camera frame), and its translation when asked.
+
+    With ``refine_depth`` the rotation is the one refined against the depth
+    (``t_source`` ``refined``); ``score``, ``confidence`` and ``hypotheses``
+    stay those of the code.
+    """
 
     R_m2c: np.ndarray  # (3, 3)
     axis: np.ndarray  # (3,) unit rotation axis of R_m2c
@@ -40,9 +48,12 @@ class Prediction:
     box: tuple[float, float, float, float]
     obj_id: int | None  # None when a model of several objects was not told which
     code: np.ndarray | None = None  # raw network output, when asked for
-    t_m2c_mm: np.ndarray | None = None  # (3,) translation from the box, when asked for
+    t_m2c_mm: np.ndarray | None = None  # (3,) translation, when asked for (from the box, or from depth when given)
     hypotheses: list[Hypothesis] | None = None  # every distinct pose, strongest first, when top_k > 1
     confidence: float | None = None  # P(rotation error < the model's threshold); None without a calibrator
+    t_source: TranslationSource | None = None  # where t_m2c_mm came from; None without a translation
+    depth_fit: float | None = None  # share of the visible surface the depth confirms less the share it sees through
+    depth_note: str | None = None  # why the depth was not (fully) used for this instance; None when it was
 
     def to_dict(self) -> dict:
         data = {
@@ -56,6 +67,11 @@ class Prediction:
         }
         if self.t_m2c_mm is not None:
             data["t_m2c_mm"] = self.t_m2c_mm.tolist()
+            data["t_source"] = None if self.t_source is None else str(self.t_source)
+        if self.depth_fit is not None:
+            data["depth_fit"] = self.depth_fit
+        if self.depth_note is not None:
+            data["depth_note"] = self.depth_note
         if self.hypotheses is not None:
             data["hypotheses"] = [
                 {"R_m2c": h.R_m2c.tolist(), "activation": h.activation, "score": h.score,
@@ -73,7 +89,8 @@ class Timings:
 
     crop_s: float
     inference_s: float
-    decode_s: float
+    decode_s: float  # decoding, frame conversion and the translation from the box
+    depth_s: float = 0.0  # the translation from depth and the refinement
 
 
 class PoseEstimator:
@@ -107,9 +124,10 @@ class PoseEstimator:
     def _attach(self, engine: Engine, metadata: ModelMetadata, decoder: str) -> None:
         check_decoder(decoder, metadata)
         self.engine, self.metadata, self.decoder = engine, metadata, decoder
-        self.last_timings = Timings(0.0, 0.0, 0.0)
+        self.last_timings = Timings(0.0, 0.0, 0.0, 0.0)
         # parsed once: the confidence and the hypotheses of every box need the object's symmetry rotations
         self._symmetries = {obj_id: symmetry_rotations(info) for obj_id, info in metadata.objects.items()}
+        self._surfaces = {obj_id: object_surface(info) for obj_id, info in metadata.objects.items()}
 
     @property
     def providers(self) -> list[str]:
@@ -191,6 +209,9 @@ class PoseEstimator:
         obj_ids: Sequence[int] | None = None,
         top_k: int = 1,
         translation: bool = False,
+        depth: np.ndarray | None = None,
+        depth_scale: float = 1.0,
+        refine_depth: bool = False,
     ) -> list[Prediction]:
         """Rotations of the objects in ``boxes`` (``(x, y, w, h)`` pixels) of ``image``.
 
@@ -201,16 +222,29 @@ class PoseEstimator:
         ``translation`` or ``top_k`` uses the object's extents or symmetries).
         ``top_k > 1`` lists every distinct pose of a population code. Up to
         ``MAX_BOXES_PER_CALL`` boxes, run in chunks of :attr:`chunk_size`.
-        Every argument is checked first; bad ones raise :class:`PopcodeError`.
+
+        ``depth`` ``(H, W)``, registered to the image (mm = value x
+        ``depth_scale``, 0: no reading), gives each box its translation from the
+        object's observed surface (:mod:`.depth`; implies ``translation``); an
+        instance whose depth is unusable keeps the box's, and its
+        ``depth_note`` says why. ``refine_depth`` also refines rotation and
+        translation against the observed points (needs ``pip install
+        ./runtime[depth]``), from each of the ``top_k`` hypotheses, keeping the
+        best fit. Every argument is checked first; bad ones raise :class:`PopcodeError`.
         """
         meta = self.metadata
         return_code, translation = flag(return_code, "return_code"), flag(translation, "translation")
+        refine_depth = flag(refine_depth, "refine_depth")
         top_k = integer(top_k, "top_k", 1, MAX_TOP_K)
+        if refine_depth and depth is None:
+            raise PopcodeError("refine_depth refines the pose against a depth image: pass depth")
+        translation = translation or depth is not None
         camera = None
         if K is not None:
             camera = parse_camera_matrix(K)
         elif meta.rotation_frame == RotationFrame.ALLOCENTRIC or translation:
-            needs = "translation from the box" if translation else "this model predicts allocentric rotations"
+            needs = ("translation from depth" if depth is not None else "translation from the box") if translation \
+                else "this model predicts allocentric rotations"
             raise PopcodeError(f"{needs}: pass the camera matrix K")
         if top_k > 1 and meta.representation != Representation.POPULATION_CODE:
             raise PopcodeError(f"hypotheses (top_k > 1) need a population-code model, this one is "
@@ -223,19 +257,35 @@ class PoseEstimator:
                                f"{MEMORY_BUDGET_BYTES >> 20} MiB; ask for fewer boxes at a time")
         ids = self._object_ids(len(boxes), obj_ids)
         image = check_image(image)
-        timings = np.zeros(3)
+        depth_mm = None
+        if depth is not None:
+            depth_mm = check_depth(depth, image.shape, depth_scale)
+            for obj_id in sorted(set(ids)):
+                self.object_surface(obj_id)
+            if refine_depth:
+                require_small_gicp()
+        request = _Request(camera, return_code, top_k, translation, depth_mm, refine_depth)
+        timings = np.zeros(4)
         predictions: list[Prediction] = []
         for start in range(0, len(boxes), self.chunk_size):
             chunk = range(start, min(start + self.chunk_size, len(boxes)))
-            predictions += self._predict_chunk(image, [boxes[i] for i in chunk], [ids[i] for i in chunk], camera,
-                                               return_code, top_k, translation, timings)
+            predictions += self._predict_chunk(image, [boxes[i] for i in chunk], [ids[i] for i in chunk], request,
+                                               timings)
         self.last_timings = Timings(*(float(t) for t in timings))
         return predictions
 
-    def _predict_chunk(self, image: np.ndarray, boxes: list, ids: list[int | None], camera: np.ndarray | None,
-                       return_code: bool, top_k: int, translation: bool, timings: np.ndarray) -> list[Prediction]:
+    def object_surface(self, obj_id: int | None) -> ObjectSurface:
+        """The surface points that depth needs of an object; a model exported without them is told in one line."""
+        surface = self._surfaces.get(obj_id) if obj_id is not None else None
+        if surface is None:
+            raise PopcodeError(f"this model carries no surface points for object {obj_id}, which depth needs: "
+                               "export it again with this version's popcode-train")
+        return surface
+
+    def _predict_chunk(self, image: np.ndarray, boxes: list, ids: list[int | None], request: _Request,
+                       timings: np.ndarray) -> list[Prediction]:
         """Crop, run, decode and convert one chunk of boxes; adds its stage times to ``timings``."""
-        meta = self.metadata
+        meta, camera = self.metadata, request.camera
         started = time.perf_counter()
         crops = crop_batch(image, boxes, meta.input_size, meta.crop_padding)
         cropped = time.perf_counter()
@@ -247,22 +297,41 @@ class PoseEstimator:
         R = to_camera(decoded.R, slice(None))
         axes, angles = matrix_to_axis_angle(R)
         predictions = []
+        depth_s = 0.0
         for i, box in enumerate(boxes):
             info = meta.objects.get(ids[i], {})
             hypotheses = None
-            if top_k > 1:
+            if request.top_k > 1:
                 found = find_hypotheses(PopulationCode(meta.code), output[i], self._symmetry_rotations(ids[i]),
-                                        top_k=top_k, refine=self.decoder == "refined")
+                                        top_k=request.top_k, refine=self.decoder == "refined")
                 hypotheses = [replace(h, R_m2c=to_camera(h.R_m2c, i), equivalent=to_camera(h.equivalent, i))
                               for h in found]
-            t = translation_from_box(R[i], box, camera, object_points_mm(info)) if translation else None
-            predictions.append(Prediction(
+            prediction = Prediction(
                 R_m2c=R[i], axis=axes[i], angle_rad=float(angles[i]), score=float(decoded.activation[i]),
-                box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if return_code else None,
-                t_m2c_mm=t, hypotheses=hypotheses, confidence=confidence[i],
-            ))
-        timings += (cropped - started, inferred - cropped, time.perf_counter() - inferred)
+                box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if request.return_code else None,
+                hypotheses=hypotheses, confidence=confidence[i],
+            )
+            if request.depth_mm is not None:
+                placed = time.perf_counter()
+                prediction = self._with_depth(prediction, request, info)
+                depth_s += time.perf_counter() - placed
+            elif request.translation:
+                prediction = replace(prediction, t_m2c_mm=translation_from_box(R[i], box, camera,
+                                                                               object_points_mm(info)),
+                                     t_source=TranslationSource.BOX)
+            predictions.append(prediction)
+        timings += (cropped - started, inferred - cropped, time.perf_counter() - inferred - depth_s, depth_s)
         return predictions
+
+    def _with_depth(self, prediction: Prediction, request: _Request, info: dict) -> Prediction:
+        """The prediction placed with the depth image (and refined against it when asked)."""
+        starts = [prediction.R_m2c] + [h.R_m2c for h in (prediction.hypotheses or [])[1:]]
+        pose = pose_with_depth(starts, prediction.box, request.camera, request.depth_mm,
+                               self.object_surface(prediction.obj_id), object_points_mm(info), info,
+                               request.refine_depth)
+        axis, angle = matrix_to_axis_angle(pose.R_m2c)
+        return replace(prediction, R_m2c=pose.R_m2c, axis=axis, angle_rad=float(angle), t_m2c_mm=pose.t_m2c_mm,
+                       t_source=pose.source, depth_fit=pose.fit, depth_note=pose.note)
 
     def _confidence(self, output: np.ndarray, ids: list[int | None]) -> list[float | None]:
         """The calibrated confidence of each output; None without a calibrator or when the object is not known
@@ -288,6 +357,18 @@ class PoseEstimator:
             return lambda R, _which: R
         centres = np.stack([box_centre(box) for box in boxes])
         return lambda R, which: allocentric_to_egocentric(R, camera, centres[which])
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What one :meth:`PoseEstimator.predict` call asks for, checked."""
+
+    camera: np.ndarray | None
+    return_code: bool
+    top_k: int
+    translation: bool
+    depth_mm: np.ndarray | None  # (H, W) float32 mm, 0: no reading
+    refine_depth: bool
 
 
 def _check_box_count(boxes: Sequence[Sequence[float]]) -> None:

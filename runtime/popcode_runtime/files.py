@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -90,12 +91,21 @@ def write_json_atomic(path: Path, data: Any) -> None:
     write_bytes_atomic(path, json.dumps(data, indent=1).encode())
 
 
-def check_writable_file(value: str | os.PathLike, what: str) -> Path:
-    """``value`` as a path that can be written atomically: its folder exists and is writable, it is not a folder.
+def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """``value`` as a path that can be written atomically: its folder exists and is writable, it is not a folder
+    (nor named as one, ``results/``), it is none of the command's ``inputs`` (files and folders) and lies in none.
 
     Checked before long work starts, so a typo costs a line, not the run.
     """
     path = checked_path(value, what)
+    if os.fspath(value).endswith(tuple(sep for sep in (os.sep, os.altsep) if sep)):
+        raise PopcodeError(f"{what} {os.fspath(value)} ends with a path separator, so it names a folder; give a file "
+                           f"name (such as {os.fspath(value)}results.csv)")
+    target = Path(os.path.realpath(path))  # realpath, not Path.resolve: a symbolic link loop is no error here
+    for source in (Path(os.path.realpath(source)) for source in inputs):
+        if target == source or (source.is_dir() and target.is_relative_to(source)):
+            raise PopcodeError(f"{what} {path} {'is' if target == source else 'lies in'} the input {source}; "
+                               "an output never replaces or joins what the command reads: choose another path")
     folder = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise PopcodeError(f"{what} {path} is a folder, not a file")

@@ -20,6 +20,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 
 from .crop import read_image
+from .depth import read_depth
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
 
@@ -35,6 +36,8 @@ class ImageBoxes(Generic[Key]):
     K: np.ndarray | None  # the image's camera (3, 3); None where the models and options need none
     boxes: Sequence[tuple[float, float, float, float]]  # x, y, w, h px
     obj_ids: Sequence[int]  # the object in each box
+    depth_path: Path | None = None  # the image's depth image, read and given to the models when set
+    depth_scale: float = 1.0  # mm per depth unit
 
     def __post_init__(self) -> None:
         if len(self.obj_ids) != len(self.boxes):
@@ -49,7 +52,7 @@ class ImageEstimates(Generic[Key]):
     image: np.ndarray  # as read, for drawing the estimates on it
     predictions: list[Prediction]  # one per box, in the order of the boxes
     by_model: list[tuple[PoseEstimator, list[Prediction]]]  # each model that had boxes, in model order
-    read_s: float
+    read_s: float  # the image and its depth
     predict_s: float  # the models' predict calls: crop, network, decoding (and translation when asked for)
 
     @property
@@ -127,6 +130,8 @@ def _estimate_image(estimators: Sequence[PoseEstimator], owner: dict[int, int], 
         raise PopcodeError(f"no model knows objects {unknown} (the models know {sorted(owner)})")
     started = time.perf_counter()
     image = read_image(boxes.path)
+    if boxes.depth_path is not None:
+        predict_kwargs = {**predict_kwargs, "depth": read_depth(boxes.depth_path), "depth_scale": boxes.depth_scale}
     read_s = time.perf_counter() - started
     placed: dict[int, Prediction] = {}  # box index -> its prediction
     by_model: list[tuple[PoseEstimator, list[Prediction]]] = []

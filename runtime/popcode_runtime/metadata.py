@@ -16,6 +16,7 @@ from typing import Any
 from .checks import integer, mapping, number
 from .confidence import Calibrator
 from .crop import CROP_PADDING, CROP_SIZE, MAX_CROP_PADDING, MIN_CROP_PADDING
+from .depth import object_surface
 from .errors import PopcodeError
 from .population_code import CodeLayout
 from .symmetries import SymmetryClass, symmetry_class, symmetry_transforms
@@ -218,5 +219,6 @@ def _check_object(obj_id: Any, info: Any) -> None:
         symmetry_transforms(info)
         if "hull_points_mm" in info:  # checked now, not at the first call that asks for a translation
             object_points_mm(info)
+        object_surface(info)  # likewise the surface points that depth needs, where the model has them
     except PopcodeError as error:
         raise PopcodeError(f"object {obj_id}: {error}") from error

@@ -145,6 +145,14 @@ def geodesic_angle(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
     return 2.0 * np.arcsin(np.clip(chord, 0.0, 1.0))
 
 
+def is_rotation(R: np.ndarray, atol: float = 1e-5) -> bool:
+    """Whether ``R`` is one rotation matrix ``(3, 3)``: finite, orthonormal within ``atol``, determinant +1 (a
+    reflection is none)."""
+    R = np.asarray(R, dtype=np.float64)
+    return bool(R.shape == (3, 3) and np.isfinite(R).all() and np.allclose(R @ R.T, np.eye(3), atol=atol)
+                and np.linalg.det(R) > 0)
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Minimal rotation taking unit vector ``a`` to unit vector ``b`` (both ``(..., 3)``).
 

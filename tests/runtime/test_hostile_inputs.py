@@ -122,3 +122,13 @@ def test_fuzzing_predict_finds_nothing_unhandled(folder):
     assert report.unhandled == [] and report.invalid_rotations == 0
     assert report.returned > 50 and report.refused > 100  # both paths exercised
     assert report.slowest_s < 10.0
+
+
+def test_a_torn_image_is_one_line_on_the_terminal_too(folder, tmp_path, capfd):
+    """OpenCV's decoders log their complaint to file descriptor 2 themselves, beside popcode's own line."""
+    torn = tmp_path / "torn.png"
+    torn.write_bytes((folder / "scene.png").read_bytes()[:30])  # the signature and half of the first chunk
+    capfd.readouterr()
+    assert main(["predict", str(folder / "model.onnx"), str(torn), "--box", "1,2,30,40"]) == 2
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("popcode: error: cannot read image"), err

@@ -116,3 +116,11 @@ def test_random_rotations_are_uniform(rng):
     # For uniform rotations, E[trace] = 1 + 2 E[cos angle] = 0 and each column is uniform on the sphere.
     assert abs(np.trace(R, axis1=1, axis2=2).mean()) < 0.05
     assert np.abs(R[:, :, 2].mean(axis=0)).max() < 0.03
+
+
+def test_is_rotation_takes_rotations_only(scipy_rotations):
+    assert all(rot.is_rotation(R) for R in scipy_rotations.as_matrix())
+    assert all(rot.is_rotation(R.astype(np.float32)) for R in scipy_rotations.as_matrix())
+    R = scipy_rotations.as_matrix()[0]
+    for wrong in (-R, R * 1.001, np.diag([1.0, 1.0, 2.0]), np.where(np.eye(3) > 0, np.nan, R), R[:2], np.eye(4)):
+        assert not rot.is_rotation(wrong)

@@ -3,15 +3,20 @@ CSV or refuses in one line, whatever happened to its ``.partial``, its inputs or
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
+import hashlib
+import os
 import shutil
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import onnx
 import pytest
 
 import popcode_runtime.image_loop as image_loop
+from bench.fuzz_run import fuzz_run, prepare
 from popcode_runtime.cli import main
 from popcode_trainer.data.render import render_builtin_split
 
@@ -204,3 +209,123 @@ def test_a_second_run_on_one_out_is_refused_while_the_first_writes(split: Path, 
     lock.unlink()
     assert _run(split, out) == 0  # once it is gone, the run goes through and leaves no lock behind
     assert _rows(out) == _rows(whole) and not lock.exists()
+
+
+def _forge(partial: Path, column: int, value: str) -> None:
+    """One field of the first closed image's first row changed and the image's checksum recomputed, as someone who
+    read the format would: the checksum finds torn and careless edits, not these."""
+    lines = _lines(partial)
+    fields = lines[1].split(",")
+    fields[column] = value
+    lines[1] = ",".join(fields)
+    done = next(index for index, line in enumerate(lines) if line.startswith("#done"))
+    checksum = hashlib.sha256("\n".join(lines[1:done]).encode()).hexdigest()[:16]
+    lines[done] = " ".join([*lines[done].split(" ")[:3], checksum])
+    partial.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize(("column", "value"), [(3, "5.0"), (3, "-1.0"), (6, "-5.0"), (4, "1 0 0 0 1 0 0 0 2"),
+                                               (4, "1 0 0 0 1 0 0 0 -1")],
+                         ids=["score-5", "score-negative", "time-negative", "R-stretched", "R-reflection"])
+def test_a_forged_row_of_values_popcode_never_writes_is_refused(split: Path, killed: bytes, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str], column: int,
+                                                               value: str) -> None:
+    out = tmp_path / "results.csv"
+    _forge(_resumable(killed, out), column, value)
+    capsys.readouterr()
+    assert _run(split, out) == 2
+    err = capsys.readouterr().err
+    assert "holds values popcode never writes" in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_an_out_that_names_a_folder_is_refused_not_written_as_a_file(split: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    assert main(["run", *SHIPPED, "--split", str(split), "--out", f"{tmp_path}/results/", "--quiet",
+                 "--gt-boxes"]) == 2
+    err = capsys.readouterr().err
+    assert "names a folder" in err and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_out_onto_an_input_is_refused_even_with_its_partial_beside_it(split: Path, killed: bytes, tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """A partial file beside ``--out`` lets a run replace ``--out``; that must never be a file the run reads."""
+    copied, models = tmp_path / "split", tmp_path / "models"
+    shutil.copytree(split, copied)
+    models.mkdir()
+    model_paths = [shutil.copy(path, models) for path in SHIPPED]  # the same bytes: the killed run's fingerprint
+    for out in (copied / "000001" / "scene_gt.json", copied / "results.csv", Path(model_paths[1])):
+        before = out.read_bytes() if out.exists() else None
+        _resumable(killed, out)
+        capsys.readouterr()
+        assert _run(copied, out, models=model_paths) == 2
+        err = capsys.readouterr().err
+        assert "an output never replaces or joins what the command reads" in err and err.count("\n") == 1, err
+        assert (out.read_bytes() if out.exists() else None) == before
+
+
+@contextlib.contextmanager
+def _deadline(seconds: int) -> Iterator[None]:
+    """A call still running after ``seconds`` fails the test (a FIFO read would otherwise hang it)."""
+    def expire(signum: int, frame: object) -> None:
+        pytest.fail(f"still running after {seconds} s")  # not TimeoutError: the CLI reports an OSError in one line
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize("what", ["partial-fifo", "partial-symlink-to-a-device", "partial-too-large", "lock-fifo"])
+def test_a_partial_or_lock_no_run_wrote_is_refused_not_read(split: Path, killed: bytes, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str], what: str) -> None:
+    """A FIFO would block the read forever and /dev/zero never end it; a partial file larger than the run's rows
+    can be is no torn run's."""
+    out = tmp_path / "results.csv"
+    partial, lock = out.with_name("results.csv.partial"), out.with_name("results.csv.lock")
+    if what == "partial-fifo":
+        os.mkfifo(partial)
+    elif what == "partial-symlink-to-a-device":
+        partial.symlink_to("/dev/null")  # /dev/zero reads the same way, without end if the check is ever lost
+    elif what == "lock-fifo":
+        os.mkfifo(lock)
+    else:
+        with _resumable(killed, out).open("a") as handle:
+            handle.write("1" * (1 << 20))  # a "torn last line" of 1 MiB
+    capsys.readouterr()
+    with _deadline(30):
+        assert _run(split, out) == 2
+    err = capsys.readouterr().err
+    assert ("is not a regular file" in err or "larger than this run's results can be" in err) and \
+        err.count("\n") == 1, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["scene_camera.json", "notes.json"])
+def test_a_split_json_file_that_is_a_fifo_is_refused_not_read(split: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str], name: str) -> None:
+    """The run's fingerprint hashes each scene's JSON files; a FIFO among them would block that read forever."""
+    copied = tmp_path / "split"
+    shutil.copytree(split, copied)
+    fifo = copied / "000002" / name
+    fifo.unlink(missing_ok=True)
+    os.mkfifo(fifo)
+    capsys.readouterr()
+    with _deadline(30):
+        assert _run(copied, tmp_path / "results.csv") == 2
+    err = capsys.readouterr().err
+    assert "is not a regular file" in err and err.count("\n") == 1, err
+
+
+def test_fuzzing_run_finds_nothing_unhandled(split: Path, tmp_path: Path) -> None:
+    """Random calls of popcode run on mutated detections, split files, partial files and options
+    (bench/fuzz_run.py): each writes exactly the rows its inputs ask for or refuses in one line."""
+    report = fuzz_run(prepare(tmp_path, split), calls=40, seed=30, workdir=tmp_path)
+    assert [(r.index, r.step, r.outcome, r.problem, r.done) for r in report.unhandled] == []
+    assert report.outcomes["wrote results"] >= 4 and report.outcomes["refused"] >= 10  # both paths exercised
+    assert report.slowest is not None and report.slowest.seconds < 10.0

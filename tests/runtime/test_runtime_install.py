@@ -32,7 +32,8 @@ CATALOGUE = ("import json, sys; from pathlib import Path; sys.path.insert(0, sys
 TRAINER_ONLY = {"torch", "onnx", "trimesh", "pyrender", "matplotlib", "scipy", "popcode-trainer"}
 REQUIRES = (
     "import importlib.metadata as m, re;"
-    "print('\\n'.join(re.split(r'[ ;<>=!~\\[]', r, maxsplit=1)[0] for r in m.requires('popcode-runtime')))"
+    "print('\\n'.join(re.split(r'[ ;<>=!~\\[]', r, maxsplit=1)[0] for r in m.requires('popcode-runtime')"
+    " if 'extra ==' not in r))"  # the optional extras (depth) are not installed by pip install ./runtime
 )
 
 

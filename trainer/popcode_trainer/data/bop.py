@@ -21,6 +21,7 @@ from popcode_runtime.bop_split import (
     int_keys,
     json_field,
     read_cam_K,
+    read_depth_scale,
     scene_folders,
     scene_ground_truth,
 )
@@ -134,7 +135,7 @@ def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float,
             raise PopcodeError(f"{camera_path}: key '{im_id}' missing (it is in scene_gt.json)")
         camera = scene_camera[im_id]
         K = read_cam_K(camera, camera_path, im_id)
-        depth_scale = float(camera.get("depth_scale", 1.0))
+        depth_scale = read_depth_scale(camera, camera_path, im_id)
         stem = f"{im_id:06d}"
         for gt in selected:
             if stem not in images:

@@ -1,4 +1,5 @@
-"""A few points on an object's convex hull: what the runtime places to fit a box (``hull_points_mm``).
+"""A few points on an object's convex hull: what the runtime places to fit a box (``hull_points_mm``); and
+:func:`with_hull_points`, which gives a model's objects these and the surface points that depth needs.
 
 The runtime finds the translation whose projected points fill the detected box
 (:mod:`popcode_runtime.translation`); it has no mesh, only what the model's
@@ -28,6 +29,7 @@ from popcode_runtime.population_code import fibonacci_lattice
 
 from .bop import model_path
 from .meshes import load_mesh
+from .surface_sample import outer_surface_points
 from .symmetry_check import check_object_symmetries
 
 HULL_POINTS = 64  # about 1.5 kB of metadata per object
@@ -71,29 +73,40 @@ def hull_points_mm(vertices_mm: np.ndarray, count: int = HULL_POINTS) -> np.ndar
 
 def with_hull_points(objects: Mapping[int, Mapping[str, Any]], models_dir: str | Path | None,
                      count: int = HULL_POINTS) -> dict[int, dict[str, Any]]:
-    """Copies of the ``models_info`` entries with ``hull_points_mm`` from each mesh in ``models_dir``.
+    """Copies of the ``models_info`` entries with the points the runtime places, from each mesh in ``models_dir``:
+    ``hull_points_mm`` (to fit a box) and ``surface_points_mm`` with ``surface_normals`` (to read depth,
+    :func:`~popcode_trainer.data.surface_sample.outer_surface_points`).
 
     Entries that already carry points keep them. Without a mesh the entry is
     left as it is, with a warning: the runtime then uses the 3-D box corners,
-    which overestimate the silhouette and place the object too far away.
+    which overestimate the silhouette and place the object too far away, and
+    cannot use depth for it.
     """
     result = {int(obj_id): dict(info) for obj_id, info in objects.items()}
-    missing = []
+    missing: dict[str, list[int]] = {"hull_points_mm": [], "surface_points_mm": []}
     for obj_id, info in result.items():
-        if "hull_points_mm" in info:
+        lacking = [key for key in missing if key not in info]
+        if not lacking:
             continue
         try:
             mesh = load_mesh(model_path(models_dir, obj_id)) if models_dir else None
         except PopcodeError:
             mesh = None
         if mesh is None:
-            missing.append(obj_id)
+            missing[lacking[0]].append(obj_id)
             continue
         check_object_symmetries(model_path(models_dir, obj_id), info, obj_id, mesh)
-        info["hull_points_mm"] = hull_points_mm(np.asarray(mesh.vertices), count).tolist()
-    if missing:
-        where = f"in {models_dir}" if models_dir else "(no models folder given)"
-        warnings.warn(f"no mesh {where} for objects {missing}: their metadata has no hull_points_mm, so "
-                      "translation from the box uses the 3-D box corners and places them too far away",
-                      stacklevel=2)
+        if "hull_points_mm" in lacking:
+            info["hull_points_mm"] = hull_points_mm(np.asarray(mesh.vertices), count).tolist()
+        if "surface_points_mm" in lacking:
+            points, normals = outer_surface_points(mesh)
+            info["surface_points_mm"], info["surface_normals"] = points.tolist(), normals.tolist()
+    where = f"in {models_dir}" if models_dir else "(no models folder given)"
+    if missing["hull_points_mm"]:
+        warnings.warn(f"no mesh {where} for objects {missing['hull_points_mm']}: their metadata has no "
+                      "hull_points_mm, so translation from the box uses the 3-D box corners and places them too far "
+                      "away, and depth cannot place them", stacklevel=2)
+    if missing["surface_points_mm"]:
+        warnings.warn(f"no mesh {where} for objects {missing['surface_points_mm']}: their metadata has no "
+                      "surface_points_mm, so depth cannot place them", stacklevel=2)
     return result

@@ -1,9 +1,15 @@
-"""Surface samples of a mesh and how far a rigid motion carries them off the surface: what the symmetry checks
-measure with.
+"""Surface samples of a mesh: how far a rigid motion carries them off the surface (what the symmetry checks
+measure with), and the few outer-surface points the runtime's depth step places (``surface_points_mm``).
 
 The distance of a moved sample to the surface is measured to a denser sample of the same surface (a k-d
 tree), an upper bound of the true distance that exceeds it by about half the sample spacing (its target:
 ``_SPACING`` of the diameter).
+
+The depth step compares the object's camera-facing points with a depth image, so its points must lie on
+the surface a camera can see. A mesh built of overlapping closed parts (the built-in parts, many CAD
+exports) also has faces inside the solid; a sample whose point, moved a hair along its normal, lies inside
+another part of the mesh (generalised winding number above one half) is such a face and is dropped.
+Farthest-point sampling then spreads :data:`SURFACE_POINTS` of the rest evenly over the surface.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from popcode_runtime.depth import MAX_SURFACE_POINTS, MIN_SURFACE_POINTS
 from popcode_runtime.errors import PopcodeError
 
 PERCENTILE = 99.0  # of the moved samples; tolerates a stray sliver, not a misplaced feature
@@ -23,6 +30,10 @@ _QUERY_POINTS = 1000
 _SPACING = 0.004  # of the diameter: target spacing of the reference sample
 _REFERENCE_POINTS = (20_000, 200_000)
 _SEED = 0
+SURFACE_POINTS = MAX_SURFACE_POINTS  # 512: 3-5 mm apart on a 60 mm part
+_SURFACE_CANDIDATES = 2048  # samples tested for being on the outer surface before the even spread is chosen
+_NORMAL_STEP = 1e-3  # of the largest extent: how far a sample moves along its normal for the inside test
+_DECIMALS = 2, 3  # points to 0.01 mm, normals to 0.001: far below the depth step's tolerance, short metadata
 
 
 @dataclass(frozen=True)
@@ -58,3 +69,59 @@ def surface_distance(sample: SurfaceSample, R: np.ndarray, t_mm: np.ndarray, per
     """How far the moved samples lie from the surface: the ``percentile`` distance, as a share of the diameter."""
     distance, _ = sample.reference.query(sample.points_mm @ np.asarray(R).T + t_mm)
     return float(np.percentile(distance, percentile)) / sample.diameter_mm
+
+
+def _winding_numbers(triangles: np.ndarray, points: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Generalised winding number ``(N,)`` of each point about a closed surface ``(T, 3, 3)``: 1 inside, 0 outside.
+
+    The solid angle of every triangle seen from the point (Van Oosterom and Strackee) over 4 pi.
+    """
+    result = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        a, b, c = (triangles[None, :, k] - points[start : start + chunk, None] for k in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=-1) for v in (a, b, c))
+        numerator = np.einsum("ptk,ptk->pt", a, np.cross(b, c))
+        denominator = (la * lb * lc + np.einsum("ptk,ptk->pt", a, b) * lc + np.einsum("ptk,ptk->pt", a, c) * lb
+                       + np.einsum("ptk,ptk->pt", b, c) * la)
+        result[start : start + chunk] = np.arctan2(numerator, denominator).sum(axis=1) / (2.0 * np.pi)
+    return result
+
+
+def _inside_other_parts(mesh: trimesh.Trimesh, points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which points ``(N,)`` lie inside a connected part of the mesh other than the one their face ``faces`` is on
+    (only points within a part's bounding box are tested against it)."""
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    inside = np.zeros(len(points), dtype=bool)
+    for part in np.unique(labels):
+        triangles = np.asarray(mesh.triangles[labels == part], dtype=np.float64)
+        low, high = triangles.min(axis=(0, 1)), triangles.max(axis=(0, 1))
+        tested = (labels[faces] != part) & np.all((points >= low) & (points <= high), axis=1)
+        if tested.any():
+            inside[tested] |= np.abs(_winding_numbers(triangles, points[tested])) > 0.5
+    return inside
+
+
+def _farthest_points(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` points chosen greedily, each the farthest from those chosen before (the first: 0)."""
+    chosen = [0]
+    distance = np.linalg.norm(points - points[0], axis=1)
+    while len(chosen) < min(count, len(points)):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return np.array(chosen)
+
+
+def outer_surface_points(mesh: trimesh.Trimesh, count: int = SURFACE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``count`` points ``(P, 3)`` [mm] spread evenly over the mesh's outer surface and their outward unit
+    normals ``(P, 3)``, rounded for the metadata; seeded, so one mesh always gives the same points."""
+    points, faces = trimesh.sample.sample_surface(mesh, _SURFACE_CANDIDATES, seed=_SEED)
+    points, normals = np.asarray(points), np.asarray(mesh.face_normals[faces])
+    step = _NORMAL_STEP * float(np.ptp(mesh.vertices, axis=0).max())
+    outer = ~_inside_other_parts(mesh, points + step * normals, np.asarray(faces))
+    points, normals = points[outer], normals[outer]
+    if len(points) < MIN_SURFACE_POINTS:
+        raise PopcodeError(f"only {len(points)} of {_SURFACE_CANDIDATES} surface samples lie on the mesh's outer "
+                           "surface; is it closed and facing outwards?")
+    chosen = _farthest_points(points, count)
+    normals = normals[chosen] / np.linalg.norm(normals[chosen], axis=1, keepdims=True)
+    return np.round(points[chosen], _DECIMALS[0]), np.round(normals, _DECIMALS[1])
