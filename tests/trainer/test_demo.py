@@ -65,6 +65,8 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     for name in methods:
         assert 0.0 <= summary["confidence"][name]["mssd_at_coverage"]["0.5"] <= 1.0
     assert "### Confidence" in report
+    # the 6-D section: the population code placed with depth and refined against it, beside the box
+    assert "| population_code, depth |" in report and "| population_code, depth + ICP |" in report
     assert "## The robot's bin: clean and cluttered test splits" in report  # both methods on both splits
     assert "2 cluttered bin scenes of them that make 50 % of every epoch's crops" in report  # trained on scenes
     assert set(summary["cluttered_scores"]) == {"population_code", "single_variable",

@@ -262,6 +262,15 @@ CASES = [
     ("evaluate-min-visib-fract-nan", lambda f: [
         "evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"), "--models-dir", str(f / "bar_2fold"),
         "--min-visib-fract", "nan", "--out", str(f / "eval")], "min_visib_fract must be a number >= 0, got nan"),
+    ("evaluate-depth-split-without-depth", lambda f: [
+        "evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"), "--models-dir", str(f / "bar_2fold"),
+        "--depth", "--out", str(f / "eval")], "instances have no depth image (first: "),
+    ("evaluate-refine-without-depth", lambda f: [
+        "evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"), "--models-dir", str(f / "bar_2fold"),
+        "--refine", "--out", str(f / "eval")], "--refine refines each pose against its image's depth: add --depth"),
+    ("evaluate-threads-negative", lambda f: [
+        "evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"), "--models-dir", str(f / "bar_2fold"),
+        "--threads", "-1", "--out", str(f / "eval")], "threads must be >= 0, got -1"),
     ("train-min-visib-fract-nan", lambda f: [*_train(f), "--set", "data.min_visib_fract=nan"],
      "data.min_visib_fract must be a finite number, got nan"),
     ("train-lr-nan", lambda f: ["train", "--set", "train.lr=nan"], "train.lr must be a finite number, got nan"),

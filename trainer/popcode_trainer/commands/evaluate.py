@@ -7,6 +7,7 @@ from pathlib import Path
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.decoding import DECODERS
+from popcode_runtime.engine import check_threads
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import MAX_TOP_K
 from popcode_runtime.files import require_folder
@@ -27,8 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "and, if asked, BOP19 results files (score: the calibrated confidence; time: the measured "
                     "seconds of each image's estimates). Models given the same --name form one method (e.g. one "
                     "model per object group). With --translation, full 6-D poses too: the translation fitted to "
-                    "each box as the runtime does it. With --box-noise, each crop from a detector-like box (scored "
-                    "per box IoU too); with --top-k, population codes also by the best of their top K hypotheses.")
+                    "each box as the runtime does it; with --depth, also from each image's depth (and with --refine "
+                    "refined against it) as popcode run --depth does it. With --box-noise, each crop from a "
+                    "detector-like box (scored per box IoU too); with --top-k, population codes also by the best "
+                    "of their top K hypotheses.")
     parser.add_argument("models", nargs="+", type=Path, metavar="MODEL",
                         help="a training checkpoint (.pt, run with torch), an ONNX model (run with the runtime) or a "
                              "BOP19 results file (.csv, e.g. from popcode run --gt-boxes; scored rotation-only)")
@@ -49,6 +52,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--translation", action="store_true",
                         help="also fit the translation to each instance's box (with the predicted and with the "
                              "ground-truth rotation), report its error and score the full 6-D poses")
+    parser.add_argument("--depth", action="store_true",
+                        help="also place each instance with its image's depth (depth/ and scene_camera.json's "
+                             "depth_scale) as the runtime does, beside the box (implies --translation): translation "
+                             "error, 6-D scores, the instances that fell back to the box and why, and the depth "
+                             "step's ms per instance. The models need surface points (this version's export)")
+    parser.add_argument("--refine", action="store_true",
+                        help="with --depth: also refine rotation and translation against the observed points (ICP, "
+                             "needs pip install ./runtime[depth]); scored as a row of its own. With --top-k K the "
+                             "refinement starts from the code's K strongest poses")
+    parser.add_argument("--threads", type=int, default=0, metavar="N",
+                        help="onnxruntime intra-op threads of ONNX models (0: all cores, the default); 1 times the "
+                             "depth step as on one core (idle worker threads spinning beside it slow it)")
     depth = parser.add_mutually_exclusive_group()
     depth.add_argument("--vsd", dest="vsd", action="store_const", const=True,
                        help="require VSD, e_VSD<0.3 and VSS (an error if the split has no depth images)")
@@ -72,9 +87,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.refine and not args.depth:
+        raise PopcodeError("--refine refines each pose against its image's depth: add --depth")
     if not 1 <= args.top_k <= MAX_TOP_K:
         raise PopcodeError(f"--top-k must lie in [1, {MAX_TOP_K}], got {args.top_k}")
     noise = None if args.box_noise is None else box_noise_preset(args.box_noise)
+    check_threads(args.threads)
     if args.box_noise_seed < 0:
         raise PopcodeError(f"--box-noise-seed must be 0 or more, got {args.box_noise_seed}")
     for split_dir in args.splits:  # cheap checks first: folders, then every model with the options
@@ -82,12 +100,12 @@ def run(args: argparse.Namespace) -> int:
     require_folder(args.models_dir, "models folder")
     if args.out.exists() and not args.out.is_dir():
         raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
-    methods = methods_from_paths(args.models, args.names, args.decoders)
+    methods = methods_from_paths(args.models, args.names, args.decoders, args.threads)
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
         split = with_detector_boxes(split, noise, args.box_noise_seed)
     results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation,
-                              top_k=args.top_k)
+                              top_k=args.top_k, depth=args.depth, refine=args.refine)
     written = write_report(results, args.out, bop19_csv=args.bop19_csv)
     print(report_markdown(results))
     print("wrote " + ", ".join(str(path) for path in written))

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from popcode_runtime.benchmark import benchmark_estimator
+from popcode_runtime.depth_refine import INSTALL_HINT, require_small_gicp
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
 from popcode_runtime.metadata import Representation
@@ -98,6 +99,9 @@ SECONDS_PER_TRAINING_SCENE = 0.45  # 720 x 540, about seven parts (bench/results
 SECONDS_PER_TRAINING_SAMPLE = 0.0035
 SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
 SECONDS_PER_EVALUATED_INSTANCE = 0.05
+# The population code's rows with depth on the clean test split (depth, depth + ICP): on a quick run's models they
+# added 31 + 24 s to the 151 s that scoring its 240 instances took (a busy 2-core VM), whose estimate is 48 s.
+SECONDS_PER_DEPTH_INSTANCE = 0.07
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
 CLUTTERED_TOP_K = 3  # the population code's best of its top-k hypotheses in clutter
@@ -161,7 +165,8 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
         stages.append((_train_stage(representation, obj_ids),
                        seconds * (size.config.train.epochs - fit_epochs) + SECONDS_PER_EXPORT))
     methods = len(size.representations) + 2  # + refined decoder + quantised model
-    stages += [("evaluate", methods * objects * size.test_images_per_object * SECONDS_PER_EVALUATED_INSTANCE)]
+    stages += [("evaluate", objects * size.test_images_per_object
+                * (methods * SECONDS_PER_EVALUATED_INSTANCE + SECONDS_PER_DEPTH_INSTANCE))]
     if size.cluttered_test_scenes:
         stages.append(("cluttered test split", size.cluttered_test_scenes * SECONDS_PER_CLUTTERED_SCENE))
     stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
@@ -224,6 +229,26 @@ def demo_methods(models: TrainedModels) -> list[Method]:
     methods += [Method(name, tuple(load_model(p) for p in paths))
                 for name, paths in models.by_representation.items() if name != POPCODE]
     return methods
+
+
+def can_refine() -> bool:
+    """Whether refinement against depth can run: its library is the runtime's optional extra (make demo installs it)."""
+    try:
+        require_small_gicp()
+    except PopcodeError:
+        return False
+    return True
+
+
+def evaluate_clean(methods: Sequence[Method], test_split: Path) -> tuple[EvalSplit, list[MethodResult]]:
+    """Every method on the clean test split, with full 6-D poses from the box and, for the population code, from
+    the depth images (and refined against them where small_gicp is installed)."""
+    split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
+    refine = can_refine()
+    if not refine:
+        print(f"small_gicp is not installed: the depth rows skip refinement ({INSTALL_HINT})", flush=True)
+    return split, evaluate_models(methods, split, translation=True, depth=True, refine=refine,
+                                  depth_methods={POPCODE})
 
 
 def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path, parts: Parts) -> ClutteredResults:
@@ -374,8 +399,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
               flush=True)
     models = train_models(size, codes, train_split, out_dir, stages)
     with stages.stage("evaluate"):
-        split = read_eval_split([test_split], test_split / BUILTIN_MODELS_FOLDER)
-        results = evaluate_models(demo_methods(models), split, translation=True)
+        split, results = evaluate_clean(demo_methods(models), test_split)
         write_report(results, out_dir / "eval")
     cluttered = None
     if size.cluttered_test_scenes:

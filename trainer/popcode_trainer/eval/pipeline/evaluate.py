@@ -2,7 +2,9 @@
 
 Rotation from the model, translation from the ground truth (the paper's
 protocol); optionally also full 6-D poses, with the translation fitted to the
-box as the runtime does it (:mod:`.translation`). Every method is scored on the
+box as the runtime does it (:mod:`.translation`) and, for a split with depth
+images, from the depth (and refined against it) as the runtime does it
+(:mod:`.depth_poses`). Every method is scored on the
 same instances, those all of them can estimate, with the object meshes and depth
 renderers of one :class:`.split_metrics.SplitMetrics`. A split whose boxes are a
 detector's (:func:`.detector_boxes.with_detector_boxes`) is also scored per box
@@ -15,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +29,7 @@ from popcode_runtime.estimator import MAX_TOP_K
 
 from ...metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
 from ...metrics.recall import InstanceErrors, Thresholds, metric_scores
+from .depth_poses import DepthMode, DepthPoses, check_depth_models, depth_modes, depth_poses, require_depth
 from .estimates import Estimates
 from .models import Method
 from .results_file import ResultsMethod
@@ -69,6 +72,7 @@ class MethodResult:
     best_of_top_k: BestOfTopK | None = None  # with top_k > 1, for population codes
     score: np.ndarray | None = None  # (N,) each estimate's score (Estimates.bop19_score); None: given rotations
     image_s: np.ndarray | None = None  # (N,) seconds of the estimates of the instance's image; None: given rotations
+    depth_poses: tuple[DepthPoses, ...] = ()  # with depth: the 6-D poses of each depth mode, beside full_pose's
 
 
 def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
@@ -104,10 +108,12 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
 
 
 def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,
-                   points_mm: Mapping[int, np.ndarray] | None = None, top_k: int = 1) -> MethodResult:
+                   points_mm: Mapping[int, np.ndarray] | None = None, top_k: int = 1,
+                   modes: Sequence[DepthMode] = ()) -> MethodResult:
     """Estimate every instance of the split with the method (run its models, or read its results file), then
     score (6-D too with ``points_mm``, the object points of model files; with ``top_k > 1`` the best of the
-    top-k hypotheses of a population code too)."""
+    top-k hypotheses of a population code too; in each depth mode of ``modes`` the 6-D poses from depth: model
+    files only)."""
     split = metrics.split
     estimates = method.estimate(split.instances, split.models_info, progress, top_k)
     result = evaluate_rotations(method.name, estimates.R_m2c, metrics, method.paths,
@@ -117,10 +123,11 @@ def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progre
         started = time.perf_counter()
         best = best_of_top_k(estimates.hypotheses, result.errors, metrics)
         result = dataclasses.replace(result, metric_s=result.metric_s + time.perf_counter() - started)
+    posed = tuple(depth_poses(method, metrics, mode, top_k, progress) for mode in modes)
     return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
                                                                         method.confidence_thresholds_deg),
                                top_k=top_k, best_of_top_k=best, score=estimates.bop19_score(),
-                               image_s=estimates.image_s)
+                               image_s=estimates.image_s, depth_poses=posed)
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,
@@ -163,24 +170,49 @@ def _shared_split(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
     return restrict_to_objects(split, shared)
 
 
+def _placed_with_depth(methods: Sequence[Method | ResultsMethod], split: EvalSplit, refine: bool,
+                       names: Collection[str] | None) -> set[str]:
+    """The names of the methods to place with depth (``names``, default all of model files), each checked before
+    the first prediction: the split has depth images, their models surface points, refinement its library."""
+    unknown = sorted(set(names or ()) - {method.name for method in methods})
+    if unknown:
+        raise PopcodeError(f"depth_methods names {unknown}, which are not among the methods")
+    require_depth(split)
+    chosen = [m for m in methods if isinstance(m, Method) and (names is None or m.name in names)]
+    for method in chosen:
+        check_depth_models(method, split.obj_ids, refine)
+    return {method.name for method in chosen}
+
+
 def evaluate_models(methods: Sequence[Method | ResultsMethod], split: EvalSplit, thresholds: Thresholds | None = None,
                     vsd: bool | None = None, obj_ids: Iterable[int] | None = None,
-                    progress: bool = True, translation: bool = False, top_k: int = 1) -> list[MethodResult]:
+                    progress: bool = True, translation: bool = False, top_k: int = 1, depth: bool = False,
+                    refine: bool = False, depth_methods: Collection[str] | None = None) -> list[MethodResult]:
     """Every method on the same split instances, sharing object models and depth renderers.
 
     ``translation`` also fits each instance's translation to its box, as the
-    runtime does, and scores the full 6-D poses (:class:`FullPose`). ``top_k``
-    (1 to the runtime's ``MAX_TOP_K``) above 1 also scores the best of each
-    population code's top-k hypotheses (:class:`BestOfTopK`; None for other methods).
+    runtime does, and scores the full 6-D poses (:class:`FullPose`). ``depth``
+    (implies ``translation``) also places each instance of a model file with its
+    image's depth, as the runtime does, and scores those 6-D poses too
+    (:class:`DepthPoses`); ``refine`` adds the poses refined against the depth;
+    ``depth_methods`` names the methods placed with depth (default: all).
+    ``top_k`` (1 to the runtime's ``MAX_TOP_K``) above 1 also scores the best of
+    each population code's top-k hypotheses (:class:`BestOfTopK`; None for other
+    methods), and refinement starts from those hypotheses.
     """
     top_k = integer(top_k, "top_k", 1, MAX_TOP_K)
     if not methods:
         raise PopcodeError("no models to evaluate")
+    if refine and not depth:
+        raise PopcodeError("refine refines each pose against its image's depth: ask for depth too")
     # Every model's object points before the first prediction: a model without them fails now, not after hours.
-    points_mm = [method.object_points() if translation else None for method in methods]
-    metrics = SplitMetrics(_shared_split(methods, split, obj_ids), thresholds, vsd)
+    points_mm = [method.object_points() if translation or depth else None for method in methods]
+    shared = _shared_split(methods, split, obj_ids)
+    with_depth = _placed_with_depth(methods, shared, refine, depth_methods) if depth else set()
+    metrics = SplitMetrics(shared, thresholds, vsd)
     try:
-        return [evaluate_model(method, metrics, progress, points, top_k)
+        return [evaluate_model(method, metrics, progress, points, top_k,
+                               depth_modes(refine) if method.name in with_depth else ())
                 for method, points in zip(methods, points_mm, strict=True)]
     finally:
         metrics.close()

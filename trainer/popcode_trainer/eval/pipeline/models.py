@@ -64,8 +64,9 @@ class RotationModel:
                                                                   decoder))
 
 
-def load_model(path: str | Path, decoder: str = ARGMAX) -> RotationModel:
-    """A ``.pt`` checkpoint (run by torch) or an ``.onnx`` model (run by onnxruntime), by file suffix."""
+def load_model(path: str | Path, decoder: str = ARGMAX, threads: int = 0) -> RotationModel:
+    """A ``.pt`` checkpoint (run by torch) or an ``.onnx`` model (run by onnxruntime with ``threads`` intra-op
+    threads, 0: all cores), by file suffix."""
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"model file not found: {path}")
@@ -74,7 +75,7 @@ def load_model(path: str | Path, decoder: str = ARGMAX) -> RotationModel:
                            f"are a BOP19 results file ({RESULTS_SUFFIX})")
     try:  # every model is opened, and its decoder checked, before the first prediction
         if path.suffix == ".onnx":
-            return RotationModel(path, PoseEstimator(path, decoder=decoder))
+            return RotationModel(path, PoseEstimator(path, threads=threads, decoder=decoder))
         return RotationModel(path, checkpoint_estimator(path, decoder))
     except PopcodeError as error:
         if str(path) in str(error):
@@ -205,7 +206,7 @@ def _decoder_list(decoders: str | Sequence[str]) -> tuple[str, ...]:
 
 
 def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None = None,
-                       decoders: str | Sequence[str] = ARGMAX) -> list[Method | ResultsMethod]:
+                       decoders: str | Sequence[str] = ARGMAX, threads: int = 0) -> list[Method | ResultsMethod]:
     """Methods from model files and BOP19 results files (``.csv``); model files given the same name form one
     method (one table row), a results file is a method of its own.
 
@@ -214,7 +215,8 @@ def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None 
     per decoder, named by :func:`decoder_method_name`, in the order given (the
     models are opened once); a method that cannot use a decoder (any but
     argmax for other representations; a results file has no decoder) is kept
-    once, with one warning for all such. A single decoder keeps the plain name.
+    once, with one warning for all such. A single decoder keeps the plain name. ``threads``: onnxruntime's
+    intra-op threads for ONNX models (0: all cores).
     """
     decoders = _decoder_list(decoders)
     if names and len(names) != len(paths):
@@ -231,7 +233,7 @@ def methods_from_paths(paths: Sequence[str | Path], names: Sequence[str] | None 
         elif name in results:
             raise PopcodeError(f"{path}: the name {name!r} is a results file's; give the model another")
         else:
-            grouped.setdefault(name, []).append(load_model(path, opened_with))
+            grouped.setdefault(name, []).append(load_model(path, opened_with, threads))
     methods = {name: Method(name, tuple(models)) for name, models in grouped.items()} | results
     ordered = [methods[name] for name in dict.fromkeys(names or [Path(p).stem for p in paths])]
     return ordered if len(decoders) == 1 else _per_decoder(ordered, decoders)

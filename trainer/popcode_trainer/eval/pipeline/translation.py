@@ -29,6 +29,8 @@ SUMMARY_COLUMNS = {
     "mean_te_mm": "mean te [mm]",
     "median_te_percent": "median te [% of ‖t‖]",
     "mean_te_percent": "mean te [% of ‖t‖]",
+    "within_2_mm": "te < 2 mm",
+    "within_5_mm": "te < 5 mm",
     "within_2_percent": "te < 2 %",
     "within_5_percent": "te < 5 %",
 }
@@ -91,7 +93,8 @@ def relative_translation_error(t_est_mm: np.ndarray, t_gt_mm: np.ndarray) -> np.
 
 
 def translation_summary(t_est_mm: np.ndarray, t_gt_mm: np.ndarray) -> dict[str, float]:
-    """Median and mean te [mm] and [% of ‖t_gt‖], and the shares (fractions) within 2 % and 5 %."""
+    """Median and mean te [mm] and [% of ‖t_gt‖], and the shares (fractions) within 2 mm and 5 mm (what a gripper
+    tolerates) and within 2 % and 5 % of the distance."""
     te_mm = translation_error_mm(t_est_mm, t_gt_mm)
     relative = relative_translation_error(t_est_mm, t_gt_mm)
     if len(te_mm) == 0:
@@ -101,6 +104,8 @@ def translation_summary(t_est_mm: np.ndarray, t_gt_mm: np.ndarray) -> dict[str, 
         "mean_te_mm": float(np.mean(te_mm)),
         "median_te_percent": float(100.0 * np.median(relative)),
         "mean_te_percent": float(100.0 * np.mean(relative)),
+        "within_2_mm": float(np.mean(te_mm < 2.0)),
+        "within_5_mm": float(np.mean(te_mm < 5.0)),
         "within_2_percent": float(np.mean(relative < 0.02)),
         "within_5_percent": float(np.mean(relative < 0.05)),
     }

@@ -2,7 +2,10 @@
 
 With full 6-D poses (translation from the box) each file gains them beside the
 rotation-only results: error columns suffixed ``_6d``, a translation-error
-table and the 6-D scores, a second BOP19 file. With a detector's boxes each
+table and the 6-D scores, a second BOP19 file. With depth, each depth mode
+(``depth``, ``refined``) adds its rows to those tables, its columns (suffixed
+``_depth`` / ``_refined``) and BOP19 file, and a table of where the translations
+came from and what the depth step cost. With a detector's boxes each
 instance's ``box_iou`` and a table of MSSD by box IoU; with hypotheses
 (``top_k > 1``) the MSSD of the best of the top k.
 """
@@ -33,6 +36,7 @@ from ...metrics.recall import (
     ambiguous_objects,
     tightest_thresholds,
 )
+from ..pipeline.depth_poses import DepthPoses
 from ..pipeline.estimates import UNKNOWN_TIME_S
 from ..pipeline.evaluate import MethodResult
 from ..pipeline.split import EvalSplit
@@ -52,6 +56,7 @@ from .tables import (
 ERRORS_CSV = "errors_{name}.csv"
 BOP19_CSV = "{name}_bop19.csv"
 BOP19_6D_CSV = "{name}_6d_bop19.csv"
+BOP19_DEPTH_CSV = "{name}_6d_{mode}_bop19.csv"
 GT_ROTATION = "ground-truth rotation"
 REPORT_MD = "report.md"
 REPORT_JSON = "report.json"
@@ -89,6 +94,8 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
         name: (translation_error_mm(t, t_gt), relative_translation_error(t, t_gt))
         for name, t in (("te", pose.t_est_mm), ("te_gt_rotation", pose.t_gt_rotation_mm))
     }
+    depth_te = [(posed, translation_error_mm(posed.t_m2c_mm, t_gt), relative_translation_error(posed.t_m2c_mm, t_gt))
+                for posed in result.depth_poses]
     rows = []
     for i, inst in enumerate(split.instances):
         row: dict[str, Any] = {
@@ -103,6 +110,11 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
             row[f"{name}_mm"], row[f"{name}_percent"] = float(mm[i]), 100.0 * float(fraction[i])
         if pose is not None:
             row |= _error_columns(pose.errors, i, thresholds, "_6d")
+        for posed, mm, fraction in depth_te:
+            key = posed.mode.key
+            row |= {f"te_{key}_mm": float(mm[i]), f"te_{key}_percent": 100.0 * float(fraction[i]),
+                    f"t_source_{key}": posed.sources[i], f"depth_note_{key}": posed.notes[i] or "",
+                    **_error_columns(posed.errors, i, thresholds, f"_6d_{key}")}
         rows.append(row)
     return rows
 
@@ -227,31 +239,80 @@ def best_of_top_k_section(results: Sequence[MethodResult]) -> list[str]:
             best_of_top_k_markdown({r.name: top_k_scores(r) for r in results}, top_k)]
 
 
+def depth_row_name(result: MethodResult, posed: DepthPoses) -> str:
+    """The table row of a method's poses in one depth mode, e.g. ``population_code, depth + ICP``."""
+    return f"{result.name}, {posed.mode.label}"
+
+
 def translation_rows(results: Sequence[MethodResult]) -> dict[str, dict[str, float]]:
-    """Translation-error summaries: per method with its rotation, then with the ground-truth rotation."""
+    """Translation-error summaries: per method with its rotation, then with the ground-truth rotation, then from
+    depth in each depth mode."""
     rows = {}
     for result in results:
+        t_gt = np.stack([inst.t_m2c_mm for inst in result.split.instances])
         if result.full_pose is not None:
-            t_gt = np.stack([inst.t_m2c_mm for inst in result.split.instances])
             rows[result.name] = translation_summary(result.full_pose.t_est_mm, t_gt)
             rows[f"{result.name}, {GT_ROTATION}"] = translation_summary(result.full_pose.t_gt_rotation_mm, t_gt)
+        for posed in result.depth_poses:
+            rows[depth_row_name(result, posed)] = translation_summary(posed.t_m2c_mm, t_gt)
     return rows
 
 
+def six_d_groups(results: Sequence[MethodResult]) -> dict[str, dict[str, dict[str, float]]]:
+    """Row -> ambiguity group -> 6-D scores: each method with the box's translation, then in each depth mode."""
+    rows = {}
+    for result in results:
+        if result.full_pose is not None:
+            rows[result.name] = result.full_pose.groups
+        rows |= {depth_row_name(result, posed): posed.groups for posed in result.depth_poses}
+    return rows
+
+
+def _counts_text(counts: dict[str, int]) -> str:
+    return "; ".join(f"{name} {count}" for name, count in counts.items()) or "–"
+
+
+def depth_step_markdown(results: Sequence[MethodResult]) -> str:
+    """Per method and depth mode: where the translations came from, why depth was not used, and its cost."""
+    rows = [[depth_row_name(r, posed), _counts_text(posed.source_counts()), _counts_text(posed.note_counts()),
+             f"{1000.0 * posed.depth_s.mean():.2f}", f"{1000.0 * np.percentile(posed.depth_s, 90):.2f}"]
+            for r in results for posed in r.depth_poses]
+    return markdown_table(["Method, depth", "translation from", "why not (fully) from depth",
+                           "depth ms / instance", "p90 ms"], rows)
+
+
 def full_pose_markdown(results: Sequence[MethodResult]) -> list[str]:
-    """The translation-error table and the 6-D scores by ambiguity; nothing without full poses."""
+    """The translation-error table and the 6-D scores by ambiguity (with depth, its rows and the depth step's
+    sources and cost); nothing without full poses."""
     posed = [r for r in results if r.full_pose is not None]
     if not posed:
         return []
-    return [
-        "## Full 6-D pose: translation from the box",
+    with_depth = any(r.depth_poses for r in posed)
+    parts = [
+        "## Full 6-D pose: translation from the box" + (" and from depth" if with_depth else ""),
         "The translation is fitted to each instance's box (the one it was cropped with) as the runtime does "
         f"it, with the method's rotation and, to show the box fit alone, with the {GT_ROTATION}. "
         "te is the distance to the true translation; % of the true distance ‖t‖.",
+    ]
+    if with_depth:
+        parts.append(
+            "Rows \"depth\": each instance placed as `popcode run --depth` places it, along the box's ray at the "
+            "distance its depth image measures; \"depth + ICP\": as `--depth --refine`, rotation and translation "
+            "refined against the observed points (small_gicp), kept where it fits the depth better. An instance "
+            "whose depth is unusable keeps the box's translation (counted below, with the runtime's reason).")
+    parts += [
         translation_markdown(translation_rows(posed)),
         "**6-D scores** (rotation and translation estimated)",
-        ambiguity_markdown({r.name: r.full_pose.groups for r in posed}),
+        ambiguity_markdown(six_d_groups(posed)),
     ]
+    if with_depth:
+        parts += ["**Depth step**: each translation's source, the runtime's reasons where depth was not (fully) "
+                  "used, and the milliseconds per instance of the depth step (the box fit it starts from, the "
+                  "depth's translation and, refining, GICP; numpy and small_gicp on one thread, slowed by busy "
+                  "onnxruntime threads beside it: `--threads 1` times it as on one core): the mean, and the 90th "
+                  "percentile of each image's mean.",
+                  depth_step_markdown(posed)]
+    return parts
 
 
 def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
@@ -273,6 +334,12 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
                 "translation": translation[r.name], "translation_gt_rotation": translation[f"{r.name}, {GT_ROTATION}"],
                 "groups": r.full_pose.groups, "per_object": r.full_pose.per_object,
             }
+        if r.depth_poses:
+            methods[r.name]["depth"] = {posed.mode.key: {
+                "translation": translation[depth_row_name(r, posed)], "groups": posed.groups,
+                "per_object": posed.per_object, "sources": posed.source_counts(), "notes": posed.note_counts(),
+                "depth_ms_per_instance": 1000.0 * float(posed.depth_s.mean()),
+            } for posed in r.depth_poses}
     report: dict[str, Any] = {"instances_per_object": dict(Counter(inst.obj_id for inst in split.instances)),
                               "tightest_thresholds": tightest_thresholds(results[0].thresholds)}
     boxes = split.detector_boxes
@@ -281,15 +348,18 @@ def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
     return report | {"methods": methods}
 
 
-def bop19_estimates(result: MethodResult, t_m2c_mm: Sequence[np.ndarray]) -> list[PoseEstimate]:
-    """The method's estimates as BOP19 results lines, with the given translations: ``score`` the calibrated
+def bop19_estimates(result: MethodResult, t_m2c_mm: Sequence[np.ndarray],
+                    R_m2c: np.ndarray | None = None) -> list[PoseEstimate]:
+    """The method's estimates as BOP19 results lines, with the given translations (and rotations, default the
+    method's own, e.g. refined against depth): ``score`` the calibrated
     confidence (the raw score for a model without a calibrator, the file's for a results file), ``time`` the
     seconds of the method's estimates of the instance's image, the same on each of its rows (crop, network and
     decoding, not reading the image). Given rotations know neither: score 1, time -1."""
     count = len(result.split.instances)
     score = np.ones(count) if result.score is None else result.score
     image_s = np.full(count, UNKNOWN_TIME_S) if result.image_s is None else result.image_s
-    return [PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, float(score[i]), result.R_est[i], t_m2c_mm[i],
+    R_m2c = result.R_est if R_m2c is None else R_m2c
+    return [PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, float(score[i]), R_m2c[i], t_m2c_mm[i],
                          float(image_s[i]))
             for i, inst in enumerate(result.split.instances)]
 
@@ -309,12 +379,14 @@ def write_report(results: Sequence[MethodResult], out_dir: str | Path,
         if not bop19_csv:
             continue
         t_gt = [inst.t_m2c_mm for inst in split.instances]
-        files = [(BOP19_CSV, t_gt)]
+        files = [(BOP19_CSV.format(name=stem), t_gt, None)]
         if result.full_pose is not None:
-            files.append((BOP19_6D_CSV, list(result.full_pose.t_est_mm)))
-        for pattern, translations in files:
-            path = out_dir / pattern.format(name=stem)
-            write_bop19_results(path, bop19_estimates(result, translations))
+            files.append((BOP19_6D_CSV.format(name=stem), list(result.full_pose.t_est_mm), None))
+        files += [(BOP19_DEPTH_CSV.format(name=stem, mode=posed.mode.key), list(posed.t_m2c_mm), posed.R_m2c)
+                  for posed in result.depth_poses]
+        for file_name, translations, rotations in files:
+            path = out_dir / file_name
+            write_bop19_results(path, bop19_estimates(result, translations, rotations))
             written.append(path)
     reliability = plot_reliability(results, out_dir / RELIABILITY_PNG)
     if reliability is not None:

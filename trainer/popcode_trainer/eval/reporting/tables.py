@@ -138,7 +138,7 @@ def to_json(report: Mapping[str, Any]) -> str:
 
 def translation_markdown(rows: Mapping[str, Mapping[str, float]], label: str = "Method") -> str:
     """One row per label (e.g. a method, with its or the ground-truth rotation), the summary as columns."""
-    body = [[name, *(f"{summary[key]:.2f}" if key.endswith(("_mm", "_te_percent")) else f"{100.0 * summary[key]:.1f}%"
+    body = [[name, *(f"{100.0 * summary[key]:.1f}%" if key.startswith("within") else f"{summary[key]:.2f}"
                      for key in SUMMARY_COLUMNS)]
             for name, summary in rows.items()]
     return markdown_table([label, *SUMMARY_COLUMNS.values()], body)
