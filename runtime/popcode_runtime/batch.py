@@ -105,14 +105,16 @@ def model_digest(path: Path) -> str:
 
 
 def split_digest(images: Mapping[ImageKey, SplitImage], depth: bool = False) -> str:
-    """SHA-256 of what a split gives a run: each image's file name and size (``depth``: its depth image's too), and
-    every scene's annotation files (cameras, boxes) by content. Cheap (one stat per image), and another split or a
-    changed image is told apart."""
+    """SHA-256 of what a split gives a run: each image's file name, size and modification time (``depth``: its depth
+    image's too), and every scene's annotation files (cameras, boxes) by content. Cheap (one stat per image), and
+    another split or an image changed in place, even to the same size, is told apart (a copy that keeps the times,
+    ``cp -p`` or ``rsync -a``, still resumes)."""
     digest = hashlib.sha256()
     for key in sorted(images):
         paths = [images[key].path] + ([images[key].depth_path] if depth and images[key].depth_path else [])
         for path in paths:
-            digest.update(f"{key} {path.name} {path.stat().st_size}\n".encode())
+            status = path.stat()
+            digest.update(f"{key} {path.name} {status.st_size} {status.st_mtime_ns}\n".encode())
     for scene in sorted({images[key].path.parent.parent for key in images}):
         for annotation in sorted(scene.glob("*.json")):
             digest.update(f"{scene.name}/{annotation.name} {file_digest(annotation)}\n".encode())
@@ -129,14 +131,15 @@ def _done_key(line: str) -> tuple[ImageKey, str] | None:
     return (ids[0], ids[1]), fields[2]
 
 
-def _checksum(lines: Sequence[str]) -> str:
-    """What closes an image's lines: a torn, edited or foreign line no longer matches it."""
-    return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:CHECKSUM_CHARS]
+def _checksum(lines: Sequence[str], fingerprint: str) -> str:
+    """What closes an image's lines: a torn, edited or foreign line no longer matches it, nor an image's lines from
+    the partial file of another run (its fingerprint differs)."""
+    return hashlib.sha256("\n".join([fingerprint, *lines]).encode()).hexdigest()[:CHECKSUM_CHARS]
 
 
 class PartialResults:
     """``<out>.partial``: the estimate lines of finished images, each image closed by a ``#done`` line that carries
-    a checksum of its lines; ``<out>.lock`` held while a run writes them.
+    a checksum of its lines and the run's fingerprint; ``<out>.lock`` held while a run writes them.
 
     Opening it keeps every closed image (a torn tail from a killed run is dropped) and refuses a file made from
     other models, detections, split or options, one whose closed images were edited, and a second run writing the
@@ -145,7 +148,7 @@ class PartialResults:
     """
 
     def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
-        self.out, self.path = out, out.with_name(out.name + PARTIAL_SUFFIX)
+        self.out, self.path, self.fingerprint = out, out.with_name(out.name + PARTIAL_SUFFIX), fingerprint
         self._lock = _OutputLock(out.with_name(out.name + LOCK_SUFFIX))
         try:
             if out.exists() and not self.path.exists():
@@ -187,10 +190,10 @@ class PartialResults:
             elif line:
                 pending.append(line)  # lines after the last mark: an image a killed run did not close
         # A killed run can tear only its last image (lines, mark or both); anything wrong before that was changed.
-        while blocks and _block_problem(*blocks[-1], expected, self.done) is not None:
+        while blocks and _block_problem(*blocks[-1], expected, self.done, fingerprint) is not None:
             blocks.pop()
         for lines, mark in blocks:
-            problem = _block_problem(lines, mark, expected, self.done)
+            problem = _block_problem(lines, mark, expected, self.done, fingerprint)
             if problem is not None or mark is None:
                 raise self._refuse(f"was changed after it was written ({problem})")
             key, checksum = mark
@@ -201,7 +204,7 @@ class PartialResults:
         """Append one image's estimates, its lines of the translation file (``sources``) and its closing mark,
         flushed to disk."""
         lines = [format_estimate(est) for est in estimates] + [SOURCE_MARK + line for line in sources]
-        lines.append(f"{DONE_MARK}{key[0]} {key[1]} {_checksum(lines)}")
+        lines.append(f"{DONE_MARK}{key[0]} {key[1]} {_checksum(lines, self.fingerprint)}")
         self._handle.write("\n".join(lines) + "\n")
         self._handle.flush()
         os.fsync(self._handle.fileno())
@@ -223,8 +226,8 @@ class PartialResults:
 
 
 def _block_problem(lines: Sequence[str], mark: tuple[ImageKey, str] | None,
-                   expected: Mapping[ImageKey, Sequence[int]], done: set[ImageKey]) -> str | None:
-    """What is wrong with one image's lines in a partial file, or None."""
+                   expected: Mapping[ImageKey, Sequence[int]], done: set[ImageKey], fingerprint: str) -> str | None:
+    """What is wrong with one image's lines in a partial file of the run ``fingerprint``, or None."""
     if mark is None:
         return "a closing mark is torn or malformed"
     key, checksum = mark
@@ -232,7 +235,7 @@ def _block_problem(lines: Sequence[str], mark: tuple[ImageKey, str] | None,
         return f"scene {key[0]} image {key[1]} is not among this run's images"
     if key in done:
         return f"scene {key[0]} image {key[1]} is closed twice"
-    if _checksum(lines) != checksum:
+    if _checksum(lines, fingerprint) != checksum:
         return f"the lines of scene {key[0]} image {key[1]} do not match their checksum"
     try:
         estimates = [parse_estimate(line, f"scene {key[0]} image {key[1]}") for line in lines

@@ -12,6 +12,8 @@ import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import cv2
+import numpy as np
 import onnx
 import pytest
 
@@ -175,6 +177,25 @@ def test_another_split_or_max_images_is_refused(split: Path, killed: bytes, tmp_
         assert "other models, detections, split or options" in capsys.readouterr().err
 
 
+def test_an_image_changed_in_place_to_the_same_size_is_refused(split: Path, killed: bytes, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """An image the killed run had done, mirrored and padded to its old size: resuming would mix its old rows with
+    the new image's."""
+    changed = tmp_path / "changed"
+    shutil.copytree(split, changed)  # keeps the files' times: the killed run's fingerprint still matches the copy
+    image = changed / "000001" / "gray" / "000000.png"
+    data = image.read_bytes()
+    pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    mirrored = cv2.imencode(".png", np.ascontiguousarray(pixels[:, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 9])[1]
+    assert len(mirrored) <= len(data)
+    image.write_bytes(mirrored.tobytes() + b"\0" * (len(data) - len(mirrored)))  # bytes after IEND are ignored
+    out = tmp_path / "results.csv"
+    _resumable(killed, out)
+    capsys.readouterr()
+    assert _run(changed, out) == 2
+    assert "other models, detections, split or options" in capsys.readouterr().err
+
+
 def test_changed_external_weights_are_refused(split: Path, tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     models = tmp_path / "models"
@@ -211,6 +232,23 @@ def test_a_second_run_on_one_out_is_refused_while_the_first_writes(split: Path, 
     assert _rows(out) == _rows(whole) and not lock.exists()
 
 
+def test_an_image_of_another_runs_partial_is_refused_not_mixed_in(split: Path, killed: bytes, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The same image and objects from a run with another decoder: its lines match their own checksum, but not
+    this run's fingerprint."""
+    other = _killed_run(split, tmp_path / "other.csv", "--decoder", "refined")
+    other_lines, lines = _lines(other), killed.decode().splitlines()
+    first_done = next(index for index, line in enumerate(lines) if line.startswith("#done"))
+    assert other_lines[first_done].split()[:3] == lines[first_done].split()[:3]  # the same image
+    out = tmp_path / "results.csv"
+    _resumable(killed, out).write_text("\n".join([lines[0], *other_lines[1:first_done + 1], *lines[first_done + 1:]])
+                                       + "\n")
+    capsys.readouterr()
+    assert _run(split, out) == 2
+    err = capsys.readouterr().err
+    assert "do not match their checksum" in err and err.count("\n") == 1, err
+
+
 def _forge(partial: Path, column: int, value: str) -> None:
     """One field of the first closed image's first row changed and the image's checksum recomputed, as someone who
     read the format would: the checksum finds torn and careless edits, not these."""
@@ -219,7 +257,8 @@ def _forge(partial: Path, column: int, value: str) -> None:
     fields[column] = value
     lines[1] = ",".join(fields)
     done = next(index for index, line in enumerate(lines) if line.startswith("#done"))
-    checksum = hashlib.sha256("\n".join(lines[1:done]).encode()).hexdigest()[:16]
+    fingerprint = lines[0].removeprefix("#popcode-run ")
+    checksum = hashlib.sha256("\n".join([fingerprint, *lines[1:done]]).encode()).hexdigest()[:16]
     lines[done] = " ".join([*lines[done].split(" ")[:3], checksum])
     partial.write_text("\n".join(lines) + "\n")
 
