@@ -1,4 +1,36 @@
+import gc
+import os
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).parent))
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs the suite in one pytest-xdist worker per core: each computes on one thread, else the
+    # workers' thread pools (torch's OpenMP, MKL, llvmpipe's rasterisers) fight over the cores. Set before torch
+    # or Mesa is loaded, and inherited by the processes a test starts; a value set outside wins.
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
+        os.environ.setdefault(variable, "1")
+
+# pyrender calls gc.collect() each time it closes a renderer, and the depth metrics and renders close hundreds: a
+# full collection walks every object alive, most of them imported modules, so each took a third of a second.
+# What lives after collection, and later what modules a test imported, is frozen out of every later collection
+# (gc.freeze); garbage is collected first, so nothing that is garbage then is kept.
+REFREEZE_AFTER = 50_000  # new tracked objects at the end of a test module that are worth a collection to freeze
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_finish(session: pytest.Session) -> None:
+    gc.collect()
+    gc.freeze()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None):
+    result = yield
+    if nextitem is not None and nextitem.path != item.path and len(gc.get_objects()) > REFREEZE_AFTER:
+        gc.collect()
+        gc.freeze()
+    return result

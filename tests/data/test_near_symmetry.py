@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from popcode_trainer.data import symmetry_check
 from popcode_trainer.data.near_symmetry import look_alike_symmetries
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info
 from popcode_trainer.data.surface_sample import diameter_mm, surface_sample
@@ -54,6 +55,37 @@ def test_the_symmetry_check_warns_with_the_fix(tmp_path: Path) -> None:
         check_object_symmetries(path, info, 9)
     texts = [str(w.message) for w in caught]
     assert any("object 9 looks 4-fold symmetric about z" in t and "declare it" in t and "--top-k" in t for t in texts)
+
+
+def test_a_copy_in_another_folder_warns_again_without_sampling_again(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each split holds its own copy of the models: a copy of a file that passed is not sampled again, yet warns
+    as the first did; a mesh with other bytes is checked anew."""
+    mesh = _plate_with_pin()
+    info = json.loads(json.dumps(model_info(mesh, {})))
+    paths = []
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        paths.append(tmp_path / folder / "obj_000009.ply")
+        mesh.export(paths[-1])
+    with warnings.catch_warnings(record=True) as first:
+        warnings.simplefilter("always")
+        check_object_symmetries(paths[0], info, 9)
+
+    def no_second_look(*args: object) -> None:
+        raise AssertionError("sampled again")
+
+    monkeypatch.setattr(symmetry_check, "surface_sample", no_second_look)
+    with warnings.catch_warnings(record=True) as second:
+        warnings.simplefilter("always")
+        check_object_symmetries(paths[1], info, 9)
+    assert [str(w.message) for w in second] == [str(w.message) for w in first]
+    assert any("object 9 looks 4-fold symmetric about z" in str(w.message) for w in second)
+    mesh.apply_translation((0.5, 0.0, 0.0))
+    (tmp_path / "c").mkdir()
+    mesh.export(tmp_path / "c" / "obj_000009.ply")
+    with pytest.raises(AssertionError, match="sampled again"):
+        check_object_symmetries(tmp_path / "c" / "obj_000009.ply", info, 9)
 
 
 @pytest.mark.parametrize("angle_deg", [0.0, 30.0])

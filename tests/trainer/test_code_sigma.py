@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from popcode_runtime.population_code import CodeLayout, PopulationCode
 from popcode_runtime.refine import decode_refined
 from popcode_runtime.rotations import random_rotations
 from popcode_runtime.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
+from popcode_trainer.train import code_sigma
 from popcode_trainer.train.code_sigma import exact_decoding_errors_deg, fit_sigma, merged_peaks, sigma_floor_deg
 from popcode_trainer.train.representations import build_representation
 
@@ -28,6 +30,23 @@ def test_the_hex_nut_has_twelve_poses() -> None:
     assert len(S) == 12
     products = np.einsum("aij,bjk->abik", S, S).reshape(-1, 3, 3)  # a group: closed under composition
     assert np.all(rotation_error_up_to_symmetry(products, np.broadcast_to(np.eye(3), products.shape), S) < 1e-6)
+
+
+def test_a_layout_and_group_are_decoded_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Choosing widths asks the same question for every model of a run: it is answered once per layout and
+    symmetry group (widths no other test asks about, so the first answer is computed here)."""
+    layout = CodeLayout(sigma_deg=27.3, n_axes=162, n_angles=24)
+    first = merged_peaks(layout, HEX_NUT)
+
+    def no_second_decode(*args: object) -> None:
+        raise AssertionError("decoded again")
+
+    monkeypatch.setattr(code_sigma, "exact_decoding_errors_deg", no_second_decode)
+    assert merged_peaks(layout, {**HEX_NUT, "diameter": 99.0}) == first  # the same group: remembered
+    with pytest.raises(AssertionError, match="decoded again"):
+        merged_peaks(replace(layout, sigma_deg=26.1), HEX_NUT)
+    with pytest.raises(AssertionError, match="decoded again"):
+        merged_peaks(layout, TWELVE_FOLD)
 
 
 def test_paper_width_merges_the_hex_nut_peaks_and_warns() -> None:

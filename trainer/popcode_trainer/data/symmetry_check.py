@@ -15,6 +15,7 @@ not declare gets a warning (:mod:`.near_symmetry`).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from collections.abc import Iterable, Mapping
@@ -31,7 +32,7 @@ from popcode_runtime.symmetries import continuous_symmetries, discrete_transform
 
 from .bop import model_path
 from .meshes import load_mesh
-from .near_symmetry import look_alike_symmetries
+from .near_symmetry import LookAlike, look_alike_symmetries
 from .surface_sample import PERCENTILE, SurfaceSample, diameter_mm, surface_distance, surface_sample
 
 TOLERANCE = 0.02  # of the diameter: the percentile distance a true symmetry stays under
@@ -40,6 +41,9 @@ CONTINUOUS_ANGLES_DEG = (37.0, 90.0, 180.0, 251.0)  # incommensurate with small 
 MAX_GROUP = 1000  # elements; a declared set whose closure grows past this is no finite group
 
 _checked: set[tuple[Any, ...]] = set()  # (mesh file, its size and mtime, declaration) already passed
+# (digest of the mesh file's bytes, its models_info entry) that passed -> the look-alikes found: the same part copied
+# into another folder (each split holds its models) is not sampled again, and warns as a new file does.
+_passed: dict[tuple[str, str], list[LookAlike]] = {}
 
 
 @dataclass(frozen=True)
@@ -156,18 +160,22 @@ def check_object_symmetries(mesh_path: str | Path, info: Mapping[str, Any], obj_
                             mesh: trimesh.Trimesh | None = None) -> None:
     """:func:`check_symmetries` of one object's mesh file, and a warning for each symmetry it nearly has
     without declaring it (:func:`.near_symmetry.look_alike_symmetries`), once per file and declaration in a
-    process."""
+    process; a file with the bytes and entry of one that passed is not checked again, only warned about."""
     path = Path(mesh_path)
     stat = path.stat()
     key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, _declaration(info))
     if key in _checked:
         return
-    mesh = load_mesh(path) if mesh is None else mesh
-    name = f"object {obj_id} ({path})"
-    diameter = diameter_mm(mesh, info)
-    sample = surface_sample(mesh, diameter, name)
-    check_symmetries(mesh, info, name, sample)
-    for look_alike in look_alike_symmetries(sample, info, _anchors_mm(info, diameter)):
+    content = (hashlib.sha256(path.read_bytes()).hexdigest(), json.dumps(info, sort_keys=True, default=str))
+    look_alikes = _passed.get(content)
+    if look_alikes is None:
+        mesh = load_mesh(path) if mesh is None else mesh
+        name = f"object {obj_id} ({path})"
+        diameter = diameter_mm(mesh, info)
+        sample = surface_sample(mesh, diameter, name)
+        check_symmetries(mesh, info, name, sample)
+        look_alikes = _passed[content] = look_alike_symmetries(sample, info, _anchors_mm(info, diameter))
+    for look_alike in look_alikes:
         warnings.warn(look_alike.describe(f"object {obj_id}"), stacklevel=2)
     _checked.add(key)
 
