@@ -26,7 +26,7 @@ SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "builtin-parts-
 MAX_SIDE = 400  # random images stay small: the fuzz is about arguments, not about pixels
 
 
-def _pick(rng: np.random.Generator, options: Sequence[Any]) -> Any:
+def pick(rng: np.random.Generator, options: Sequence[Any]) -> Any:
     """One of ``options`` (``rng.choice`` would make an array of them, which mixed types cannot be)."""
     return options[int(rng.integers(len(options)))]
 
@@ -42,34 +42,34 @@ def _image(rng: np.random.Generator) -> Any:
         return rng.random((height, width), dtype=np.float32)
     if kind == 11:
         image = rng.random((height, width)).astype(np.float64)
-        image[rng.integers(height), rng.integers(width)] = _pick(rng, [np.nan, np.inf, -1.0, 2.0])
+        image[rng.integers(height), rng.integers(width)] = pick(rng, [np.nan, np.inf, -1.0, 2.0])
         return image
     if kind == 12:
-        return rng.integers(0, 256, size=(height, width, int(_pick(rng, [1, 2, 4]))), dtype=np.uint8)
+        return rng.integers(0, 256, size=(height, width, int(pick(rng, [1, 2, 4]))), dtype=np.uint8)
     if kind == 13:
         return np.zeros((int(rng.integers(0, 2)), width), np.uint8)
     if kind == 14:
-        return rng.integers(0, 256, size=(height, width)).astype(_pick(rng, [np.int32, np.int8, np.bool_]))
+        return rng.integers(0, 256, size=(height, width)).astype(pick(rng, [np.int32, np.int8, np.bool_]))
     if rng.random() < 0.5:
         return rng.integers(0, 256, size=width, dtype=np.uint8)
-    return _pick(rng, [[[0, 1], [2, 3]], None])
+    return pick(rng, [[[0, 1], [2, 3]], None])
 
 
 def _number(rng: np.random.Generator, scale: float) -> Any:
     kind = rng.integers(40)
     if kind == 0:
-        return float(_pick(rng, [np.nan, np.inf, -np.inf]))
+        return float(pick(rng, [np.nan, np.inf, -np.inf]))
     if kind == 1:
-        return float(_pick(rng, [1e-9, 1e5, 1e9, 1e300, -1e300]))
+        return float(pick(rng, [1e-9, 1e5, 1e9, 1e300, -1e300]))
     if kind == 2:
-        return _pick(rng, ["12", None, True, [1.0]])
+        return pick(rng, ["12", None, True, [1.0]])
     return float(rng.uniform(-0.2, 1.2) * scale)
 
 
 def _box(rng: np.random.Generator, shape: tuple[int, ...]) -> Any:
     height, width = (shape[0], shape[1]) if len(shape) >= 2 else (MAX_SIDE, MAX_SIDE)
     if rng.random() < 0.05:
-        return _pick(rng, ["0,0,10,10", None, [1.0, 2.0, 3.0], [1, 2, 3, 4, 5]])
+        return pick(rng, ["0,0,10,10", None, [1.0, 2.0, 3.0], [1, 2, 3, 4, 5]])
     if rng.random() < 0.9:
         w, h = rng.uniform(2, max(3, width), size=1)[0], rng.uniform(2, max(3, height), size=1)[0]
         return [float(rng.uniform(-w / 2, width)), float(rng.uniform(-h / 2, height)), float(w), float(h)]
@@ -84,23 +84,23 @@ def _camera(rng: np.random.Generator) -> Any:
         return [float(rng.uniform(100, 3000)), float(rng.uniform(100, 3000)), float(rng.uniform(0, 800)),
                 float(rng.uniform(0, 600))]
     if kind == 8:
-        return [_number(rng, 1000.0) for _ in range(int(_pick(rng, [3, 4, 9])))]
-    return _pick(rng, ["500,500,320,240", [[1.0, 2.0], [3.0]], np.eye(2)])
+        return [_number(rng, 1000.0) for _ in range(int(pick(rng, [3, 4, 9])))]
+    return pick(rng, ["500,500,320,240", [[1.0, 2.0], [3.0]], np.eye(2)])
 
 
 def random_call(rng: np.random.Generator, obj_ids: Sequence[int]) -> dict[str, Any]:
     """Keyword arguments for one ``predict`` call, each argument hostile with some probability."""
     image = _image(rng)
-    count = int(_pick(rng, [0, 1, 1, 2, 3, 8, 40]))
+    count = int(pick(rng, [0, 1, 1, 2, 3, 8, 40]))
     boxes = [_box(rng, np.shape(image)) for _ in range(count)]
     if rng.random() < 0.03:
-        boxes = _pick(rng, [None, "boxes", 5])
+        boxes = pick(rng, [None, "boxes", 5])
     call = {"image": image, "boxes": boxes, "K": _camera(rng), "translation": bool(rng.random() < 0.15),
             "return_code": bool(rng.random() < 0.2),
-            "top_k": _pick(rng, [1] * 12 + [2] * 4 + [3] * 4 + [0, -1, "2", 2.5, None, 1000])}
+            "top_k": pick(rng, [1] * 12 + [2] * 4 + [3] * 4 + [0, -1, "2", 2.5, None, 1000])}
     if rng.random() < 0.3:
-        call["obj_ids"] = ([int(_pick(rng, obj_ids))] * count if rng.random() < 0.8
-                          else _pick(rng, [[3.7], [99] * count, "7", [None] * count]))
+        call["obj_ids"] = ([int(pick(rng, obj_ids))] * count if rng.random() < 0.8
+                          else pick(rng, [[3.7], [99] * count, "7", [None] * count]))
     return call
 
 

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from onnx_models import linear_model, save
 
 from bench import agreement, budget_curve, latency, scene_render, toy_orientation, training, translation
@@ -138,7 +139,10 @@ def test_agreement_counts_symmetric_swaps_as_the_same_pose_per_object(tmp_path: 
     assert (tmp_path / "agreement.md").read_text(encoding="utf-8").count("| swapped.onnx |") == 3
 
 
-def test_training_throughput_smoke(tmp_path: Path) -> None:
+def test_training_throughput_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # 30 images a part leave 108 training crops of parts 3-6, the 96 that --quick's batches need; the bench's 80
+    # would render 480 images, in two processes, for rows this test only checks the shape of.
+    monkeypatch.setattr(training, "IMAGES_PER_OBJECT", 30)
     payload = training.main(["--quick", "--networks", "tiny", "--threads", "1", "--workers", "0", "1",
                              "--paths", "eager-nchw-fp32", "eager-cl-bf16", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["rows"]
