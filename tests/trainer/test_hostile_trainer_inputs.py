@@ -67,10 +67,6 @@ BROKEN_MODELS = {
     "mesh_off_centre": (_ply("1000 0 0\n1010 0 0\n1000 10 0\n1000 0 10"), _BOX_INFO),
     "mesh_diameter_tiny": (_ply("-5 -5 -5\n5 -5 -5\n-5 5 -5\n-5 -5 5"), {**_BOX_INFO, "diameter": 1e-6}),
     "mesh_not_ply": ("not a mesh\n", _BOX_INFO),
-    "mesh_in_metres": (_ply("-0.005 -0.005 -0.005\n0.005 -0.005 -0.005\n-0.005 0.005 -0.005\n-0.005 -0.005 0.005"),
-                       {**_BOX_INFO, "diameter": 0.0173}),
-    "mesh_in_micrometres": (_ply("-5e6 -5e6 -5e6\n5e6 -5e6 -5e6\n-5e6 5e6 -5e6\n-5e6 -5e6 5e6"),
-                            {**_BOX_INFO, "diameter": 1.73e7}),
 }
 
 # split folder -> (image width and height [px], cam_R_m2c, bbox_obj, cx = cy [px]); "split" is right
@@ -245,8 +241,6 @@ CASES = [
         ("mesh_off_centre", "reaches 1010 mm from its origin, more than its diameter 17.4 mm"),
         ("mesh_diameter_tiny", "more than its diameter 1e-06 mm in models_info.json"),
         ("mesh_not_ply", "cannot load model"),
-        ("mesh_in_metres", "is 0.01 mm across; models are in millimetres"),
-        ("mesh_in_micrometres", "is 1e+07 mm across; models are in millimetres"),
     )),
     ("render-objects-is-a-checkpoint", lambda f: ["render", "--objects", str(f / "keys.pt"), "--images", "1",
                                                   "--out", str(f / "r")], "no such models folder"),

@@ -206,7 +206,7 @@ def test_bad_folders_are_refused_with_the_fix(tmp_path: Path) -> None:
     models = _own_parts(tmp_path / "models")
     info = (models / "models_info.json").read_text()
     (models / "models_info.json").write_text(info[:-1] + ', "01": ' + json.dumps(json.loads(info)["1"]) + "}")
-    with pytest.raises(PopcodeError, match=r"object 1 is listed twice \(keys '1' and '01'\)"):
+    with pytest.raises(PopcodeError, match=r"models_info.json: '1' and '01' both stand for id 1"):
         check_models_folder(models)
     (models / "models_info.json").write_text(info)
     (models / "obj_000002.ply").unlink()

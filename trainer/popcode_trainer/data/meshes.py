@@ -9,9 +9,6 @@ import trimesh
 
 from popcode_runtime.errors import PopcodeError
 
-MIN_PART_MM = 1.0  # smaller: a model in metres (or a speck the renderer cannot show)
-MAX_PART_MM = 10_000.0  # larger: a model in micrometres, or not a part a robot picks
-
 
 def _ascii_ply_vertices(path: Path) -> np.ndarray | None:
     """The x, y, z of an ASCII PLY's vertices read as float64, as the BOP toolkit reads them; None for other files.
@@ -56,10 +53,6 @@ def _check_geometry(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
     if not area > 0.0:
         raise PopcodeError(f"model {path} is degenerate: its {len(faces)} triangles have no area")
-    extent_mm = float(np.ptp(vertices, axis=0).max())
-    if not MIN_PART_MM <= extent_mm <= MAX_PART_MM:
-        raise PopcodeError(f"model {path} is {extent_mm:.3g} mm across; models are in millimetres, {MIN_PART_MM:g} "
-                           f"to {MAX_PART_MM:g} mm (a model in metres is 1000 times too small)")
 
 
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
