@@ -358,6 +358,7 @@ class Record:
     done: list[str]
     argv: list[str]
     stderr: str
+    compared_with_fresh: bool = False  # a resume whose results were compared with a fresh run's
 
 
 def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Path | None = None) -> list[Record]:
@@ -393,7 +394,7 @@ def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Pa
         records.append(_record(index, "resumed" if scenario == "interrupt" else "run", call, pristine,
                                invoke(call.argv())))
         if resuming and not call.forged and records[-1].outcome == "wrote results":
-            problem = _fresh_run_problem(call)
+            records[-1].compared_with_fresh, problem = True, _fresh_run_problem(call)
             if problem is not None:
                 records[-1].outcome, records[-1].problem = "differs from a fresh run", problem
         return records
@@ -441,7 +442,9 @@ def _rss_mib() -> float:
 class RunFuzzReport:
     """The calls' outcomes: handled (results written and right, refused in one line, our own interrupt) or not."""
 
+    cases: int = 0  # each one or two calls of main (an interrupted run and its resume)
     calls: int = 0
+    compared_with_fresh: int = 0
     outcomes: Counter = field(default_factory=Counter)
     unhandled: list[Record] = field(default_factory=list)
     refusals: Counter = field(default_factory=Counter)
@@ -459,9 +462,11 @@ class RunFuzzReport:
             self.refusals[" ".join(words[:4])] += 1
         if self.slowest is None or record.seconds > self.slowest.seconds:
             self.slowest = record
+        self.compared_with_fresh += record.compared_with_fresh
 
     def to_dict(self) -> dict[str, Any]:
-        return {"calls": self.calls, "outcomes": dict(self.outcomes.most_common()),
+        return {"cases": self.cases, "calls": self.calls, "outcomes": dict(self.outcomes.most_common()),
+                "resumes_compared_with_a_fresh_run": self.compared_with_fresh,
                 "handled": sum(self.outcomes[o] for o in HANDLED), "unhandled": len(self.unhandled),
                 "unhandled_cases": [vars(r) for r in self.unhandled[:20]],
                 "slowest_call": vars(self.slowest) if self.slowest else None, "rss_mib": self.rss_mib,
@@ -469,25 +474,52 @@ class RunFuzzReport:
 
 
 def fuzz_run(pristine: Pristine, calls: int, seed: int = 0, workdir: Path | None = None) -> RunFuzzReport:
-    """``calls`` random ``popcode run`` calls (each one or two invocations of main) with a fixed seed."""
+    """``calls`` random cases (each one or two calls of ``popcode run``) with a fixed seed."""
     report = RunFuzzReport()
     with tempfile.TemporaryDirectory(prefix="fuzz-run-", dir=workdir) as scratch:
         for index in range(calls):
-            for record in fuzz_call(pristine, seed, index, Path(scratch)):
+            records = fuzz_call(pristine, seed, index, Path(scratch))
+            for record in records:
                 report.add(record)
-                report.mutations.update(what.split(":")[0].removeprefix("after the interruption, ")
-                                        for what in record.done)
+            report.cases += 1
+            report.mutations.update(what.split(":")[0].removeprefix("after the interruption, ")
+                                    for what in records[-1].done)
             if (index + 1) % max(1, calls // 10) == 0:
                 report.rss_mib.append(round(_rss_mib(), 1))
     return report
 
 
+def markdown(report: RunFuzzReport, seed: int, command: str, seconds: float, machine: str) -> str:
+    """The findings as ``bench/results/fuzz-run.md`` holds them."""
+    slowest = report.slowest
+    assert slowest is not None, "no calls"
+    return "\n".join([
+        f"# Fuzz of popcode run ({', '.join(p.name for p in SHIPPED_MODELS)}, seed {seed})", "",
+        f"Command: `{command}`. A 6-image split rendered with `render_builtin_split(folder, 1, size=(160, 120), "
+        "random_position=True)`; each case mutates a copy of it (bench/run_mutations.py) and calls main once, or "
+        "twice when it interrupts a run and resumes it.", "", machine, "",
+        "| cases | calls of main | " + " | ".join(HANDLED) + " | unhandled | resumes compared with a fresh run "
+        "| slowest call s | total s |",
+        "|---:|---:|" + "---:|" * (len(HANDLED) + 4),
+        f"| {report.cases} | {report.calls} | " + " | ".join(str(report.outcomes[o]) for o in HANDLED) +
+        f" | {len(report.unhandled)} | {report.compared_with_fresh} | {slowest.seconds:.2f} | {seconds:.0f} |", "",
+        f"Each call ran under a {CALL_LIMIT_S:.0f} s watchdog. Slowest call: case {slowest.index} ({slowest.outcome}; "
+        f"{'; '.join(slowest.done)}).", "",
+        f"Resident memory (MiB, the process with the renderer loaded) after each tenth of the cases: {report.rss_mib}.",
+        "",
+        "Unhandled: " + ("none" if not report.unhandled else "; ".join(
+            f"case {r.index} {r.step}: {r.outcome} ({(r.problem or '').splitlines()[-1][:120]})"
+            for r in report.unhandled[:10])), "",
+        "Mutations applied (cases): " + "; ".join(f"{name} {n}" for name, n in report.mutations.most_common()), "",
+        "Most common refusals: " + "; ".join(f"{text}... ({n})" for text, n in report.refusals.most_common(10))])
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--calls", type=int, default=3000)
+    parser.add_argument("--calls", type=int, default=3000, help="cases to run (each one or two calls of main)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--call", type=int, metavar="N", help="replay call N alone and print what it did")
-    parser.add_argument("--keep", type=Path, metavar="DIR", help="with --call: keep the call's folder in DIR")
+    parser.add_argument("--call", type=int, metavar="N", help="replay case N alone and print what it did")
+    parser.add_argument("--keep", type=Path, metavar="DIR", help="with --call: keep the case's folder in DIR")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
     from popcode_trainer.data.render import render_builtin_split  # the fuzz itself needs the runtime only
@@ -505,27 +537,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = fuzz_run(pristine, args.calls, args.seed, Path(work))
         seconds = time.perf_counter() - started
     command = " ".join(["python -m bench.fuzz_run", *(argv if argv is not None else sys.argv[1:])])
-    slowest = report.slowest
-    lines = [f"# Fuzz of popcode run ({', '.join(p.name for p in SHIPPED_MODELS)}, seed {args.seed})", "",
-             f"Command: `{command}`. A 6-image split rendered with `render_builtin_split(folder, 1, size=(160, 120), "
-             "random_position=True)`; each call mutates a copy of it (bench/run_mutations.py).", "",
-             machine_line(machine()), "",
-             "| calls | " + " | ".join(HANDLED) + " | unhandled | slowest call s | total s |",
-             "|---:|" + "---:|" * (len(HANDLED) + 3),
-             f"| {report.calls} | " + " | ".join(str(report.outcomes[o]) for o in HANDLED) +
-             f" | {len(report.unhandled)} | {slowest.seconds if slowest else 0:.2f} | {seconds:.0f} |", "",
-             f"Slowest call: {slowest.index if slowest else '-'} ({slowest.outcome if slowest else '-'}; "
-             f"{'; '.join(slowest.done) if slowest else ''}).", "",
-             f"Resident memory (MiB) after each tenth of the calls: {report.rss_mib}.", "",
-             "Unhandled: " + ("none" if not report.unhandled else "; ".join(
-                 f"call {r.index} {r.step}: {r.outcome} ({(r.problem or '').splitlines()[-1][:120]})"
-                 for r in report.unhandled[:10])), "",
-             "Mutations applied: " + "; ".join(f"{name} {n}" for name, n in report.mutations.most_common()), "",
-             "Most common refusals: " + "; ".join(f"{text}... ({n})" for text, n in report.refusals.most_common(10))]
+    text = markdown(report, args.seed, command, seconds, machine_line(machine()))
     result = {**report.to_dict(), "seed": args.seed, "seconds": seconds, "command": command,
-              "models": [path.name for path in SHIPPED_MODELS]}
-    json_path, _ = write_results(args.out, "fuzz-run", {"fuzz_run": result}, "\n".join(lines))
-    print("\n".join(lines))
+              "call_limit_s": CALL_LIMIT_S, "models": [path.name for path in SHIPPED_MODELS]}
+    json_path, _ = write_results(args.out, "fuzz-run", {"fuzz_run": result}, text)
+    print(text)
     print(f"wrote {json_path}")
     return 1 if report.unhandled else 0
 

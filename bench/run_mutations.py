@@ -69,7 +69,7 @@ def dump_json(value: Any) -> bytes:
 
 @dataclass
 class Call:
-    """One call's inputs as the mutations leave them: a working copy of the split in ``folder``, the detections
+    """One case's inputs as the mutations leave them: a working copy of the split in ``folder``, the detections
     (a JSON value, raw bytes, or :data:`MISSING`), the ``.partial`` bytes (None: no file), models and options."""
 
     folder: Path
@@ -124,7 +124,8 @@ def _parent(value: Any, path: tuple[Any, ...]) -> Any:
 
 
 def mutate_json_value(value: Any, rng: np.random.Generator) -> tuple[Any, str]:
-    """One random change inside a JSON value: a place set to a hostile value, a key renamed or removed."""
+    """One random change inside a JSON value: a place set to a hostile value, a key renamed, doubled (another
+    spelling of one id) or removed."""
     paths = _paths(value)
     if not paths:
         return _hostile_value(rng), "the whole value replaced"
@@ -138,6 +139,9 @@ def mutate_json_value(value: Any, rng: np.random.Generator) -> tuple[Any, str]:
         new_key = pick(rng, HOSTILE_KEYS + tuple(parent))  # a key named twice collapses to one
         parent[new_key] = parent.pop(key)
         return value, f"key {list(path)} renamed {new_key!r:.30}"
+    if kind == 3 and isinstance(parent, dict) and str(key).isdigit():  # "3" and "03": two keys of one id
+        parent["0" + key] = copy.deepcopy(parent[key])
+        return value, f"key {list(path)} also as {'0' + key!r}"
     del parent[key]
     return value, f"{list(path)} removed"
 

@@ -362,9 +362,11 @@ def test_a_split_json_file_that_is_a_fifo_is_refused_not_read(split: Path, tmp_p
 
 
 def test_fuzzing_run_finds_nothing_unhandled(split: Path, tmp_path: Path) -> None:
-    """Random calls of popcode run on mutated detections, split files, partial files and options
-    (bench/fuzz_run.py): each writes exactly the rows its inputs ask for or refuses in one line."""
-    report = fuzz_run(prepare(tmp_path, split), calls=40, seed=30, workdir=tmp_path)
+    """30 random cases of popcode run on mutated detections, split files, images, partial files and options
+    (bench/fuzz_run.py): each writes exactly the rows its inputs ask for (a resume: a fresh run's rows) or refuses
+    in one line."""
+    report = fuzz_run(prepare(tmp_path, split), calls=30, seed=33, workdir=tmp_path)
     assert [(r.index, r.step, r.outcome, r.problem, r.done) for r in report.unhandled] == []
-    assert report.outcomes["wrote results"] >= 4 and report.outcomes["refused"] >= 10  # both paths exercised
+    assert report.outcomes["wrote results"] >= 5 and report.outcomes["refused"] >= 10  # both paths exercised
+    assert report.outcomes["interrupted"] >= 1 and report.compared_with_fresh >= 1  # and a resume checked
     assert report.slowest is not None and report.slowest.seconds < 10.0
