@@ -52,6 +52,27 @@ def _box_of(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 
+def _box_and_jacobian(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Box edges ``(4,)`` [px] of camera-frame points and their derivatives ``(4, 3)`` by the translation.
+
+    Each edge moves with the point that makes it, so its derivative is that
+    point's projection's: ``u = (fx X + s Y) / Z + cx`` and ``v = fy Y / Z + cy``.
+    One projection per step instead of seven for central differences.
+    """
+    uv = project_camera_points(points_cam, K)
+    extremes = np.concatenate([uv.argmin(axis=0), uv.argmax(axis=0)])
+    coordinate = np.array([0, 1, 0, 1])
+    X, Y, Z = points_cam[extremes].T
+    jacobian = np.zeros((4, 3))
+    u_rows, v_rows = coordinate == 0, coordinate == 1
+    jacobian[u_rows, 0] = K[0, 0] / Z[u_rows]
+    jacobian[u_rows, 1] = K[0, 1] / Z[u_rows]
+    jacobian[u_rows, 2] = -(K[0, 0] * X[u_rows] + K[0, 1] * Y[u_rows]) / Z[u_rows] ** 2
+    jacobian[v_rows, 1] = K[1, 1] / Z[v_rows]
+    jacobian[v_rows, 2] = -K[1, 1] * Y[v_rows] / Z[v_rows] ** 2
+    return uv[extremes, coordinate], jacobian
+
+
 def translation_from_box(
     R_m2c: np.ndarray, box: Sequence[float], K: np.ndarray, points_mm: np.ndarray, iterations: int = 30
 ) -> np.ndarray:
@@ -69,12 +90,8 @@ def translation_from_box(
     for _ in range(iterations):
         if np.min(rotated[:, 2] + t[2]) <= 1e-6:
             t[2] = -rotated[:, 2].min() + 1.0  # keep every point in front of the camera
-        residual = _box_of(rotated + t, K) - target
-        jacobian = np.empty((4, 3))
-        for axis in range(3):
-            step = np.zeros(3)
-            step[axis] = 1e-4 * max(abs(t[2]), 1.0)
-            jacobian[:, axis] = (_box_of(rotated + t + step, K) - _box_of(rotated + t - step, K)) / (2 * step[axis])
+        edges, jacobian = _box_and_jacobian(rotated + t, K)
+        residual = edges - target
         if not (np.isfinite(jacobian).all() and np.isfinite(residual).all()):
             break  # LAPACK may not return on NaN; the check below refuses the result
         update, *_ = np.linalg.lstsq(jacobian, -residual, rcond=None)
