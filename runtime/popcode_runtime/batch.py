@@ -38,13 +38,15 @@ import numpy as np
 
 from .bop19_csv import PoseEstimate, format_estimate, parse_estimate, write_bop19_lines
 from .bop_split import SplitImage, name_id
+from .crop import check_box
 from .depth_refine import require_small_gicp
 from .detections import Detection
 from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
-from .files import write_bytes_atomic, write_picture_atomic
+from .files import refuse_existing, write_bytes_atomic, write_picture_atomic
 from .image_loop import ImageBoxes, estimate_images, route_objects
+from .image_size import image_size
 from .rotations import is_rotation
 
 try:
@@ -144,15 +146,16 @@ class PartialResults:
     Opening it keeps every closed image (a torn tail from a killed run is dropped) and refuses a file made from
     other models, detections, split or options, one whose closed images were edited, and a second run writing the
     same ``out``. ``expected`` (image -> the object ids of its detections, in order) checks each kept image's
-    lines against what this run would write for it.
+    lines against what this run would write for it. A finished ``out`` is replaced only with ``overwrite``.
     """
 
-    def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
+    def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]],
+                 overwrite: bool = False) -> None:
         self.out, self.path, self.fingerprint = out, out.with_name(out.name + PARTIAL_SUFFIX), fingerprint
         self._lock = _OutputLock(out.with_name(out.name + LOCK_SUFFIX))
         try:
-            if out.exists() and not self.path.exists():
-                raise PopcodeError(f"{out} exists already (a finished run); remove it or choose another --out")
+            if not self.path.exists():  # a finished run's file; with a partial beside it, a rerun that resumes
+                refuse_existing(out, "--out", overwrite)
             self.lines: list[str] = []
             self.done: set[ImageKey] = set()
             if self.path.exists():
@@ -212,10 +215,19 @@ class PartialResults:
         self.done.add(key)
 
     def finish(self) -> None:
-        """Write the results file (header and every estimate) atomically and remove the partial file."""
+        """Write the results file (header and every estimate, images in the run's order whatever the order of
+        the partial file's blocks) atomically and remove the partial file."""
         self._handle.close()
-        write_bop19_lines(self.out, [line for line in self.lines if not line.startswith("#")])
-        sources = [line[len(SOURCE_MARK):] for line in self.lines if line.startswith(SOURCE_MARK)]
+        blocks: dict[ImageKey, list[str]] = {}
+        pending: list[str] = []
+        for line in self.lines:
+            if line.startswith(DONE_MARK):
+                blocks[_done_key(line)[0]], pending = pending, []
+            else:
+                pending.append(line)
+        lines = [line for key in sorted(blocks) for line in blocks[key]]
+        write_bop19_lines(self.out, [line for line in lines if not line.startswith("#")])
+        sources = [line[len(SOURCE_MARK):] for line in lines if line.startswith(SOURCE_MARK)]
         if sources:
             write_bytes_atomic(sources_path(self.out), "\n".join([SOURCE_HEADER, *sources]).encode() + b"\n")
         self.path.unlink()
@@ -316,6 +328,24 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
                            "translation from the box needs the camera")
 
 
+def _check_boxes(keys: Sequence[ImageKey], by_image: Mapping[ImageKey, Sequence[Detection]],
+                 images: Mapping[ImageKey, SplitImage]) -> None:
+    """Before any work: every box against its image's size, read from the file's header (an image whose header
+    is not read here is checked when it is read)."""
+    for key in keys:
+        path = images[key].path
+        try:  # a FIFO would block the open; unreadable files are named when the loop reads them
+            size = image_size(path) if path.is_file() else None
+        except OSError:
+            size = None
+        for detection in by_image[key] if size is not None else ():
+            try:
+                check_box(detection.box, (size[1], size[0]))
+            except PopcodeError as error:
+                raise PopcodeError(f"scene {key[0]} image {key[1]} ({path.name}), the detection of "
+                                   f"object {detection.obj_id}: {error}") from error
+
+
 def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
                  by_image: dict[ImageKey, list[Detection]], estimators: Sequence[PoseEstimator],
                  owner: Mapping[int, int], refine: bool) -> None:
@@ -356,6 +386,11 @@ def _estimates(key: ImageKey, detections: Sequence[Detection], predictions: Sequ
                          p.R_m2c, p.t_m2c_mm, time_s) for d, p in zip(detections, predictions, strict=True)]
 
 
+def picture_path(draw_dir: Path, key: ImageKey) -> Path:
+    """Where ``--draw`` puts an image's picture."""
+    return draw_dir / f"{key[0]:06d}_{key[1]:06d}.png"
+
+
 def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
                drawn: Sequence[tuple[PoseEstimator, list[Prediction]]]) -> None:
     """Every model's estimates of one image in one picture."""
@@ -368,11 +403,12 @@ def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
 def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], images: dict[ImageKey, SplitImage],
                    detections: Sequence[Detection], out: Path, fingerprint: str, max_images: int | None = None,
                    progress: bool = True, draw_dir: Path | None = None, depth: bool = False,
-                   refine: bool = False) -> RunSummary:
+                   refine: bool = False, overwrite: bool = False) -> RunSummary:
     """Estimate every detection whose object a model knows; write ``out`` (BOP19 CSV). See the module docstring.
 
     ``draw_dir``: also a picture of each image's estimates there (``<scene_id>_<im_id>.png``). ``depth``: the
     translation from each image's depth image, and ``refine`` (with depth): the pose refined against it.
+    ``overwrite``: replace a finished ``out`` and, in a run that does not resume, pictures in ``draw_dir``.
     """
     started = time.perf_counter()
     owner = route_objects(estimators, names)
@@ -383,9 +419,13 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
         by_image[detection.image_key].append(detection)
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
+    _check_boxes(keys, by_image, images)
     if depth:
         _check_depth(keys, images, by_image, estimators, owner, refine)
-    results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys})
+    if draw_dir is not None and not out.with_name(out.name + PARTIAL_SUFFIX).exists():
+        for key in keys:  # a resumed run finds the pictures of the images it finished before
+            refuse_existing(picture_path(draw_dir, key), "--draw picture", overwrite)
+    results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys}, overwrite)
     try:
         todo = [key for key in keys if key not in results.done]
         bar, written, sources = Progress(len(todo), progress), 0, Counter()
@@ -400,7 +440,7 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
             sources.update(str(p.t_source) for p in done.predictions)
             written += len(estimates)
             if draw_dir is not None:
-                draw_image(draw_dir / f"{key[0]:06d}_{key[1]:06d}.png", done.image, images[key], done.by_model)
+                draw_image(picture_path(draw_dir, key), done.image, images[key], done.by_model)
             bar.step()
         results.finish()
     finally:

@@ -21,7 +21,7 @@ from .depth import object_surface, read_depth
 from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import MAX_BOXES_PER_CALL, PoseEstimator, Prediction
-from .files import check_picture_path, write_picture_atomic
+from .files import OVERWRITE_HELP, check_picture_path, write_picture_atomic
 from .rotations import matrix_to_axis_angle
 from .symmetries import symmetry_class
 
@@ -55,7 +55,8 @@ def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
 
 def _predict(args: argparse.Namespace) -> int:
     if args.draw:
-        check_picture_path(args.draw, "--draw")  # before the model runs: a typo costs a line, not the run
+        # before the model runs: a typo costs a line, not the run
+        check_picture_path(args.draw, "--draw", [args.model, args.image, *filter(None, [args.depth])], args.overwrite)
     estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
     image = read_image(args.image, args.max_pixels)
     depth = read_depth(args.depth, args.max_pixels) if args.depth else None
@@ -182,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--draw", metavar="PICTURE",
                          help="also write the (grey) image with each estimate drawn (box, axes, hull outline with "
                               "--translation, object id and confidence) to PICTURE (.png, .jpg, ...)")
+    predict.add_argument("--overwrite", action="store_true", help=f"--draw: {OVERWRITE_HELP}")
     predict.add_argument("--json", action="store_true", help="print JSON instead of text")
     predict.add_argument("--code", action="store_true", help="include the raw network output (with --json)")
     predict.add_argument("--max-pixels", type=int, default=MAX_IMAGE_PIXELS, metavar="N",

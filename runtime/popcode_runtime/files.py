@@ -101,11 +101,7 @@ def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[st
     if os.fspath(value).endswith(tuple(sep for sep in (os.sep, os.altsep) if sep)):
         raise PopcodeError(f"{what} {os.fspath(value)} ends with a path separator, so it names a folder; give a file "
                            f"name (such as {os.fspath(value)}results.csv)")
-    target = Path(os.path.realpath(path))  # realpath, not Path.resolve: a symbolic link loop is no error here
-    for source in (Path(os.path.realpath(source)) for source in inputs):
-        if target == source or (source.is_dir() and target.is_relative_to(source)):
-            raise PopcodeError(f"{what} {path} {'is' if target == source else 'lies in'} the input {source}; "
-                               "an output never replaces or joins what the command reads: choose another path")
+    refuse_inputs(path, what, inputs)
     folder = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise PopcodeError(f"{what} {path} is a folder, not a file")
@@ -119,9 +115,38 @@ def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[st
     return path
 
 
-def check_picture_path(value: str | os.PathLike, what: str = "picture path") -> Path:
-    """``value`` as a writable image file whose suffix names a format OpenCV writes (PNG, JPEG, ...)."""
-    path = check_writable_file(value, what)
+OVERWRITE_HELP = "replace output files that exist already (never a file the command reads)"
+
+
+def refuse_existing(path: Path, what: str, overwrite: bool) -> Path:
+    """``path``, unless it exists and ``overwrite`` is off: the one rule for outputs that exist, in every command
+    (an output is never an input, :func:`check_writable_file`; folders of long work resume instead)."""
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise PopcodeError(f"{what} {path} exists already; pass --overwrite to replace it, or choose another path")
+    return path
+
+
+def check_output_file(value: str | os.PathLike, what: str, inputs: Iterable[str | os.PathLike] = (),
+                      overwrite: bool = False) -> Path:
+    """``value`` as a new output file (:func:`check_writable_file`), refused if it exists unless ``overwrite``."""
+    return refuse_existing(check_writable_file(value, what, inputs), what, overwrite)
+
+
+def refuse_inputs(path: Path, what: str, inputs: Iterable[str | os.PathLike]) -> Path:
+    """``path`` (an output file or folder), unless it is one of the command's ``inputs`` or lies in one."""
+    target = Path(os.path.realpath(path))  # realpath, not Path.resolve: a symbolic link loop is no error here
+    for source in (Path(os.path.realpath(source)) for source in inputs):
+        if target == source or (source.is_dir() and target.is_relative_to(source)):
+            raise PopcodeError(f"{what} {path} {'is' if target == source else 'lies in'} the input {source}; "
+                               "an output never replaces or joins what the command reads: choose another path")
+    return path
+
+
+def check_picture_path(value: str | os.PathLike, what: str = "picture path", inputs: Iterable[str | os.PathLike] = (),
+                       overwrite: bool = True) -> Path:
+    """``value`` as a writable image file whose suffix names a format OpenCV writes (PNG, JPEG, ...); with
+    ``overwrite`` off an existing file is refused (:func:`refuse_existing`)."""
+    path = check_output_file(value, what, inputs, overwrite)
     if path.suffix.lower() not in PICTURE_SUFFIXES or not cv2.haveImageWriter(str(path)):
         raise PopcodeError(f"{what} {path}: unknown image format {path.suffix!r}; use one of "
                            f"{', '.join(PICTURE_SUFFIXES)}")

@@ -12,20 +12,21 @@ import struct
 from pathlib import Path
 
 _JPEG_FRAME_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_SIGNATURE_BYTES = 32  # the format's signature, and PNG's and BMP's sizes
 _HEADER_BYTES = 1 << 16  # enough for the headers below; JPEG scans further in chunks
 
 
 def image_size(path: str | Path) -> tuple[int, int] | None:
     """``(width, height)`` from the file's header, or None for formats (or damaged headers) not read here."""
     with open(path, "rb") as handle:
-        head = handle.read(_HEADER_BYTES)
+        head = handle.read(_SIGNATURE_BYTES)  # PNG and BMP give their size here; a run checks every image's
         if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
             return struct.unpack(">II", head[16:24])
         if head.startswith(b"BM") and len(head) >= 26:
             width, height = struct.unpack("<ii", head[18:26])
             return abs(width), abs(height)
         if head[:2] in (b"P1", b"P2", b"P3", b"P4", b"P5", b"P6"):
-            return _pnm_size(head)
+            return _pnm_size(head + handle.read(_HEADER_BYTES - len(head)))
         if head.startswith(b"\xff\xd8"):
             handle.seek(2)
             return _jpeg_size(handle)

@@ -14,7 +14,7 @@ from .decoding import DECODERS
 from .detections import ground_truth_boxes, read_detections
 from .errors import PopcodeError
 from .estimator import PoseEstimator
-from .files import check_writable_file, require_folder
+from .files import OVERWRITE_HELP, check_writable_file, refuse_inputs, require_folder
 
 DEFAULT_OUT = "results.csv"
 
@@ -58,6 +58,8 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     run.add_argument("--refine", action="store_true",
                      help="with --depth: also refine rotation and translation against the observed points (ICP; "
                           "needs pip install ./runtime[depth])")
+    run.add_argument("--overwrite", action="store_true",
+                     help=f"{OVERWRITE_HELP}: a finished --out, pictures in --draw")
     run.add_argument("--quiet", action="store_true", help="no progress line")
     add_runtime_options(run)
     run.set_defaults(handler=handle)
@@ -81,9 +83,11 @@ def handle(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
     if args.refine and not args.depth:
         raise PopcodeError("--refine refines the pose against each image's depth: add --depth")
-    args.out = check_writable_file(args.out, "--out", [args.split, *args.models, *filter(None, [args.detections])])
+    inputs = [args.split, *args.models, *filter(None, [args.detections])]
+    args.out = check_writable_file(args.out, "--out", inputs)
     if args.draw is not None:
         require_folder(args.draw, "--draw folder")
+        refuse_inputs(args.draw, "--draw folder", inputs)
     require_folder(args.split, "split folder")
     estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
                   for path in args.models]
@@ -92,7 +96,7 @@ def handle(args: argparse.Namespace) -> int:
     images = split_images(args.split)
     summary = run_detections(estimators, [str(path) for path in args.models], images, detections,
                              args.out, _fingerprint(args, images), args.max_images, not args.quiet, args.draw,
-                             args.depth, args.refine)
+                             args.depth, args.refine, args.overwrite)
     skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "

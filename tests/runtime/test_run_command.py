@@ -110,6 +110,11 @@ def test_an_interrupted_run_resumes_from_the_last_finished_image(split: Path, tm
     ([{"scene_id": 1, "image_id": 77, "category_id": 1, "bbox": [0, 0, 5, 5], "score": 1}],
      "1 image(s) that are not in the split, first scene 1 image 77"),
     ([[1, 0, 1]], "detection 0 must be a JSON object"),
+    # found before the first image is estimated, naming the image and the detection (the good box comes first)
+    ([{"scene_id": 1, "image_id": 0, "category_id": 1, "bbox": [10, 10, 50, 50], "score": 1},
+      {"scene_id": 6, "image_id": 1, "category_id": 6, "bbox": [5000, 10, 50, 50], "score": 1}],
+     "scene 6 image 1 (000001.png), the detection of object 6: box (5000.0, 10.0, 50.0, 50.0) lies wholly outside the "
+     "200x150 image"),
 ])
 def test_malformed_detections_are_refused_in_one_line(split: Path, tmp_path: Path, capsys, content,
                                                       message: str) -> None:
@@ -158,3 +163,41 @@ def test_evaluate_scores_the_results_file_as_it_scores_the_models(split: Path, t
     direct = json.loads((tmp_path / "direct" / "report.json").read_text())["methods"]["direct"]
     from_csv = json.loads((tmp_path / "csv" / "report.json").read_text())["methods"]["gt_boxes"]
     assert from_csv["per_object"] == direct["per_object"] and from_csv["groups"] == direct["groups"]
+
+
+def test_existing_outputs_are_refused_unless_overwrite(split: Path, tmp_path: Path, capsys) -> None:
+    """One rule in every command: an output that exists is refused in one line naming --overwrite, which replaces
+    it; an input is never an output, --overwrite or not."""
+    out, pictures = tmp_path / "results.csv", tmp_path / "pictures"
+    pictures.mkdir()
+    assert _run(split, out, "--gt-boxes", "--max-images", "1") == 0
+    assert _run(split, out, "--gt-boxes") == 2
+    assert "--out " + str(out) + " exists already; pass --overwrite" in capsys.readouterr().err
+    assert _run(split, out, "--gt-boxes", "--overwrite") == 0
+    fresh = tmp_path / "fresh.csv"
+    assert _run(split, fresh, "--gt-boxes") == 0
+    assert _without_time(out) == _without_time(fresh)  # replaced by a whole run, not appended to the first
+
+    stale = pictures / "000001_000000.png"
+    stale.write_bytes(b"not yet a picture")
+    assert _run(split, tmp_path / "drawn.csv", "--gt-boxes", "--draw", str(pictures)) == 2
+    assert f"--draw picture {stale} exists already" in capsys.readouterr().err
+    assert not (tmp_path / "drawn.csv.partial").exists()  # refused before anything was written
+    assert _run(split, tmp_path / "drawn.csv", "--gt-boxes", "--draw", str(pictures), "--overwrite") == 0
+    assert read_image(stale).shape[:2] == (150, 200)
+
+    report = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
+              "--out", str(tmp_path / "eval")]
+    assert trainer_main(report) == 0
+    assert trainer_main(report) == 2
+    assert "report.md exists already; pass --overwrite" in capsys.readouterr().err
+    assert trainer_main([*report, "--overwrite"]) == 0
+    inside = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
+              "--out", str(split / "eval"), "--overwrite"]
+    assert trainer_main(inside) == 2 and "lies in the input" in capsys.readouterr().err
+
+    detections = ["detections", "--split", str(split), "--box-noise", "tight", "--out", str(tmp_path / "d.json")]
+    assert trainer_main(detections) == 0
+    assert trainer_main(detections) == 2 and "exists already" in capsys.readouterr().err
+    assert trainer_main([*detections[:-1], str(split / "000001" / "scene_gt.json"), "--overwrite"]) == 2
+    assert "lies in the input" in capsys.readouterr().err

@@ -110,6 +110,24 @@ def test_a_torn_tail_is_redone_not_duplicated(split: Path, whole: Path, killed: 
     assert _rows(out) == _rows(whole)
 
 
+def test_reordered_blocks_give_the_runs_order(split: Path, whole: Path, killed: bytes, tmp_path: Path) -> None:
+    """Each image's block is whole and checked, so their order in the partial file does not matter: the results
+    file lists the images in the run's order, as the uninterrupted run does."""
+    out = tmp_path / "results.csv"
+    partial = _resumable(killed, out)
+    header, *body = _lines(partial)
+    blocks, pending = [], []
+    for line in body:
+        pending.append(line)
+        if line.startswith("#done"):
+            blocks.append(pending)
+            pending = []
+    assert len(blocks) == KILLED_AT
+    partial.write_text("\n".join([header, *(line for block in reversed(blocks) for line in block)]) + "\n")
+    assert _run(split, out) == 0
+    assert _rows(out) == _rows(whole)
+
+
 def _edit_a_number(partial: Path) -> None:
     lines = _lines(partial)
     fields = lines[1].split(",")

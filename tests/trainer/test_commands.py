@@ -81,6 +81,10 @@ def test_export_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
         assert line.split()[0].endswith(name) and line.split()[-1].endswith("%")  # one object: pose measured
     assert lines[1].split()[-2:] == ["100.0%", "100.0%"]  # onnxruntime vs torch
     np.save(tmp_path / "ids.npy", np.full(len(crops), 7))
+    again = ["export", str(ckpt), "--out", str(out), "--crops", str(tmp_path / "crops.npy"), "--quantize", "int8"]
+    assert main(again) == 2 and "model.onnx exists already; pass --overwrite" in capsys.readouterr().err
+    out.unlink()  # the quantised copy is an output too
+    assert main(again) == 2 and "model.int8.onnx exists already; pass --overwrite" in capsys.readouterr().err
     assert main(["export", str(ckpt), "--out", str(out), "--crops", str(tmp_path / "crops.npy"),
                  "--crop-obj-ids", str(tmp_path / "ids.npy")]) == 2
     assert "object ids [7] are not in this model" in capsys.readouterr().err

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import check_writable_file, require_folder, write_json_atomic
+from popcode_runtime.files import OVERWRITE_HELP, check_output_file, require_folder, write_json_atomic
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.detector_boxes import detections_json, split_detections
@@ -30,6 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--box-noise", required=True, metavar="PRESET",
                         help=f"the detector's error: {', '.join(BOX_NOISE_PRESETS)} (typical IoU 1, 0.9, 0.75, 0.6)")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.json", help="detections file to write")
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="seed of the boxes (default 0; as evaluate's --box-noise-seed)")
     parser.add_argument("--min-visib-fract", type=float, default=BOP19_MIN_VISIB_FRACT, metavar="F",
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--seed must be 0 or more, got {args.seed}")
     if not 0.0 <= args.min_visib_fract <= 1.0:
         raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
-    out = check_writable_file(args.out, "--out")
+    out = check_output_file(args.out, "--out", [args.split], args.overwrite)
     require_folder(args.split, "split folder")
     detections, iou = split_detections(args.split, noise, args.seed, args.box, args.min_visib_fract)
     write_json_atomic(out, detections_json(detections))

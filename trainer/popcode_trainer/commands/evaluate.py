@@ -10,14 +10,14 @@ from popcode_runtime.decoding import DECODERS
 from popcode_runtime.engine import check_threads
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import MAX_TOP_K
-from popcode_runtime.files import require_folder
+from popcode_runtime.files import OVERWRITE_HELP, refuse_existing, refuse_inputs, require_folder
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import ARGMAX, methods_from_paths
 from ..eval.pipeline.split import read_eval_split
-from ..eval.reporting.report import report_markdown, write_report
+from ..eval.reporting.report import REPORT_MD, report_markdown, write_report
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,6 +48,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "the paper's). Several score each population-code method once per decoder, as NAME "
                              "(argmax) and NAME (DECODER); other models once, with a warning")
     parser.add_argument("--out", type=Path, default=Path("eval"), help="output folder (default: ./eval)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help=f"replace the report in --out if one is there ({OVERWRITE_HELP})")
     parser.add_argument("--bop19-csv", action="store_true", help="also write a BOP19 results CSV per method")
     parser.add_argument("--translation", action="store_true",
                         help="also fit the translation to each instance's box (with the predicted and with the "
@@ -100,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     require_folder(args.models_dir, "models folder")
     if args.out.exists() and not args.out.is_dir():
         raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
+    refuse_inputs(args.out, "--out", [*args.splits, args.models_dir, *args.models])
+    refuse_existing(args.out / REPORT_MD, "--out's report", args.overwrite)
     methods = methods_from_paths(args.models, args.names, args.decoders, args.threads)
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes

@@ -10,11 +10,12 @@ import numpy as np
 
 from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
 from popcode_runtime.errors import PopcodeError, first_line
+from popcode_runtime.files import OVERWRITE_HELP, check_output_file
 
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import trained_model
 from ..export.onnx_export import COREML_MAX_DIM, export_trained
-from ..export.quantise import QUANTISATIONS
+from ..export.quantise import QUANTISATIONS, quantised_path
 from ..train import checkpoint
 from ..train.config import Config
 
@@ -29,6 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "torch on crops, and optionally write quantised copies beside it.")
     parser.add_argument("checkpoint", type=Path, help="a checkpoint written by 'popcode-train train' (last.pt)")
     parser.add_argument("--out", type=Path, required=True, help="path of the float ONNX model")
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     parser.add_argument("--quantize", nargs="+", choices=QUANTISATIONS, default=[], metavar="KIND",
                         help=f"also write quantised models: {', '.join(QUANTISATIONS)}")
     parser.add_argument("--split-output", type=int, default=0, metavar="COLUMNS",
@@ -95,12 +97,9 @@ def _percent(share: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.out.is_dir():
-        raise PopcodeError(f"--out {args.out} is a folder; give the path of the .onnx file to write")
-    if args.out.resolve() == args.checkpoint.resolve():
-        raise PopcodeError(f"--out {args.out} is the checkpoint itself; give the path of the .onnx file to write")
-    if not args.out.parent.is_dir():
-        raise PopcodeError(f"--out {args.out}: folder {args.out.parent} does not exist")
+    inputs = [args.checkpoint, *filter(None, [args.crops, args.crop_obj_ids])]
+    for path in [args.out, *(quantised_path(args.out, kind) for kind in args.quantize)]:
+        check_output_file(path, "--out", inputs, args.overwrite)
     state = checkpoint.load_trained(args.checkpoint)  # read once, and refused here before any crop is read
     crops, obj_ids, split = _crops(args, state)
     trained = trained_model(state, args.checkpoint)

@@ -14,6 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import OVERWRITE_HELP, check_picture_path
 from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.symmetries import symmetry_class
 
@@ -34,6 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--split", required=True, type=Path, help="BOP split folder")
     parser.add_argument("--models", type=Path, help="models folder (default: SPLIT/models)")
     parser.add_argument("--out", required=True, type=Path, help="PNG to write")
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     parser.add_argument("--count", type=int, default=12, help="number of crops")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--obj-ids", nargs="+", type=int)
@@ -68,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if args.count < 1:
         raise PopcodeError(f"--count must be at least 1, got {args.count}")
     models_dir = args.models or args.split / "models"
+    check_picture_path(args.out, "--out", [args.split, models_dir, *filter(None, [args.backgrounds])], args.overwrite)
     split = read_bop_split(args.split, models_dir, obj_ids=args.obj_ids)
     paper = CodeLayout()
     codes = PerObjectPopulationCodes(split.models_info, paper.n_axes, paper.n_angles, paper.sigma_deg)

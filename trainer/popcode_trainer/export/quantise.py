@@ -69,6 +69,11 @@ def _quantise_int8(float_path: Path, calibration: np.ndarray) -> onnx.ModelProto
         return onnx.load(str(out_path))
 
 
+def quantised_path(float_path: Path, kind: str) -> Path:
+    """Where the ``kind`` copy of a float model is written: beside it, ``<stem>.<kind>.onnx``."""
+    return float_path.with_name(f"{float_path.stem}.{kind}.onnx")
+
+
 def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: np.ndarray | None = None) -> Path:
     """Write ``<name>.<kind>.onnx`` beside the float model, with the same metadata.
 
@@ -83,7 +88,7 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     """
     if kind not in QUANTISATIONS:
         raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
-    out_path = float_path.with_name(f"{float_path.stem}.{kind}.onnx")
+    out_path = quantised_path(float_path, kind)
     if kind == "int8":
         if calibration is None or len(calibration) == 0:
             raise PopcodeError("int8 quantisation needs calibration crops float32 [N, 1, S, S] (N >= 1)")
