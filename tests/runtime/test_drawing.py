@@ -232,6 +232,16 @@ def test_predict_draw_writes_the_picture_of_the_estimates(tmp_path: Path, index:
     assert (picture.max(axis=2) != picture.min(axis=2)).sum() > 100  # coloured lines on a grey image
 
 
+def test_an_existing_picture_is_replaced_only_with_overwrite(tmp_path: Path, capsys) -> None:
+    model, arguments = sample_arguments(0)
+    out = tmp_path / "estimate.png"
+    out.write_bytes(b"an older picture")
+    assert main(["predict", str(model), *arguments, "--draw", str(out)]) == 2
+    assert "exists already; pass --overwrite" in capsys.readouterr().err and out.read_bytes() == b"an older picture"
+    assert main(["predict", str(model), *arguments, "--draw", str(out), "--overwrite"]) == 0
+    assert cv2.imread(str(out)).shape[:2] == read_image(arguments[0]).shape[:2]
+
+
 @pytest.mark.parametrize("draw, problem", [("missing-folder/out.png", "does not exist"),
                                            ("out.xyz", "unknown image format"),
                                            ("out", "unknown image format"),
