@@ -21,6 +21,7 @@ from symmetry_cases import CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PoseEstimator, parse_camera_matrix, read_image
 from popcode_runtime.cli import main
+from popcode_runtime.confidence import FEATURES, Calibrator
 from popcode_runtime.crop import crop_square
 from popcode_runtime.depth import read_depth
 
@@ -47,6 +48,11 @@ def _objects(**changes: object) -> str:
     return json.dumps({"7": {**OBJECT, **changes}})
 
 
+def _confidence(**changes: object) -> str:
+    calibrator = Calibrator(5.0, 10.0, [0.0] * len(FEATURES), 0.0)
+    return json.dumps({**calibrator.to_dict(), **changes})
+
+
 # name -> (metadata key, raw JSON text or None to delete the key, what the error line must say)
 METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
     "no_format_version": ("popcode.format_version", None, "not a popcode model"),
@@ -69,10 +75,10 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
     "n_angles_huge": ("popcode.code", _code(n_angles=10**9), "code.n_angles must lie in"),
     "code_too_big": ("popcode.code", _code(n_axes=16384, n_angles=720), "exceeds the runtime's limit"),
     "sigma_text": ("popcode.code", _code(sigma_deg="20"), "code.sigma_deg must be a number"),
-    "sigma_nan": ("popcode.code", _code(sigma_deg=20.0).replace("20.0", "NaN"), "NaN is not a number"),
-    "sigma_infinity": ("popcode.code", _code(sigma_deg=20.0).replace("20.0", "Infinity"), "Infinity is not"),
-    "n_axes_nan": ("popcode.code", _code(n_axes=float("nan")), "NaN is not a number"),
-    "n_angles_infinity": ("popcode.code", _code(n_angles=float("inf")), "Infinity is not a number"),
+    "sigma_nan": ("popcode.code", _code(sigma_deg=20.0).replace("20.0", "NaN"), "NaN is not a JSON number"),
+    "sigma_infinity": ("popcode.code", _code(sigma_deg=20.0).replace("20.0", "Infinity"), "Infinity is not a"),
+    "n_axes_nan": ("popcode.code", _code(n_axes=float("nan")), "NaN is not a JSON number"),
+    "n_angles_infinity": ("popcode.code", _code(n_angles=float("inf")), "Infinity is not a JSON number"),
     "sigma_zero": ("popcode.code", _code(sigma_deg=0), "sigma_deg must lie in (0, 180)"),
     "sigma_huge": ("popcode.code", _code(sigma_deg=500), "sigma_deg must lie in (0, 180)"),
     "axis_only_text": ("popcode.code", _code(axis_only="yes"), "code.axis_only must be true or false"),
@@ -82,6 +88,14 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
                                "checksum"),
     "relabelled_width": ("popcode.code", _code(n_axes=43), "values per crop"),
     "digest_wrong": ("popcode.code", json.dumps({**LAYOUT.to_dict(), "digest": "0123456789abcdef"}), "checksum"),
+    "input_size_400_digits": ("popcode.input", json.dumps({"size": 10**400, "crop_padding": 0.2}),
+                              "an integer of 401 digits"),
+    "diameter_overflows": ("popcode.objects", _objects(diameter=1.0).replace("1.0", "1e400"), "overflows a float"),
+    "object_id_30_digits": ("popcode.objects", json.dumps({"1" * 30: OBJECT}), "not a whole number of at most 18"),
+    "confidence_fitted_on_text": ("popcode.confidence", _confidence(fitted_on="T-LESS"), "fitted_on must be an"),
+    "confidence_fitted_on_pairs": ("popcode.confidence", _confidence(fitted_on=[["split", "x"]]),
+                                   "fitted_on must be an"),
+    "confidence_weight_400_digits": ("popcode.confidence", _confidence(bias=10**400), "an integer of 401 digits"),
     "objects_text": ("popcode.objects", '"abc"', "'popcode.objects' must be an object"),
     "objects_empty": ("popcode.objects", "{}", "lists no objects"),
     "object_text": ("popcode.objects", '{"7": "abc"}', "object 7 must be an object"),
@@ -105,8 +119,8 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
     "hull_words": ("popcode.objects", _objects(hull_points_mm="abc"), "at least 4 finite points"),
     "extents_text": ("popcode.objects", json.dumps({"7": {**CASES["two_fold"], "size_x": "big"}}),
                      "size_x must be a number"),
-    "diameter_nan": ("popcode.objects", _objects(diameter=float("nan")), "NaN is not a number"),
-    "input_size_nan": ("popcode.input", '{"size": NaN, "crop_padding": 1.1}', "NaN is not a number"),
+    "diameter_nan": ("popcode.objects", _objects(diameter=float("nan")), "NaN is not a JSON number"),
+    "input_size_nan": ("popcode.input", '{"size": NaN, "crop_padding": 1.1}', "NaN is not a JSON number"),
     "input_text": ("popcode.input", '"128"', "'popcode.input' must be an object"),
     "input_size_float": ("popcode.input", '{"size": 127.5, "crop_padding": 1.1}', "input size must be an integer"),
     "input_size_huge": ("popcode.input", '{"size": 100000, "crop_padding": 1.1}', "input size must lie in"),
@@ -114,12 +128,12 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
     "padding_negative": ("popcode.input", '{"size": 128, "crop_padding": -1}', "crop_padding must lie in"),
     "padding_text": ("popcode.input", '{"size": 128, "crop_padding": "1.1"}', "crop_padding must be a number"),
     "padding_huge": ("popcode.input", '{"size": 128, "crop_padding": 100}', "crop_padding must lie in"),
-    "padding_nan": ("popcode.input", '{"size": 128, "crop_padding": NaN}', "NaN is not a number"),
+    "padding_nan": ("popcode.input", '{"size": 128, "crop_padding": NaN}', "NaN is not a JSON number"),
     "hypotheses_negative": ("popcode.num_hypotheses", "-3", "num_hypotheses must lie in"),
     "hypotheses_text": ("popcode.num_hypotheses", '"2"', "num_hypotheses must be an integer"),
     "hypotheses_missing": ("popcode.representation", '"multi_hypothesis"', "needs num_hypotheses >= 1"),
     "training_text": ("popcode.training", '"abc"', "training must be an object"),
-    "deep_json": ("popcode.training", "[" * 100_000 + "]" * 100_000, "'popcode.training' is not valid JSON"),
+    "deep_json": ("popcode.training", "[" * 100_000 + "]" * 100_000, "'popcode.training' nests JSON too deeply"),
     "axis_only_mismatch": ("popcode.code", _code(axis_only=True, symmetry_axis=[0, 0, 1]),
                            "axis_only must be true exactly when"),
     "surface_short": ("popcode.objects", _objects(surface_points_mm=SURFACE[:15], surface_normals=NORMALS[:15]),
@@ -202,6 +216,7 @@ CLI_CASES: list[CliCase] = [
     CliCase("depth-missing", _predict("--K", GOOD_K, "--depth", "{folder}/missing.png"), "depth image file not found"),
     CliCase("depth-text-file", _predict("--K", GOOD_K, "--depth", "{folder}/text.png"), "cannot read depth image"),
     CliCase("depth-colour", _predict("--K", GOOD_K, "--depth", "{folder}/depth_colour.png"), "has 3 channels"),
+    CliCase("depth-8-bit-picture", _predict("--K", GOOD_K, "--depth", "{folder}/scene.png"), "depth is 8-bit"),
     CliCase("depth-wrong-size", _predict("--K", GOOD_K, "--depth", "{folder}/depth_small.png"),
             "depth is 80x60 but the image is 160x120"),
     CliCase("depth-huge", _predict("--K", GOOD_K, "--depth", "{folder}/huge.png"), "more than the limit"),

@@ -151,11 +151,13 @@ class PartialResults:
 
     def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]],
                  overwrite: bool = False) -> None:
-        self.out, self.path, self.fingerprint = out, out.with_name(out.name + PARTIAL_SUFFIX), fingerprint
-        self._lock = _OutputLock(out.with_name(out.name + LOCK_SUFFIX))
+        self.out, self.fingerprint = out, fingerprint
+        self.path, lock, self.sources = companion_paths(out)
+        self._lock = _OutputLock(lock)
         try:
-            if not self.path.exists():  # a finished run's file; with a partial beside it, a rerun that resumes
+            if not self.path.exists():  # a finished run's files; with a partial beside them, a rerun that resumes
                 refuse_existing(out, "--out", overwrite)
+                refuse_existing(self.sources, "--out's translation sources", overwrite)
             self.lines: list[str] = []
             self.done: set[ImageKey] = set()
             if self.path.exists():
@@ -229,7 +231,9 @@ class PartialResults:
         write_bop19_lines(self.out, [line for line in lines if not line.startswith("#")])
         sources = [line[len(SOURCE_MARK):] for line in lines if line.startswith(SOURCE_MARK)]
         if sources:
-            write_bytes_atomic(sources_path(self.out), "\n".join([SOURCE_HEADER, *sources]).encode() + b"\n")
+            write_bytes_atomic(self.sources, "\n".join([SOURCE_HEADER, *sources]).encode() + b"\n")
+        else:  # one from a results file this run replaced would describe other estimates
+            self.sources.unlink(missing_ok=True)
         self.path.unlink()
 
     def close(self) -> None:
@@ -364,8 +368,14 @@ def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
 
 
 def sources_path(out: Path) -> Path:
-    """Where a run with depth says each estimate's translation source: ``<out stem>.translation.csv``."""
-    return out.with_name(out.stem + ".translation.csv")
+    """Where a run with depth says each estimate's translation source: ``<out stem>.translation<out suffix>``
+    (``results.translation.csv``), one per results file."""
+    return out.with_name(f"{out.stem}.translation{out.suffix or '.csv'}")
+
+
+def companion_paths(out: Path) -> tuple[Path, Path, Path]:
+    """The files a run writes beside ``out``: its partial results, its lock and its translation sources."""
+    return out.with_name(out.name + PARTIAL_SUFFIX), out.with_name(out.name + LOCK_SUFFIX), sources_path(out)
 
 
 def _source_lines(key: ImageKey, detections: Sequence[Detection], predictions: Sequence[Prediction]) -> list[str]:
@@ -417,12 +427,16 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
     # model by model (stable): an image's estimates are written in the order of the models
     for detection in sorted((d for d in detections if d.obj_id in owner), key=lambda d: owner[d.obj_id]):
         by_image[detection.image_key].append(detection)
+    if detections and not by_image:
+        raise PopcodeError(f"none of the {len(detections)} detections is of an object these models know (detected: "
+                           f"objects {', '.join(map(str, sorted(skipped)[:10]))}; the models know objects "
+                           f"{', '.join(map(str, sorted(owner)))}): wrong models or wrong detections file?")
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
     _check_boxes(keys, by_image, images)
     if depth:
         _check_depth(keys, images, by_image, estimators, owner, refine)
-    if draw_dir is not None and not out.with_name(out.name + PARTIAL_SUFFIX).exists():
+    if draw_dir is not None and not companion_paths(out)[0].exists():
         for key in keys:  # a resumed run finds the pictures of the images it finished before
             refuse_existing(picture_path(draw_dir, key), "--draw picture", overwrite)
     results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys}, overwrite)
@@ -436,11 +450,11 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
             key, chosen = done.key, by_image[done.key]
             detector_s = max(d.time_s for d in chosen)
             estimates = _estimates(key, chosen, done.predictions, detector_s, done.seconds)
+            if draw_dir is not None:  # before the image is closed: a resume redraws what a kill left undrawn
+                draw_image(picture_path(draw_dir, key), done.image, images[key], done.by_model)
             results.add(key, estimates, _source_lines(key, chosen, done.predictions) if depth else ())
             sources.update(str(p.t_source) for p in done.predictions)
             written += len(estimates)
-            if draw_dir is not None:
-                draw_image(picture_path(draw_dir, key), done.image, images[key], done.by_model)
             bar.step()
         results.finish()
     finally:

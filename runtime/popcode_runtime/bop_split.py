@@ -22,7 +22,7 @@ from .camera import parse_camera_matrix
 from .checks import number
 from .depth import MAX_DEPTH_SCALE, MIN_DEPTH_SCALE
 from .errors import PopcodeError
-from .files import read_json, require_folder
+from .files import MAX_JSON_INTEGER_DIGITS, read_json, require_folder
 
 IMAGE_FOLDERS = ("rgb", "gray")
 BOX_KINDS = ("bbox_obj", "bbox_visib")
@@ -48,9 +48,11 @@ def json_field(entry: Any, key: str, path: Path, where: str, size: int | None = 
 def name_id(name: str) -> int | None:
     """The id a BOP file or folder name (``000003``, ``3``) or JSON key stands for; None for any other name.
 
-    ASCII digits only: Python's ``int`` also takes ``" 3"``, ``"+3"``, ``"3_0"`` and other scripts' digits.
+    ASCII digits only: Python's ``int`` also takes ``" 3"``, ``"+3"``, ``"3_0"`` and other scripts' digits; at
+    most as many as JSON integers (:data:`.files.MAX_JSON_INTEGER_DIGITS`).
     """
-    return int(name) if name.isascii() and name.isdigit() else None
+    digits = name.isascii() and name.isdigit() and len(name) <= MAX_JSON_INTEGER_DIGITS
+    return int(name) if digits else None
 
 
 def unique_ids(names: Iterable[str], what: str) -> dict[int, str]:

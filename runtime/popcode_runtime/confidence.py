@@ -99,8 +99,9 @@ class Calibrator:
             if "weights" not in refined or "bias" not in refined:
                 raise PopcodeError("model metadata 'popcode.confidence' refined needs weights and bias")
             refined = (refined["weights"], refined["bias"])
-        return cls(data["threshold_deg"], data["rival_radius_deg"], data["weights"], data["bias"],
-                   dict(data.get("fitted_on", {})), refined)
+        fitted_on = mapping(data.get("fitted_on", {}), "model metadata 'popcode.confidence' fitted_on")
+        return cls(data["threshold_deg"], data["rival_radius_deg"], data["weights"], data["bias"], dict(fitted_on),
+                   refined)
 
 
 def _weights(values: Any, what: str) -> tuple[float, ...]:

@@ -108,7 +108,7 @@ def read_depth(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
 def check_depth(depth: Any, image_shape: tuple[int, ...], depth_scale: float) -> np.ndarray:
     """``depth`` ``(H, W)`` (integers or floats, 0: no reading) in mm as float32, checked against the image.
 
-    Refuses, in one line each: not a 2-D array of numbers, a size other than
+    Refuses, in one line each: not a 2-D array of numbers, 8-bit values, a size other than
     the image's, NaN or inf, negative values, a ``depth_scale`` (mm per unit)
     outside [1e-4, 1e4] and readings beyond 100 m (a wrong scale). All
     zeros is not an error: each instance then keeps the box's translation.
@@ -119,6 +119,9 @@ def check_depth(depth: Any, image_shape: tuple[int, ...], depth_scale: float) ->
         raise PopcodeError(f"depth must be a 2-D array (H, W), got shape {depth.shape}")
     if not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
         raise PopcodeError(f"depth must hold integers or floats, got {depth.dtype}")
+    if depth.dtype.itemsize == 1:
+        raise PopcodeError("depth is 8-bit: 256 levels cannot measure a distance (a grey or colour picture?); a depth "
+                           "image is 16-bit (as BOP stores it) or float")
     if depth.shape != tuple(image_shape[:2]):
         raise PopcodeError(f"depth is {depth.shape[1]}x{depth.shape[0]} but the image is {image_shape[1]}x"
                            f"{image_shape[0]}: they must be one registered camera frame")

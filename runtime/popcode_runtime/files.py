@@ -49,11 +49,20 @@ def read_json(path: Path) -> Any:
                            "are refused")
     try:
         text = path.read_bytes().decode("utf-8")
-        return json.loads(text, parse_int=_bounded_int, parse_float=_finite_float, parse_constant=_no_constant)
-    except (json.JSONDecodeError, UnicodeDecodeError, _BadNumberError) as error:
+    except UnicodeDecodeError as error:
         raise PopcodeError(f"{path} is not valid JSON: {error}") from error
+    return parse_json(text, str(path))
+
+
+def parse_json(text: str, name: str) -> Any:
+    """JSON text parsed with :func:`read_json`'s bounds on numbers and nesting; errors name ``name``."""
+    try:
+        return json.loads(text, parse_int=_bounded_int, parse_float=_finite_float, parse_constant=_no_constant)
+    except (json.JSONDecodeError, _BadNumberError) as error:
+        first = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise PopcodeError(f"{name} is not valid JSON: {first}") from error
     except RecursionError as error:  # the parser recurses once per level of nesting
-        raise PopcodeError(f"{path} nests JSON too deeply; refused") from error
+        raise PopcodeError(f"{name} nests JSON too deeply; refused") from error
 
 
 class _BadNumberError(ValueError):
@@ -105,6 +114,9 @@ def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[st
     folder = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise PopcodeError(f"{what} {path} is a folder, not a file")
+    if path.is_symlink() or (path.exists() and not path.is_file()):  # a rename would replace a device or FIFO
+        raise PopcodeError(f"{what} {path} is not a regular file (a link, device or FIFO); outputs are written "
+                           "only as regular files: choose another path")
     if not folder.is_dir():
         raise PopcodeError(f"{what} {path}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):

@@ -13,11 +13,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from .bop_split import name_id
 from .checks import integer, mapping, number
 from .confidence import Calibrator
 from .crop import CROP_PADDING, CROP_SIZE, MAX_CROP_PADDING, MIN_CROP_PADDING
 from .depth import object_surface
 from .errors import PopcodeError
+from .files import parse_json
 from .population_code import CodeLayout
 from .symmetries import SymmetryClass, symmetry_class, symmetry_transforms
 from .text_enum import TextEnum
@@ -159,11 +161,7 @@ class ModelMetadata:
                 if default is not None:
                     return default
                 raise PopcodeError(f"model metadata lacks '{key}'")
-            try:
-                return json.loads(props[key], parse_constant=_refuse_constant)
-            except (json.JSONDecodeError, ValueError, RecursionError) as error:
-                first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
-                raise PopcodeError(f"model metadata '{key}' is not valid JSON: {first_line}") from error
+            return parse_json(props[key], f"model metadata '{key}'")
 
         version = load("popcode.format_version")
         if version != FORMAT_VERSION or isinstance(version, bool):
@@ -174,9 +172,11 @@ class ModelMetadata:
         input_info = mapping(load("popcode.input"), "model metadata 'popcode.input'")
         object_map = {}
         for key, info in objects.items():
-            if not (isinstance(key, str) and key.isascii() and key.isdigit()):
-                raise PopcodeError(f"model metadata 'popcode.objects': object id {key!r} is not a whole number")
-            object_map[int(key)] = dict(mapping(info, f"object {key}"))
+            obj_id = name_id(key)
+            if obj_id is None:
+                raise PopcodeError(f"model metadata 'popcode.objects': object id {key[:40]!r} is not a whole number "
+                                   "of at most 18 digits")
+            object_map[obj_id] = dict(mapping(info, f"object {key}"))
         return cls(
             representation=load("popcode.representation"),
             code=CodeLayout.from_dict(mapping(load("popcode.code"), "model metadata 'popcode.code'")),
@@ -194,10 +194,6 @@ class ModelMetadata:
 def _calibrator(value: Any) -> Calibrator | None:
     """The optional confidence calibrator (null in models exported without one)."""
     return None if value is None else Calibrator.from_dict(value)
-
-
-def _refuse_constant(name: str) -> None:
-    raise ValueError(f"{name} is not a number popcode accepts")
 
 
 def _check_object(obj_id: Any, info: Any) -> None:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from .batch import ImageKey, file_digest, model_digest, run_detections, sources_path, split_digest
+from .batch import ImageKey, companion_paths, file_digest, model_digest, run_detections, sources_path, split_digest
 from .bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, SplitImage, split_images
 from .decoding import DECODERS
 from .detections import ground_truth_boxes, read_detections
@@ -54,7 +55,7 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     run.add_argument("--depth", action="store_true",
                      help="the translation from each image's depth image (depth/ and scene_camera.json's "
                           "depth_scale) instead of the box; where an instance's depth is unusable it keeps the box's. "
-                          "Each estimate's source is written to <CSV stem>.translation.csv")
+                          "Each estimate's source is written to <CSV stem>.translation.csv (the CSV's own suffix)")
     run.add_argument("--refine", action="store_true",
                      help="with --depth: also refine rotation and translation against the observed points (ICP; "
                           "needs pip install ./runtime[depth])")
@@ -67,10 +68,12 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
 
 def _fingerprint(args: argparse.Namespace, images: Mapping[ImageKey, SplitImage]) -> str:
     """What the results depend on: the models' bytes (external weights too), the detections' bytes, the split's
-    images and annotations, and the options that change a line. A resume with any of them changed is refused."""
+    images and annotations, and the options that change a line or what is drawn. A resume with any of them changed
+    is refused."""
     parts = {"models": [model_digest(path) for path in args.models], "decoder": args.decoder,
              "providers": args.provider, "max_images": args.max_images, "split": split_digest(images, args.depth),
              "depth": args.depth, "refine": args.refine,
+             "draw": None if args.draw is None else os.path.realpath(args.draw),
              "detections": file_digest(args.detections) if args.detections else
              {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
@@ -85,6 +88,8 @@ def handle(args: argparse.Namespace) -> int:
         raise PopcodeError("--refine refines the pose against each image's depth: add --depth")
     inputs = [args.split, *args.models, *filter(None, [args.detections])]
     args.out = check_writable_file(args.out, "--out", inputs)
+    for companion in companion_paths(args.out):
+        check_writable_file(companion, "--out", inputs)
     if args.draw is not None:
         require_folder(args.draw, "--draw folder")
         refuse_inputs(args.draw, "--draw folder", inputs)

@@ -196,3 +196,24 @@ def test_interrupted_render_completes_on_rerun(models_dir: Path, tmp_path: Path,
     assert _split_files(tmp_path / "again") == _split_files(whole)
     with pytest.raises(PopcodeError, match="other settings"):
         render_split(models_dir, tmp_path / "again", RenderSettings(images_per_object=3, seed=8), obj_ids=[2])
+
+
+def test_a_shard_of_other_objects_under_the_same_ids_is_refused(models_dir: Path, tmp_path: Path) -> None:
+    """Shards must render the same objects: a mesh changed between two shards names what differs, not merged."""
+    other = tmp_path / "other_models"
+    shutil.copytree(models_dir, other)
+    mesh = load_mesh(other / "obj_000002.ply")
+    mesh.apply_scale(1.01)
+    (other / "obj_000002.ply").write_bytes(mesh.export(file_type="ply", encoding="binary"))
+    render_split(models_dir, tmp_path / "split", SMALL, obj_ids=[2], shard=(0, 2), progress=False)
+    with pytest.raises(PopcodeError, match=r"other settings \(objects: "):
+        render_split(other, tmp_path / "split", SMALL, obj_ids=[2], shard=(1, 2), progress=False)
+
+
+def test_builtin_models_never_replace_other_models(tmp_path: Path) -> None:
+    folder = write_builtin_models(tmp_path / "models")
+    assert write_builtin_models(folder) == folder  # the same parts again: nothing changes
+    (folder / "models_info.json").write_text("{}")
+    with pytest.raises(PopcodeError, match="holds other models than the built-in parts"):
+        write_builtin_models(folder)
+    assert (folder / "models_info.json").read_text() == "{}"

@@ -250,6 +250,20 @@ def test_popcode_run_reads_each_images_depth(exact_model, tmp_path, monkeypatch)
     assert [line.split(",")[:4] for line in sources[1:]] == [["1", "0", "6", "depth"], ["1", "1", "6", "depth"]]
     assert "depth 1" in stdout  # this call did the second image; the first came from the stopped one
 
+    # the translation sources are an output of the results file like itself: refused when they exist, replaced
+    # with --overwrite, removed when a run without depth replaces the results they described
+    out.unlink()
+    code, _, err = run_cli(argv)
+    assert code == 2 and "--out's translation sources" in err and "exists already" in err
+    assert run_cli([*argv, "--overwrite"])[0] == 0
+    code, _, err = run_cli([*argv[:-2], "--quiet", "--overwrite"])
+    assert code == 0, err
+    assert not (tmp_path / "results.translation.csv").exists()
+    other = tmp_path / "results.txt"  # another results file of the same stem has its own sources
+    code, _, err = run_cli([*argv[:-3], str(other), "--depth", "--quiet"])
+    assert code == 0, err
+    assert (tmp_path / "results.translation.txt").is_file() and not (tmp_path / "results.translation.csv").exists()
+
     no_depth, detections = _split(tmp_path / "plain", R, t, depth=False)
     code, _, err = run_cli(["run", str(model), "--split", str(no_depth), "--detections", str(detections),
                             "--out", str(tmp_path / "plain.csv"), "--depth", "--quiet"])

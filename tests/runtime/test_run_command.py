@@ -110,6 +110,9 @@ def test_an_interrupted_run_resumes_from_the_last_finished_image(split: Path, tm
     ([{"scene_id": 1, "image_id": 77, "category_id": 1, "bbox": [0, 0, 5, 5], "score": 1}],
      "1 image(s) that are not in the split, first scene 1 image 77"),
     ([[1, 0, 1]], "detection 0 must be a JSON object"),
+    ([{"scene_id": 1, "image_id": 0, "category_id": 99, "bbox": [0, 0, 5, 5], "score": 1}],
+     "none of the 1 detections is of an object these models know (detected: objects 99; the models know objects "
+     "1, 2, 3, 4, 5, 6)"),
     # found before the first image is estimated, naming the image and the detection (the good box comes first)
     ([{"scene_id": 1, "image_id": 0, "category_id": 1, "bbox": [10, 10, 50, 50], "score": 1},
       {"scene_id": 6, "image_id": 1, "category_id": 6, "bbox": [5000, 10, 50, 50], "score": 1}],

@@ -128,6 +128,40 @@ def test_reordered_blocks_give_the_runs_order(split: Path, whole: Path, killed: 
     assert _rows(out) == _rows(whole)
 
 
+def test_a_resumed_run_draws_every_image(split: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A picture is written before its image is closed, so a kill never leaves a finished image undrawn; a resume
+    with another --draw (or none) is refused, not silently left without pictures."""
+    out, pictures = tmp_path / "results.csv", tmp_path / "pictures"
+    pictures.mkdir()
+    _killed_run(split, out, "--draw", str(pictures))
+    assert len(list(pictures.iterdir())) == KILLED_AT
+    assert _run(split, out) == 2 and "other models, detections, split or options" in capsys.readouterr().err
+    assert _run(split, out, "--draw", str(pictures)) == 0
+    assert len(list(pictures.glob("*.png"))) == len(_rows(out)) - 1  # one image per part and row here
+
+
+@pytest.mark.parametrize("kind", ["fifo", "symlink"])
+def test_overwrite_never_replaces_what_is_not_a_regular_file(split: Path, whole: Path, tmp_path: Path, kind: str,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "results.csv"
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(whole)
+    assert _run(split, out, "--overwrite") == 2
+    assert "is not a regular file" in capsys.readouterr().err
+    assert (out.is_fifo() if kind == "fifo" else out.is_symlink())
+
+
+def test_a_detections_file_named_like_the_runs_lock_is_refused(split: Path, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture) -> None:
+    detections = tmp_path / "results.csv.lock"
+    detections.write_text("[]")
+    code = main(["run", *SHIPPED, "--split", str(split), "--detections", str(detections), "--out",
+                 str(tmp_path / "results.csv"), "--quiet"])
+    assert code == 2 and "is the input" in capsys.readouterr().err and detections.read_text() == "[]"
+
+
 def _edit_a_number(partial: Path) -> None:
     lines = _lines(partial)
     fields = lines[1].split(",")

@@ -314,6 +314,15 @@ CASES = [
 ]
 
 
+def test_a_refused_render_writes_nothing(files, monkeypatch):
+    """Options are checked before the built-in models are written into the new split."""
+    stderr = io.StringIO()
+    monkeypatch.setattr("sys.stderr", stderr)
+    out = files / "refused_render"
+    assert main(["render", "--objects", "builtin", "--scenes", "2", "--bin-size-mm", "nan", "--out", str(out)]) == 2
+    assert not out.exists(), stderr.getvalue()
+
+
 @pytest.mark.parametrize(("argv", "expect"), [case[1:] for case in CASES], ids=[case[0] for case in CASES])
 def test_popcode_train_refuses_in_one_line(argv, expect, files, monkeypatch):
     stderr = io.StringIO()

@@ -73,29 +73,36 @@ def run(args: argparse.Namespace) -> int:
     _check_mode_options(args)
     if args.out.is_file():
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
+    shard = parse_shard(args.shard)  # every option checked before anything is written
+    settings = _scene_settings(args) if args.scenes is not None else _image_settings(args)
     if args.objects == "builtin":
         models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
     else:
         models_dir = Path(args.objects)
         if not models_dir.is_dir():
             raise PopcodeError(f"--objects: no such models folder {models_dir} (or use 'builtin')")
-    if args.scenes is not None:
-        return _run_scenes(args, models_dir)
-    width, height = args.size or SINGLE_OBJECT_SIZE
-    settings = RenderSettings(args.images, width=width, height=height, seed=args.seed, gray=args.gray,
-                              random_position=args.random_position, random_distance=not args.fixed_distance)
-    render_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=parse_shard(args.shard),
-                 progress=not args.quiet)
+    if isinstance(settings, SceneSettings):
+        return _run_scenes(args, models_dir, settings, shard)
+    render_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=shard, progress=not args.quiet)
     print(f"split written to {args.out} (models: {models_dir})")
     return 0
 
 
-def _run_scenes(args: argparse.Namespace, models_dir: Path) -> int:
+def _image_settings(args: argparse.Namespace) -> RenderSettings:
+    width, height = args.size or SINGLE_OBJECT_SIZE
+    return RenderSettings(args.images, width=width, height=height, seed=args.seed, gray=args.gray,
+                          random_position=args.random_position, random_distance=not args.fixed_distance)
+
+
+def _scene_settings(args: argparse.Namespace) -> SceneSettings:
     width, height = args.size or SCENE_SIZE
     given = {name: tuple(value) if isinstance(value, list) else value
              for name in SCENE_OPTIONS if (value := getattr(args, name)) is not None}
-    settings = SceneSettings(args.scenes, width=width, height=height, seed=args.seed, gray=args.gray, **given)
-    stats = render_scene_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=parse_shard(args.shard),
+    return SceneSettings(args.scenes, width=width, height=height, seed=args.seed, gray=args.gray, **given)
+
+
+def _run_scenes(args: argparse.Namespace, models_dir: Path, settings: SceneSettings, shard: tuple[int, int]) -> int:
+    stats = render_scene_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=shard,
                                progress=not args.quiet)
     if stats.images:
         print(f"rendered {stats.images} scenes with {stats.instances} target instances in {stats.seconds:.1f} s: "

@@ -7,6 +7,7 @@ tests check that each one really maps the mesh onto itself.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +18,7 @@ import trimesh
 from scipy.spatial.distance import pdist
 
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_bytes_atomic, write_json_atomic
+from popcode_runtime.files import write_bytes_atomic
 from popcode_runtime.rotations import axis_angle_to_matrix
 
 _SECTIONS = 96  # facets of revolved surfaces: deviates from a true circle by < 0.06 % of the radius
@@ -143,15 +144,21 @@ def write_builtin_models(out_dir: str | Path) -> Path:
     """Write every built-in part as ``obj_XXXXXX.ply`` plus ``models_info.json``; returns the folder.
 
     Files are written to a temporary name and renamed, so concurrent writers (render shards)
-    never see half a file.
+    never see half a file. A folder that holds other models is refused, not overwritten.
     """
     out_dir = Path(out_dir)
+    meshes = {part.obj_id: build_part(part.obj_id) for part in BUILTIN_PARTS}
+    files = {f"obj_{obj_id:06d}.ply": mesh.export(file_type="ply", encoding="binary")
+             for obj_id, mesh in meshes.items()}
+    files["models_info.json"] = json.dumps({str(part.obj_id): model_info(meshes[part.obj_id], part.symmetries)
+                                            for part in BUILTIN_PARTS}, indent=1).encode()
+    other = [name for name, data in files.items() if (out_dir / name).is_file()
+             and (out_dir / name).read_bytes() != data]
+    if other:
+        raise PopcodeError(f"{out_dir} holds other models than the built-in parts ({other[0]} differs); write the "
+                           "built-in parts into a folder of their own")
     out_dir.mkdir(parents=True, exist_ok=True)
-    models_info = {}
-    for part in BUILTIN_PARTS:
-        mesh = build_part(part.obj_id)
-        write_bytes_atomic(out_dir / f"obj_{part.obj_id:06d}.ply", mesh.export(file_type="ply", encoding="binary"))
-        models_info[str(part.obj_id)] = model_info(mesh, part.symmetries)
-    write_json_atomic(out_dir / "models_info.json", models_info)
+    for name, data in files.items():
+        write_bytes_atomic(out_dir / name, data)
     return out_dir
 

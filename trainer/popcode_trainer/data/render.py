@@ -13,6 +13,8 @@ renders only what is missing; shard folders copied together and rerun become one
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -208,15 +210,33 @@ def finalize_scene(scene_dir: Path) -> None:
         write_json_atomic(scene_dir / f"{name}.json", table)
 
 
+def models_digest(models_dir: Path, models_info: dict[int, dict[str, Any]], obj_ids: Sequence[int]) -> str:
+    """What the rendered objects are: their meshes' bytes and their ``models_info`` entries."""
+    digest = hashlib.sha256(json.dumps({str(i): models_info[i] for i in obj_ids}, sort_keys=True).encode())
+    for obj_id in obj_ids:
+        digest.update(model_path(models_dir, obj_id).read_bytes())
+    return digest.hexdigest()[:32]
+
+
 def check_settings(out_dir: Path, settings: dict[str, Any]) -> None:
+    """Record the split's settings (and its objects' digest) in a new split; refuse to add to one made otherwise,
+    naming what differs (shards of one split must render the same objects the same way)."""
     marker = out_dir / RENDER_MARKER
     if marker.is_file():
         previous = read_json(marker)
         if previous != settings:
-            raise PopcodeError(f"{out_dir} was rendered with other settings ({previous}); "
-                               f"use the same settings to complete it, or another folder")
+            differing = sorted(key for key in {*previous, *settings} if previous.get(key) != settings.get(key))
+            shown = "; ".join(f"{key}: {_shown(previous.get(key))} there, {_shown(settings.get(key))} here"
+                              for key in differing[:4])
+            raise PopcodeError(f"{out_dir} was rendered with other settings ({shown}); use the same settings "
+                               "and objects to complete it, or another folder")
     else:
         write_json_atomic(marker, settings)
+
+
+def _shown(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -244,7 +264,7 @@ def render_split(models_dir: str | Path, out_dir: str | Path, settings: RenderSe
     shard_index, shard_count = shard
     out_dir.mkdir(parents=True, exist_ok=True)
     check_settings(out_dir, {**asdict(settings), "fill_range": list(settings.fill_range),
-                              "obj_ids": obj_ids})
+                              "obj_ids": obj_ids, "objects": models_digest(models_dir, models_info, obj_ids)})
     todo = []
     for obj_index, obj_id in enumerate(obj_ids):
         records = _scene_dir(out_dir, obj_id) / RECORDS_FOLDER

@@ -54,6 +54,7 @@ from .render import (
     check_settings,
     finalize_scene,
     mask_box,
+    models_digest,
 )
 from .scene_layout import PlacedObject, drop_objects, look_at_camera, model_to_camera, surface_points_mm
 from .sensor import apply_sensor_effects, sensor_preset
@@ -483,7 +484,8 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
                            f"(it lists {sorted(models_info)})")
     out_dir.mkdir(parents=True, exist_ok=True)
     check_settings(out_dir, {**_plain(asdict(settings)), "obj_ids": obj_ids, "kind": "scenes",
-                             **_depth_noise_record(settings.sensor)})
+                             **_depth_noise_record(settings.sensor),
+                             "objects": models_digest(models_dir, models_info, obj_ids)})
     shard_index, shard_count = shard
     todo = [k for k in range(shard_index, settings.scenes, shard_count)
             if not (out_dir / f"{_location(k)[0]:06d}" / RECORDS_FOLDER / f"{_location(k)[1]:06d}.json").is_file()]
