@@ -24,7 +24,7 @@ from popcode_runtime.rotations import axis_angle_to_matrix
 _SECTIONS = 96  # facets of revolved surfaces: deviates from a true circle by < 0.06 % of the radius
 
 
-def _revolve(profile_rz: list[tuple[float, float]]) -> trimesh.Trimesh:
+def revolve(profile_rz: list[tuple[float, float]]) -> trimesh.Trimesh:
     """Closed solid of revolution about +z from an (r, z) profile that starts and ends on the axis."""
     return trimesh.creation.revolve(np.asarray(profile_rz, dtype=np.float64), sections=_SECTIONS)
 
@@ -43,12 +43,12 @@ def _cylinder(radius_mm: float, height_mm: float, centre_mm: tuple[float, float,
 
 def _flanged_sleeve() -> trimesh.Trimesh:
     """Tube with a collar at one end: continuous symmetry about z, ends differ (no flip)."""
-    return _revolve([(0, -30), (24, -30), (24, -22), (14, -22), (14, 30), (0, 30)])
+    return revolve([(0, -30), (24, -30), (24, -22), (14, -22), (14, 30), (0, 30)])
 
 
 def _spool() -> trimesh.Trimesh:
     """Waisted spool with equal ends: continuous symmetry about z plus the end-for-end flip."""
-    return _revolve([(0, -25), (22, -25), (22, -17), (12, -12), (12, 12), (22, 17), (22, 25), (0, 25)])
+    return revolve([(0, -25), (22, -25), (22, -17), (12, -12), (12, 12), (22, 17), (22, 25), (0, 25)])
 
 
 def _block_with_bosses() -> trimesh.Trimesh:
@@ -84,14 +84,14 @@ def _angle_bracket() -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
-def _rotation_4x4(axis: tuple[float, float, float], angle_rad: float) -> list[float]:
+def rotation_4x4(axis: tuple[float, float, float], angle_rad: float) -> list[float]:
     """Row-major 4x4 of a rotation about an axis through the origin (BOP ``symmetries_discrete``)."""
     matrix = np.eye(4)
     matrix[:3, :3] = axis_angle_to_matrix(np.asarray(axis, dtype=np.float64), angle_rad)
     return [float(v) for v in np.round(matrix, 12).ravel()]
 
 
-_Z_AXIS = {"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}
+Z_AXIS = {"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 0.0]}
 
 
 @dataclass(frozen=True)
@@ -105,15 +105,15 @@ class BuiltinPart:
 
 
 BUILTIN_PARTS: tuple[BuiltinPart, ...] = (
-    BuiltinPart(1, "flanged_sleeve", _flanged_sleeve, {"symmetries_continuous": [_Z_AXIS]}),
-    BuiltinPart(2, "spool", _spool, {"symmetries_continuous": [_Z_AXIS],
-                                     "symmetries_discrete": [_rotation_4x4((1, 0, 0), np.pi)]}),
+    BuiltinPart(1, "flanged_sleeve", _flanged_sleeve, {"symmetries_continuous": [Z_AXIS]}),
+    BuiltinPart(2, "spool", _spool, {"symmetries_continuous": [Z_AXIS],
+                                     "symmetries_discrete": [rotation_4x4((1, 0, 0), np.pi)]}),
     BuiltinPart(3, "block_with_bosses", _block_with_bosses,
-                {"symmetries_discrete": [_rotation_4x4((0, 0, 1), np.pi)]}),
+                {"symmetries_discrete": [rotation_4x4((0, 0, 1), np.pi)]}),
     BuiltinPart(4, "square_plate_with_pins", _square_plate_with_pins,
-                {"symmetries_discrete": [_rotation_4x4((0, 0, 1), k * np.pi / 2) for k in (1, 2, 3)]}),
+                {"symmetries_discrete": [rotation_4x4((0, 0, 1), k * np.pi / 2) for k in (1, 2, 3)]}),
     BuiltinPart(5, "cross_connector", _cross_connector,
-                {"symmetries_discrete": [_rotation_4x4(axis, np.pi) for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1))]}),
+                {"symmetries_discrete": [rotation_4x4(axis, np.pi) for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1))]}),
     BuiltinPart(6, "angle_bracket", _angle_bracket, {}),
 )
 

@@ -1,0 +1,242 @@
+"""Six parts of our own, unlike the built-in ones, to judge a training recipe on parts no recipe choice was tuned on.
+
+    python -m bench.validation_parts --out DIR
+
+writes a BOP models folder (``obj_000001.ply`` ... ``obj_000006.ply`` and ``models_info.json``, millimetres,
+each mesh centred on its bounding box) that ``popcode-train demo --objects DIR`` (or ``render --objects DIR``)
+reads. Each part stands for a symmetry group or a trap the built-in parts (``popcode_trainer.data.objects``)
+do not have:
+
+1. a 12-tooth gear disc: 12-fold about z and the 12 flips about in-plane axes (dihedral group D12, 24 poses),
+2. a round flange with three bolt holes, a hub and three ribs on one face: 3-fold about z, no flip,
+3. a bent bracket with unequal legs and off-centre holes: no symmetry,
+4. a stepped shaft: continuous symmetry about z, ends differ (no flip),
+5. a square flange with a tube, four corner holes and one chamfered corner: it looks 4-fold about z but
+   the chamfer breaks it, so it declares nothing (the near-symmetry warning,
+   ``popcode_trainer.data.near_symmetry``, reports it: a recipe meets look-alike poses here),
+6. a connecting rod (flat link, a thick boss round the big hole, a smaller hole at the other end): 2-fold
+   about its long axis x only.
+
+Plates with holes are extruded from a Delaunay triangulation of their outline (no boolean engine needed);
+parts of several solids overlap, as the built-in parts do. Every circle has a vertex count that the part's
+rotations map onto itself, so each declared symmetry holds to rounding, and the symmetry check
+(``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_validation_parts.py`` checks both.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull, Delaunay
+
+from popcode_runtime.files import write_bytes_atomic, write_json_atomic
+from popcode_trainer.data.objects import Z_AXIS, model_info, revolve, rotation_4x4
+
+_STEP_MM = 1.5  # longest outline edge: Delaunay then keeps the outline where features are >= 3 mm apart
+_CIRCLE_SECTIONS = 48  # vertices of a hole or boss circle; divisible by 3, 4 and 12, so the rotations keep it
+_RIM_SECTIONS = 96
+
+
+def _circle(radius_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0),
+            sections: int = _CIRCLE_SECTIONS) -> np.ndarray:
+    """``(sections, 2)`` points of a circle, the first at angle 0 (so a mirror about x keeps it)."""
+    angle = 2 * np.pi * np.arange(sections) / sections
+    return np.asarray(centre_mm) + radius_mm * np.column_stack([np.cos(angle), np.sin(angle)])
+
+
+def _densify(ring_mm: np.ndarray, step_mm: float = _STEP_MM) -> np.ndarray:
+    """A closed polygon ``(N, 2)`` with every edge split into pieces no longer than ``step_mm``."""
+    following = np.roll(ring_mm, -1, axis=0)
+    pieces = []
+    for start, end in zip(ring_mm, following, strict=True):
+        count = max(1, int(np.ceil(np.linalg.norm(end - start) / step_mm)))
+        pieces.append(start + np.outer(np.arange(count) / count, end - start))
+    return np.concatenate(pieces)
+
+
+def _inside(points: np.ndarray, rings: Sequence[np.ndarray]) -> np.ndarray:
+    """Even-odd rule: which ``points (P, 2)`` lie inside the region bounded by ``rings`` (outline and holes)."""
+    crossings = np.zeros(len(points), dtype=int)
+    for ring in rings:
+        (ax, ay), (bx, by) = ring.T[:, None, :], np.roll(ring, -1, axis=0).T[:, None, :]
+        px, py = points[:, 0, None], points[:, 1, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = ax + (py - ay) * (bx - ax) / (by - ay)  # where the edge meets the line y = py
+        crossings += np.sum(((ay > py) != (by > py)) & (px < x_cross), axis=1)
+    return crossings % 2 == 1
+
+
+def _areas(triangles: np.ndarray) -> np.ndarray:
+    """Areas ``(T,)`` of 2-D triangles ``(T, 3, 2)``."""
+    u, v = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    return 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
+
+
+def _signed_area(ring: np.ndarray) -> float:
+    """Shoelace area of a closed polygon ``(N, 2)``, positive counter-clockwise."""
+    following = np.roll(ring, -1, axis=0)
+    return 0.5 * float(np.sum(ring[:, 0] * following[:, 1] - following[:, 0] * ring[:, 1]))
+
+
+def _slab(outline_mm: np.ndarray, holes_mm: Sequence[np.ndarray], thickness_mm: float,
+          z0_mm: float = 0.0) -> trimesh.Trimesh:
+    """A closed plate: the outline less the holes (2-D, mm), from ``z0_mm`` up by ``thickness_mm``."""
+    rings = [_densify(ring) for ring in (outline_mm, *holes_mm)]
+    points = np.concatenate(rings)
+    faces = Delaunay(points).simplices  # may leave out a point in the middle of a straight edge: harmless
+    areas = _areas(points[faces])
+    faces, areas = faces[areas > 1e-9], areas[areas > 1e-9]  # slivers along a straight edge
+    inside = _inside(points[faces].mean(axis=1), rings)
+    faces, area = faces[inside], areas[inside].sum()
+    # Delaunay need not keep an outline edge; a lost one shows as a triangle across it, which changes the area
+    expected = abs(_signed_area(rings[0])) - sum(abs(_signed_area(ring)) for ring in rings[1:])
+    if abs(area - expected) > 1e-6 * expected:
+        raise RuntimeError(f"the outline's triangulation covers {area:.6g} mm^2, not {expected:.6g}: "
+                           "make _STEP_MM smaller than the narrowest gap")
+    transform = trimesh.transformations.translation_matrix((0.0, 0.0, z0_mm))
+    mesh = trimesh.creation.extrude_triangulation(points, faces, thickness_mm, transform=transform)
+    mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+def _placed(mesh: trimesh.Trimesh, rotation: np.ndarray, offset_mm: Sequence[float]) -> trimesh.Trimesh:
+    transform = np.eye(4)
+    transform[:3, :3], transform[:3, 3] = rotation, offset_mm
+    return mesh.apply_transform(transform)
+
+
+def _polar(angle_deg: float, radius_mm: float) -> tuple[float, float]:
+    return radius_mm * np.cos(np.deg2rad(angle_deg)), radius_mm * np.sin(np.deg2rad(angle_deg))
+
+
+def _gear_12() -> trimesh.Trimesh:
+    """12-tooth gear disc with a bore: trapezoid teeth centred at multiples of 30 deg, so each tooth and each
+    gap lies on a mirror line of the outline."""
+    root, tip, sections = 34.0, 42.0, 4  # radii [mm]; arc pieces per root gap and tooth tip
+    outline = []
+    for tooth in range(12):
+        centre = 30.0 * tooth
+        outline += [_polar(centre - 8.0, root)]
+        outline += [_polar(angle, tip) for angle in np.linspace(centre - 4.5, centre + 4.5, sections + 1)]
+        outline += [_polar(angle, root) for angle in np.linspace(centre + 8.0, centre + 22.0, sections + 1)[:-1]]
+    return _slab(np.array(outline), [_circle(10.0)], 12.0)
+
+
+def _three_rib_flange() -> trimesh.Trimesh:
+    """Round flange with a bore and three bolt holes, a hub and three ribs on the top face: 3-fold, no flip."""
+    holes = [_circle(10.0)] + [_circle(5.0, _polar(angle, 32.0)) for angle in (90, 210, 330)]
+    parts = [_slab(_circle(45.0, sections=_RIM_SECTIONS), holes, 8.0),
+             _slab(_circle(17.0), [_circle(10.0)], 20.0, z0_mm=4.0)]
+    for angle in (30, 150, 270):
+        rib = trimesh.creation.box(extents=(27.0, 6.0, 16.0))
+        rotation = trimesh.transformations.rotation_matrix(np.deg2rad(angle), (0, 0, 1))[:3, :3]
+        parts.append(_placed(rib, rotation, (*_polar(angle, 28.5), 14.0)))
+    return trimesh.util.concatenate(parts)
+
+
+def _bent_bracket() -> trimesh.Trimesh:
+    """Base plate and a narrower upright at one edge, holes off-centre, one corner chamfered: no symmetry."""
+    base_outline = np.array([(0, 0), (72, 0), (72, 34), (60, 46), (0, 46)], dtype=np.float64)
+    base_holes = [_circle(4.5, (50.0, 14.0)), _circle(3.0, (30.0, 34.0)), _circle(3.0, (62.0, 30.0))]
+    upright_outline = np.array([(0, 0), (30, 0), (30, 40), (22, 52), (0, 52)], dtype=np.float64)  # (y, z)
+    upright = _slab(upright_outline, [_circle(5.0, (14.0, 36.0))], 6.0)
+    uv_w_to_xyz = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # outline (u, v) -> (y, z), w -> x
+    return trimesh.util.concatenate([_slab(base_outline, base_holes, 6.0), _placed(upright, uv_w_to_xyz, (0, 0, 0))])
+
+
+def _stepped_shaft() -> trimesh.Trimesh:
+    """Shaft with a collar, two journals of different diameter and a thin spigot: continuous about z, no flip."""
+    return revolve([(0, 0), (6, 0), (7, 1), (7, 28), (17, 28), (17, 36), (13, 36), (13, 80), (11, 82), (11, 96),
+                     (8, 96), (7, 110), (0, 110)])
+
+
+def _square_flange_with_chamfer() -> trimesh.Trimesh:
+    """Square flange with a tube, a bore and four corner holes; the corner at +x +y is chamfered, which breaks
+    the 4-fold symmetry it otherwise has."""
+    chamfer = 13.0
+    outline = np.array([(-35, -35), (35, -35), (35, 35 - chamfer), (35 - chamfer, 35), (-35, 35)], dtype=np.float64)
+    holes = [_circle(12.0)] + [_circle(4.0, (x, y)) for x in (-22.0, 22.0) for y in (-22.0, 22.0)]
+    return trimesh.util.concatenate([_slab(outline, holes, 8.0), _slab(_circle(19.0), [_circle(12.0)], 26.0, 4.0)])
+
+
+def _connecting_rod() -> trimesh.Trimesh:
+    """Flat tapered link between a big and a small eye, a thick boss round the big eye on both faces: 2-fold
+    about the long axis x only (the boss and the eyes tell the ends apart)."""
+    ends = np.concatenate([_circle(16.0, (-40.0, 0.0)), _circle(11.0, (40.0, 0.0))])
+    outline = ends[ConvexHull(ends).vertices]
+    link = _slab(outline, [_circle(8.0, (-40.0, 0.0)), _circle(4.5, (40.0, 0.0))], 8.0, z0_mm=-4.0)
+    boss = _slab(_circle(17.0, (-40.0, 0.0)), [_circle(8.0, (-40.0, 0.0))], 20.0, z0_mm=-10.0)
+    return trimesh.util.concatenate([link, boss])
+
+
+def _about_z(order: int) -> list[list[float]]:
+    return [rotation_4x4((0, 0, 1), 2 * np.pi * k / order) for k in range(1, order)]
+
+
+def _flips(count: int) -> list[list[float]]:
+    """Half turns about ``count`` in-plane axes, the first along x, spread over 180 deg."""
+    return [rotation_4x4((np.cos(np.pi * k / count), np.sin(np.pi * k / count), 0.0), np.pi) for k in range(count)]
+
+
+@dataclass(frozen=True)
+class ValidationPart:
+    """One validation part: how to build it (mm), its symmetries (BOP ``models_info`` keys), and whether it
+    nearly has a symmetry it does not declare (the near-symmetry finder must report it)."""
+
+    obj_id: int
+    name: str
+    build: Callable[[], trimesh.Trimesh]
+    symmetries: dict[str, Any]
+    near_symmetric: bool = False
+
+
+VALIDATION_PARTS: tuple[ValidationPart, ...] = (
+    ValidationPart(1, "gear_12", _gear_12, {"symmetries_discrete": _about_z(12) + _flips(12)}),
+    ValidationPart(2, "three_rib_flange", _three_rib_flange, {"symmetries_discrete": _about_z(3)}),
+    ValidationPart(3, "bent_bracket", _bent_bracket, {}),
+    ValidationPart(4, "stepped_shaft", _stepped_shaft, {"symmetries_continuous": [Z_AXIS]}),
+    ValidationPart(5, "square_flange_with_chamfer", _square_flange_with_chamfer, {}, near_symmetric=True),
+    ValidationPart(6, "connecting_rod", _connecting_rod, {"symmetries_discrete": [rotation_4x4((1, 0, 0), np.pi)]}),
+)
+
+
+def build_validation_part(part: ValidationPart) -> trimesh.Trimesh:
+    """The mesh (mm) of a validation part, centred on its bounding box."""
+    mesh = part.build()
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return mesh
+
+
+def write_validation_models(out_dir: str | Path) -> Path:
+    """Write every validation part as ``obj_XXXXXX.ply`` plus ``models_info.json`` (the built-in parts' format,
+    ``popcode_trainer.data.objects.write_builtin_models``); returns the folder."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    models_info = {}
+    for part in VALIDATION_PARTS:
+        mesh = build_validation_part(part)
+        write_bytes_atomic(out_dir / f"obj_{part.obj_id:06d}.ply", mesh.export(file_type="ply", encoding="binary"))
+        models_info[str(part.obj_id)] = model_info(mesh, part.symmetries)
+    write_json_atomic(out_dir / "models_info.json", models_info)
+    return out_dir
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="models folder to write (created if missing)")
+    args = parser.parse_args(argv)
+    out_dir = write_validation_models(args.out)
+    for part in VALIDATION_PARTS:
+        print(f"obj_{part.obj_id:06d}.ply  {part.name}")
+    print(f"wrote {len(VALIDATION_PARTS)} parts and models_info.json to {out_dir}")
+    return out_dir
+
+
+if __name__ == "__main__":
+    main()
