@@ -38,7 +38,7 @@ def json_field(entry: Any, key: str, path: Path, where: str, size: int | None = 
         return value
     try:
         array = np.asarray(value, dtype=np.float64).reshape(size)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise PopcodeError(f"{path}: key '{key}' in {where} must be {size} numbers, got {value!r}") from error
     if not np.isfinite(array).all():
         raise PopcodeError(f"{path}: key '{key}' in {where} contains NaN or inf")

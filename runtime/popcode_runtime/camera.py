@@ -26,7 +26,7 @@ def parse_camera_matrix(values: Sequence[float] | np.ndarray) -> np.ndarray:
         raise PopcodeError(f"a camera matrix is numbers, not the text {values!r}")
     try:
         K = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise PopcodeError("a camera matrix is fx,fy,cx,cy, 9 numbers or a 3x3 array of numbers") from error
     if K.shape == (4,):
         fx, fy, cx, cy = K

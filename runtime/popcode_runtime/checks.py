@@ -22,7 +22,10 @@ from .errors import PopcodeError
 
 
 def _shown(value: Any, width: int = 60) -> str:
-    text = repr(value)
+    try:
+        text = repr(value)
+    except ValueError:  # an int of more digits than Python converts to text
+        return f"an integer of about {int(value.bit_length() * 0.30103)} digits"
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
@@ -40,9 +43,12 @@ def number(value: Any, name: str, low: float | None = None, high: float | None =
     """``value`` as a finite ``float`` within ``[low, high]``; bools and strings are refused."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise PopcodeError(f"{name} must be a number, got {_shown(value)} ({type(value).__name__})")
-    result = float(value)
+    try:
+        result = float(value)
+    except OverflowError:  # an integer beyond a float's range (JSON allows any number of digits)
+        result = math.inf
     if not math.isfinite(result):
-        raise PopcodeError(f"{name} must be finite, got {result}")
+        raise PopcodeError(f"{name} must be finite, got {_shown(value)}")
     if (low is not None and result < low) or (high is not None and result > high):
         raise PopcodeError(f"{name} must lie in {_range_text(low, high)}, got {result:g}")
     return result
@@ -75,7 +81,7 @@ def number_array(value: Any, name: str, shape: tuple[int | None, ...]) -> np.nda
         raise PopcodeError(f"{name} must be numbers, got the text {_shown(value)}")
     try:
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise PopcodeError(f"{name} must be numbers of shape {_shape_text(shape)}, got {_shown(value)}") from error
     if array.ndim != len(shape) or any(want is not None and got != want for got, want in zip(array.shape, shape,
                                                                                              strict=True)):

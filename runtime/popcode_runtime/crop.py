@@ -49,6 +49,8 @@ def read_image_file(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS, what: 
     """
     path = checked_path(path, f"{what} path")
     max_pixels = integer(max_pixels, "max_pixels", 1)
+    if path.exists() and not path.is_file():
+        raise PopcodeError(f"{what} {path} is not a regular file (a folder, FIFO or device)")
     if not path.is_file():
         raise PopcodeError(f"{what} file not found: {path}")
     with library_step(f"read the header of {what} {path}"):
@@ -120,7 +122,7 @@ def check_box(box: Sequence[float], image_shape: tuple[int, ...]) -> tuple[float
         raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")
     try:
         x, y, w, h = (float(v) for v in box)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}") from error
     if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in box):
         raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")

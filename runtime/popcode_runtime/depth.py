@@ -80,7 +80,7 @@ def object_surface(info: Mapping[str, Any]) -> ObjectSurface | None:
     try:
         points = np.asarray(info.get("surface_points_mm"), dtype=np.float64)
         normals = np.asarray(info.get("surface_normals"), dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         points = normals = np.empty(0)
     count = f"{MIN_SURFACE_POINTS} to {MAX_SURFACE_POINTS}"
     if points.ndim != 2 or points.shape[1:] != (3,) or not MIN_SURFACE_POINTS <= len(points) <= MAX_SURFACE_POINTS \

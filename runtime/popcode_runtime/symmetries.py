@@ -42,7 +42,7 @@ def _discrete(info: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     for index, flat in enumerate(info.get("symmetries_discrete", []) or []):
         try:
             matrix = np.asarray(flat, dtype=np.float64)
-        except (TypeError, ValueError) as error:
+        except (TypeError, ValueError, OverflowError) as error:
             raise PopcodeError(f"symmetries_discrete[{index}] is not a list of numbers") from error
         if matrix.size != 16:
             raise PopcodeError(

@@ -26,7 +26,7 @@ def object_points_mm(info: Mapping[str, Any]) -> np.ndarray:
     if "hull_points_mm" in info:
         try:
             points = np.asarray(info["hull_points_mm"], dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             points = np.empty(0)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4 or not np.isfinite(points).all():
             raise PopcodeError("hull_points_mm must be a list of at least 4 finite points [x, y, z]")
@@ -38,7 +38,7 @@ def object_points_mm(info: Mapping[str, Any]) -> np.ndarray:
         size = np.array([info["size_x"], info["size_y"], info["size_z"]], dtype=np.float64)
     except KeyError as error:
         raise PopcodeError(f"object metadata lacks {error.args[0]!r}: no extents to place the object") from error
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise PopcodeError("object extents (min_x ... size_z) must be numbers") from error
     if not (np.isfinite(low).all() and np.isfinite(size).all() and (size > 0).all()):
         raise PopcodeError(f"object extents must be finite with positive sizes, got size {size.tolist()}")

@@ -15,10 +15,14 @@ import numpy as np
 import pytest
 
 from popcode_runtime.bop_split import split_images
+from popcode_runtime.camera import parse_camera_matrix
+from popcode_runtime.checks import number
 from popcode_runtime.cli import main
+from popcode_runtime.confidence import FEATURES, Calibrator
 from popcode_runtime.detections import ground_truth_boxes, read_detections
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import read_json
+from popcode_runtime.translation import object_points_mm
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -120,3 +124,15 @@ def test_run_names_a_bad_split_in_one_line(tmp_path: Path, capsys: pytest.Captur
     err = capsys.readouterr().err
     assert code == 2 and "'obj_id' in image 0, object 0 must be a non-negative integer" in err
     assert err.count("\n") == 1 and not out.exists()
+
+
+@pytest.mark.parametrize("value", [10**400, 10**6000, -(10**400)], ids=["400-digits", "6000-digits", "minus-400"])
+def test_integers_beyond_a_float_are_one_line_in_every_reader(value: int) -> None:
+    """JSON files are bounded by their reader; the Python API takes any int, so the checks must too."""
+    weights = [0.0] * len(FEATURES)
+    calls = [lambda: number(value, "diameter"), lambda: Calibrator(5.0, 10.0, weights, value),
+             lambda: object_points_mm({"hull_points_mm": [[value, 0, 0]] * 4}),
+             lambda: parse_camera_matrix([value, 500, 80, 60])]
+    for call in calls:
+        with pytest.raises(PopcodeError):
+            call()

@@ -82,7 +82,7 @@ DEMO_SIZES = {
     # boxes lose on both at this budget (bench/results/scene-mix-quick*.md).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                    cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE),
-                      "about 15 minutes on a 2-core CPU", minutes=12.5, epoch_bounds=(4, 40)),
+                      "about 15 minutes on a 2-core CPU", minutes=12.0, epoch_bounds=(4, 40)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                     cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE),
                        "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
