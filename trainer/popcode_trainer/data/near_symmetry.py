@@ -83,7 +83,7 @@ def look_alike_symmetries(sample: SurfaceSample, info: Mapping[str, Any], anchor
     (:data:`LOOK_ALIKE_PERCENTILE` of the samples within :data:`LOOK_ALIKE_TOLERANCE`), the highest such order per
     axis. ``anchors_mm``: points that tell two transforms apart up to the declared continuous symmetry."""
     diameter = sample.diameter_mm
-    centre = sample.points_mm.mean(axis=0)
+    centre = sample.centroid_mm
     found = []
     for axis in _candidate_axes(sample.points_mm):
         for order in sorted(ORDERS, reverse=True):

@@ -43,6 +43,7 @@ class SurfaceSample:
     points_mm: np.ndarray  # (P, 3)
     reference: cKDTree
     diameter_mm: float
+    centroid_mm: np.ndarray  # (3,) the surface's area-weighted centre: exact, where the samples' mean is noisy
 
 
 def diameter_mm(mesh: trimesh.Trimesh, info: Mapping[str, Any]) -> float:
@@ -62,7 +63,9 @@ def surface_sample(mesh: trimesh.Trimesh, diameter_mm: float, name: str) -> Surf
     count = int(np.clip(area / (_SPACING * diameter_mm) ** 2, low, high))
     reference, _ = trimesh.sample.sample_surface(mesh, count, seed=_SEED)
     points, _ = trimesh.sample.sample_surface(mesh, _QUERY_POINTS, seed=_SEED + 1)
-    return SurfaceSample(np.asarray(points), cKDTree(np.concatenate([reference, mesh.vertices])), diameter_mm)
+    centroid = (mesh.triangles_center * mesh.area_faces[:, None]).sum(axis=0) / area
+    return SurfaceSample(np.asarray(points), cKDTree(np.concatenate([reference, mesh.vertices])), diameter_mm,
+                         centroid)
 
 
 def surface_distance(sample: SurfaceSample, R: np.ndarray, t_mm: np.ndarray, percentile: float = PERCENTILE) -> float:
