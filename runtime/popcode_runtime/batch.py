@@ -44,7 +44,7 @@ from .detections import Detection
 from .drawing import draw_predictions
 from .errors import PopcodeError
 from .estimator import PoseEstimator, Prediction
-from .files import refuse_existing, write_bytes_atomic, write_picture_atomic
+from .files import check_output_file, refuse_existing, write_bytes_atomic, write_picture_atomic
 from .image_loop import ImageBoxes, estimate_images, route_objects
 from .image_size import image_size
 from .rotations import is_rotation
@@ -369,8 +369,8 @@ def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
 
 def sources_path(out: Path) -> Path:
     """Where a run with depth says each estimate's translation source: ``<out stem>.translation<out suffix>``
-    (``results.translation.csv``), one per results file."""
-    return out.with_name(f"{out.stem}.translation{out.suffix or '.csv'}")
+    (``results.translation.csv``; ``results.translation`` for ``results``), one per results file."""
+    return out.with_name(f"{out.stem}.translation{out.suffix}")
 
 
 def companion_paths(out: Path) -> tuple[Path, Path, Path]:
@@ -413,12 +413,13 @@ def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
 def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], images: dict[ImageKey, SplitImage],
                    detections: Sequence[Detection], out: Path, fingerprint: str, max_images: int | None = None,
                    progress: bool = True, draw_dir: Path | None = None, depth: bool = False,
-                   refine: bool = False, overwrite: bool = False) -> RunSummary:
+                   refine: bool = False, overwrite: bool = False, inputs: Sequence[Path] = ()) -> RunSummary:
     """Estimate every detection whose object a model knows; write ``out`` (BOP19 CSV). See the module docstring.
 
     ``draw_dir``: also a picture of each image's estimates there (``<scene_id>_<im_id>.png``). ``depth``: the
     translation from each image's depth image, and ``refine`` (with depth): the pose refined against it.
-    ``overwrite``: replace a finished ``out`` and, in a run that does not resume, pictures in ``draw_dir``.
+    ``overwrite``: replace a finished ``out`` and, in a run that does not resume, pictures in ``draw_dir``; a
+    picture is never one of the run's ``inputs`` (files or folders) nor its own output files.
     """
     started = time.perf_counter()
     owner = route_objects(estimators, names)
@@ -436,9 +437,10 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
     _check_boxes(keys, by_image, images)
     if depth:
         _check_depth(keys, images, by_image, estimators, owner, refine)
-    if draw_dir is not None and not companion_paths(out)[0].exists():
-        for key in keys:  # a resumed run finds the pictures of the images it finished before
-            refuse_existing(picture_path(draw_dir, key), "--draw picture", overwrite)
+    if draw_dir is not None:  # never an input nor this run's own files; a resumed run finds its earlier pictures
+        resuming, never = companion_paths(out)[0].exists(), [*inputs, out, *companion_paths(out)]
+        for key in keys:
+            check_output_file(picture_path(draw_dir, key), "--draw picture", never, overwrite or resuming)
     results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys}, overwrite)
     try:
         todo = [key for key in keys if key not in results.done]

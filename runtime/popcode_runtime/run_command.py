@@ -101,7 +101,7 @@ def handle(args: argparse.Namespace) -> int:
     images = split_images(args.split)
     summary = run_detections(estimators, [str(path) for path in args.models], images, detections,
                              args.out, _fingerprint(args, images), args.max_images, not args.quiet, args.draw,
-                             args.depth, args.refine, args.overwrite)
+                             args.depth, args.refine, args.overwrite, inputs)
     skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "

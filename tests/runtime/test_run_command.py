@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -188,6 +189,11 @@ def test_existing_outputs_are_refused_unless_overwrite(split: Path, tmp_path: Pa
     assert not (tmp_path / "drawn.csv.partial").exists()  # refused before anything was written
     assert _run(split, tmp_path / "drawn.csv", "--gt-boxes", "--draw", str(pictures), "--overwrite") == 0
     assert read_image(stale).shape[:2] == (150, 200)
+    detections = pictures / "000001_000000.png"  # an input named as one of the pictures: never drawn over
+    text = json.dumps([{"scene_id": 1, "image_id": 0, "category_id": 1, "bbox": [10, 10, 50, 50], "score": 1}])
+    detections.write_text(text)
+    code = _run(split, tmp_path / "drawn2.csv", "--detections", str(detections), "--draw", str(pictures), "--overwrite")
+    assert code == 2 and "is the input" in capsys.readouterr().err and detections.read_text() == text
 
     report = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
               "--out", str(tmp_path / "eval")]
@@ -195,6 +201,22 @@ def test_existing_outputs_are_refused_unless_overwrite(split: Path, tmp_path: Pa
     assert trainer_main(report) == 2
     assert "report.md exists already; pass --overwrite" in capsys.readouterr().err
     assert trainer_main([*report, "--overwrite"]) == 0
+    (tmp_path / "eval" / "errors_results.csv").unlink()
+    (tmp_path / "eval" / "errors_results.csv").symlink_to(split / "000001" / "scene_gt.json")
+    assert trainer_main([*report, "--overwrite"]) == 2  # never written through a link, onto an input
+    assert "errors_results.csv lies in the input" in capsys.readouterr().err
+    (tmp_path / "eval" / "errors_results.csv").unlink()
+    os.mkfifo(tmp_path / "eval" / "errors_results.csv")  # a FIFO would hang the write, a rename replace it
+    assert trainer_main([*report, "--overwrite"]) == 2 and "is not a regular file" in capsys.readouterr().err
+    scored = ["evaluate", str(tmp_path / "eval2" / "results_bop19.csv"), "--name", "results", "--split", str(split),
+              "--models-dir",
+              str(split / "models"), "--no-vsd", "--bop19-csv", "--out", str(tmp_path / "eval2"), "--overwrite"]
+    (tmp_path / "eval2").mkdir()
+    shutil.copy(out, tmp_path / "eval2" / "results_bop19.csv")  # scored into the folder it lies in, as its own output
+    assert trainer_main(scored) == 2 and "is the input" in capsys.readouterr().err
+    twins = ["evaluate", str(out), str(out), "--name", "a/b", "--name", "a_b", "--split", str(split),
+             "--models-dir", str(split / "models"), "--no-vsd", "--out", str(tmp_path / "eval3")]
+    assert trainer_main(twins) == 2 and "would write the same files" in capsys.readouterr().err
     inside = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
               "--out", str(split / "eval"), "--overwrite"]
     assert trainer_main(inside) == 2 and "lies in the input" in capsys.readouterr().err

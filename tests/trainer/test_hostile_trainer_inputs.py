@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import pickle
 from pathlib import Path
 
@@ -319,8 +320,14 @@ def test_a_refused_render_writes_nothing(files, monkeypatch):
     stderr = io.StringIO()
     monkeypatch.setattr("sys.stderr", stderr)
     out = files / "refused_render"
-    assert main(["render", "--objects", "builtin", "--scenes", "2", "--bin-size-mm", "nan", "--out", str(out)]) == 2
-    assert not out.exists(), stderr.getvalue()
+    for options in (["--scenes", "2", "--bin-size-mm", "nan"], ["--images", "1", "--obj-ids", "99"]):
+        assert main(["render", "--objects", "builtin", *options, "--out", str(out)]) == 2
+        assert not out.exists(), stderr.getvalue()
+    fifo = files / "fifo_models" / "models" / "obj_000001.ply"
+    fifo.parent.mkdir(parents=True)
+    os.mkfifo(fifo)  # a rename would replace it, an open wait for a writer
+    assert main(["render", "--objects", "builtin", "--images", "1", "--out", str(files / "fifo_models")]) == 2
+    assert "is not a regular file" in stderr.getvalue() and fifo.is_fifo()
 
 
 @pytest.mark.parametrize(("argv", "expect"), [case[1:] for case in CASES], ids=[case[0] for case in CASES])

@@ -10,14 +10,15 @@ from popcode_runtime.decoding import DECODERS
 from popcode_runtime.engine import check_threads
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import MAX_TOP_K
-from popcode_runtime.files import OVERWRITE_HELP, refuse_existing, refuse_inputs, require_folder
+from popcode_runtime.files import OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
+from ..eval.pipeline.depth_poses import depth_modes
 from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import ARGMAX, methods_from_paths
 from ..eval.pipeline.split import read_eval_split
-from ..eval.reporting.report import REPORT_MD, report_markdown, write_report
+from ..eval.reporting.report import report_files, report_markdown, write_report
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -102,9 +103,13 @@ def run(args: argparse.Namespace) -> int:
     require_folder(args.models_dir, "models folder")
     if args.out.exists() and not args.out.is_dir():
         raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
-    refuse_inputs(args.out, "--out", [*args.splits, args.models_dir, *args.models])
-    refuse_existing(args.out / REPORT_MD, "--out's report", args.overwrite)
+    inputs = [*args.splits, args.models_dir, *args.models]
+    refuse_inputs(args.out, "--out", inputs)
     methods = methods_from_paths(args.models, args.names, args.decoders, args.threads)
+    depth_keys = [mode.key for mode in depth_modes(args.refine)] if args.depth else []
+    for name in report_files([method.name for method in methods], args.bop19_csv, depth_keys):
+        if args.out.is_dir():  # before any work: never an input, a link or FIFO, and existing only with --overwrite
+            check_output_file(args.out / name, "--out", inputs, args.overwrite)
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
         split = with_detector_boxes(split, noise, args.box_noise_seed)

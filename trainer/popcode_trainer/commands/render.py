@@ -7,7 +7,7 @@ from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
 
-from ..data.objects import write_builtin_models
+from ..data.objects import BUILTIN_PARTS, write_builtin_models
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, parse_shard, render_split
 from ..data.scene_render import SceneSettings, render_scene_split
 from ..data.sensor import SENSOR_PRESETS
@@ -76,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
     shard = parse_shard(args.shard)  # every option checked before anything is written
     settings = _scene_settings(args) if args.scenes is not None else _image_settings(args)
     if args.objects == "builtin":
+        unknown = sorted(set(args.obj_ids or ()) - {part.obj_id for part in BUILTIN_PARTS})
+        if unknown:
+            raise PopcodeError(f"--obj-ids {unknown}: the built-in parts are objects "
+                               f"{', '.join(str(part.obj_id) for part in BUILTIN_PARTS)}")
         models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
     else:
         models_dir = Path(args.objects)

@@ -13,6 +13,7 @@ instance's ``box_iou`` and a table of MSSD by box IoU; with hypotheses
 from __future__ import annotations
 
 import csv
+import io
 import math
 import re
 from collections import Counter
@@ -25,6 +26,7 @@ import numpy as np
 from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.files import write_bytes_atomic
 
 from ...metrics.confidence import rotation_errors_deg
 from ...metrics.pose_errors import rotation_error_deg, translation_error_mm
@@ -120,11 +122,29 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
 
 
 def write_instance_errors(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_bytes_atomic(path, text.getvalue().encode())
     return path
+
+
+def report_files(names: Sequence[str], bop19_csv: bool = False, depth_keys: Sequence[str] = ()) -> list[str]:
+    """Every file :func:`write_report` may write for the methods ``names`` (with ``bop19_csv``: the 6-D and the
+    ``depth_keys`` CSVs too), so that a command checks them before any work; two names that make one file are
+    refused."""
+    stems: dict[str, str] = {}
+    for name in names:
+        other = stems.setdefault(file_stem(name), name)
+        if other != name:
+            raise PopcodeError(f"methods {other!r} and {name!r} would write the same files ({file_stem(name)}); "
+                               "give them names that differ in letters or digits (--name)")
+    files = [REPORT_MD, REPORT_JSON, RELIABILITY_PNG, *(ERRORS_CSV.format(name=stem) for stem in stems)]
+    for stem in stems if bop19_csv else ():
+        files += [BOP19_CSV.format(name=stem), BOP19_6D_CSV.format(name=stem),
+                  *(BOP19_DEPTH_CSV.format(name=stem, mode=key) for key in depth_keys)]
+    return files
 
 
 def timing_markdown(results: Sequence[MethodResult]) -> str:
@@ -391,6 +411,6 @@ def write_report(results: Sequence[MethodResult], out_dir: str | Path,
     reliability = plot_reliability(results, out_dir / RELIABILITY_PNG)
     if reliability is not None:
         written.append(reliability)
-    (out_dir / REPORT_MD).write_text(report_markdown(results))
-    (out_dir / REPORT_JSON).write_text(to_json(report_dict(results)) + "\n")
+    write_bytes_atomic(out_dir / REPORT_MD, report_markdown(results).encode())
+    write_bytes_atomic(out_dir / REPORT_JSON, (to_json(report_dict(results)) + "\n").encode())
     return [*written, out_dir / REPORT_MD, out_dir / REPORT_JSON]
