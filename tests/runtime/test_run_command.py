@@ -217,6 +217,13 @@ def test_existing_outputs_are_refused_unless_overwrite(split: Path, tmp_path: Pa
     twins = ["evaluate", str(out), str(out), "--name", "a/b", "--name", "a_b", "--split", str(split),
              "--models-dir", str(split / "models"), "--no-vsd", "--out", str(tmp_path / "eval3")]
     assert trainer_main(twins) == 2 and "would write the same files" in capsys.readouterr().err
+    crossed = ["evaluate", str(out), str(out), "--name", "m", "--name", "m_6d", "--translation", "--bop19-csv",
+               "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd", "--out", str(tmp_path / "e4")]
+    assert trainer_main(crossed) == 2  # m's 6-D results file is m_6d's rotation-only one
+    assert "m_6d_bop19.csv would be written for 'm' and for 'm_6d'" in capsys.readouterr().err
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    assert trainer_main([*report[:-1], str(tmp_path / "dangling")]) == 2
+    assert "is not a folder (a file, link or FIFO)" in capsys.readouterr().err
     inside = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
               "--out", str(split / "eval"), "--overwrite"]
     assert trainer_main(inside) == 2 and "lies in the input" in capsys.readouterr().err

@@ -249,7 +249,7 @@ CASES = [
      "no agreement can be judged"),
     ("evaluate-out-is-a-file", lambda f: ["evaluate", str(f / "box_fit/hull.onnx"), "--split", str(f / "split"),
                                           "--models-dir", str(f / "bar_2fold"), "--out", str(f / "keys.pt")],
-     "keys.pt is a file; give a folder for the report"),
+     "keys.pt is not a folder (a file, link or FIFO); give a folder for the report"),
     ("evaluate-translation-without-box-fit-points", lambda f: [
         "evaluate", str(f / "box_fit/hull.onnx"), str(f / "box_fit/bare.onnx"), "--split", str(f / "split"),
         "--models-dir", str(f / "bar_2fold"), "--translation", "--out", str(f / "eval")],
@@ -323,6 +323,11 @@ def test_a_refused_render_writes_nothing(files, monkeypatch):
     for options in (["--scenes", "2", "--bin-size-mm", "nan"], ["--images", "1", "--obj-ids", "99"]):
         assert main(["render", "--objects", "builtin", *options, "--out", str(out)]) == 2
         assert not out.exists(), stderr.getvalue()
+    other = files / "rendered_from_other_models"
+    other.mkdir()
+    (other / "popcode_render.json").write_text("{}")  # a split of other meshes: no models/ folder inside
+    assert main(["render", "--objects", "builtin", "--images", "1", "--out", str(other)]) == 2
+    assert "was rendered from other models" in stderr.getvalue() and not (other / "models").exists()
     fifo = files / "fifo_models" / "models" / "obj_000001.ply"
     fifo.parent.mkdir(parents=True)
     os.mkfifo(fifo)  # a rename would replace it, an open wait for a writer

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
@@ -10,7 +11,7 @@ from popcode_runtime.decoding import DECODERS
 from popcode_runtime.engine import check_threads
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import MAX_TOP_K
-from popcode_runtime.files import OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
+from popcode_runtime.files import MAX_NAME_BYTES, OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.depth_poses import depth_modes
@@ -101,8 +102,7 @@ def run(args: argparse.Namespace) -> int:
     for split_dir in args.splits:  # cheap checks first: folders, then every model with the options
         require_folder(split_dir, "split folder")
     require_folder(args.models_dir, "models folder")
-    if args.out.exists() and not args.out.is_dir():
-        raise PopcodeError(f"--out {args.out} is a file; give a folder for the report")
+    _check_out_folder(args.out)
     inputs = [*args.splits, args.models_dir, *args.models]
     refuse_inputs(args.out, "--out", inputs)
     methods = methods_from_paths(args.models, args.names, args.decoders, args.threads)
@@ -110,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
     for name in report_files([method.name for method in methods], args.bop19_csv, depth_keys):
         if args.out.is_dir():  # before any work: never an input, a link or FIFO, and existing only with --overwrite
             check_output_file(args.out / name, "--out", inputs, args.overwrite)
+        elif len(name.encode()) > MAX_NAME_BYTES:
+            raise PopcodeError(f"--out: the file name {name[:40]}... is {len(name.encode())} bytes; at most "
+                               f"{MAX_NAME_BYTES}: give the method a shorter --name")
     split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
     if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
         split = with_detector_boxes(split, noise, args.box_noise_seed)
@@ -119,3 +122,14 @@ def run(args: argparse.Namespace) -> int:
     print(report_markdown(results))
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
+
+
+def _check_out_folder(out: Path) -> None:
+    """``--out`` is a folder, or can be made one: nothing but folders on the way (checked before any work)."""
+    if os.path.lexists(out) and not out.is_dir():
+        raise PopcodeError(f"--out {out} is not a folder (a file, link or FIFO); give a folder for the report")
+    ancestor = out.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise PopcodeError(f"--out {out}: {ancestor} is not a folder, so the report's folder cannot be made")

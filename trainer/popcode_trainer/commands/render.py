@@ -7,6 +7,7 @@ from pathlib import Path
 
 from popcode_runtime.errors import PopcodeError
 
+from ..data.bop import RENDER_MARKER
 from ..data.objects import BUILTIN_PARTS, write_builtin_models
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, parse_shard, render_split
 from ..data.scene_render import SceneSettings, render_scene_split
@@ -80,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         if unknown:
             raise PopcodeError(f"--obj-ids {unknown}: the built-in parts are objects "
                                f"{', '.join(str(part.obj_id) for part in BUILTIN_PARTS)}")
+        if (args.out / RENDER_MARKER).is_file() and not (args.out / BUILTIN_MODELS_FOLDER).is_dir():
+            raise PopcodeError(f"--out {args.out} was rendered from other models (it has no "
+                               f"{BUILTIN_MODELS_FOLDER}/ folder); render the built-in parts into another folder")
         models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
     else:
         models_dir = Path(args.objects)

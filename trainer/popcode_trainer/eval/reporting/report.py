@@ -140,11 +140,17 @@ def report_files(names: Sequence[str], bop19_csv: bool = False, depth_keys: Sequ
         if other != name:
             raise PopcodeError(f"methods {other!r} and {name!r} would write the same files ({file_stem(name)}); "
                                "give them names that differ in letters or digits (--name)")
-    files = [REPORT_MD, REPORT_JSON, RELIABILITY_PNG, *(ERRORS_CSV.format(name=stem) for stem in stems)]
-    for stem in stems if bop19_csv else ():
-        files += [BOP19_CSV.format(name=stem), BOP19_6D_CSV.format(name=stem),
-                  *(BOP19_DEPTH_CSV.format(name=stem, mode=key) for key in depth_keys)]
-    return files
+    files = {REPORT_MD: "the report", REPORT_JSON: "the report", RELIABILITY_PNG: "the report"}
+    for stem, name in stems.items():
+        kinds = [ERRORS_CSV] + ([BOP19_CSV, BOP19_6D_CSV] if bop19_csv else [])
+        planned = [kind.format(name=stem) for kind in kinds]
+        planned += [BOP19_DEPTH_CSV.format(name=stem, mode=key) for key in depth_keys] if bop19_csv else []
+        for file_name in planned:
+            other = files.setdefault(file_name, name)
+            if other != name:
+                raise PopcodeError(f"{file_name} would be written for {other!r} and for {name!r}; give the methods "
+                                   "names that do not make one another's file names (--name)")
+    return list(files)
 
 
 def timing_markdown(results: Sequence[MethodResult]) -> str:
