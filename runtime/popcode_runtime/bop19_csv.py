@@ -86,7 +86,10 @@ def read_bop19_results(path: str | Path) -> list[PoseEstimate]:
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"results file not found: {path}" if not path.exists() else f"{path} is not a file")
-    lines = path.read_text().splitlines()
+    try:
+        lines = path.read_bytes().decode("utf-8").splitlines()
+    except UnicodeDecodeError as error:
+        raise PopcodeError(f"{path} is not a UTF-8 text file ({error.reason} at byte {error.start})") from error
     if not lines or lines[0].strip() != HEADER:
         raise PopcodeError(f"{path}: the first line must be the header {HEADER!r}")
     return [

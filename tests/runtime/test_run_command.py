@@ -224,6 +224,12 @@ def test_existing_outputs_are_refused_unless_overwrite(split: Path, tmp_path: Pa
     (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
     assert trainer_main([*report[:-1], str(tmp_path / "dangling")]) == 2
     assert "is not a folder (a file, link or FIFO)" in capsys.readouterr().err
+    assert trainer_main([*report[:-1], str(tmp_path / "dangling" / "sub")]) == 2  # a dangling link on the way
+    assert "so the report's folder cannot be made" in capsys.readouterr().err
+    utf16 = tmp_path / "utf16.csv"
+    utf16.write_bytes(out.read_text().encode("utf-16"))
+    assert trainer_main(["evaluate", str(utf16), *report[2:-2], "--out", str(tmp_path / "e5")]) == 2
+    assert "is not a UTF-8 text file" in capsys.readouterr().err
     inside = ["evaluate", str(out), "--split", str(split), "--models-dir", str(split / "models"), "--no-vsd",
               "--out", str(split / "eval"), "--overwrite"]
     assert trainer_main(inside) == 2 and "lies in the input" in capsys.readouterr().err

@@ -328,6 +328,10 @@ def test_a_refused_render_writes_nothing(files, monkeypatch):
     (other / "popcode_render.json").write_text("{}")  # a split of other meshes: no models/ folder inside
     assert main(["render", "--objects", "builtin", "--images", "1", "--out", str(other)]) == 2
     assert "was rendered from other models" in stderr.getvalue() and not (other / "models").exists()
+    unmarked = files / "unmarked_split" / "000000"
+    unmarked.mkdir(parents=True)  # a split whose settings file is lost: its images' settings are unknown
+    assert main(["render", "--objects", "builtin", "--images", "1", "--out", str(unmarked.parent)]) == 2
+    assert "holds files but no popcode_render.json" in stderr.getvalue()
     fifo = files / "fifo_models" / "models" / "obj_000001.ply"
     fifo.parent.mkdir(parents=True)
     os.mkfifo(fifo)  # a rename would replace it, an open wait for a writer

@@ -129,7 +129,7 @@ def _check_out_folder(out: Path) -> None:
     if os.path.lexists(out) and not out.is_dir():
         raise PopcodeError(f"--out {out} is not a folder (a file, link or FIFO); give a folder for the report")
     ancestor = out.parent
-    while not ancestor.exists() and ancestor != ancestor.parent:
+    while not os.path.lexists(ancestor) and ancestor != ancestor.parent:  # a dangling link stops the walk
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise PopcodeError(f"--out {out}: {ancestor} is not a folder, so the report's folder cannot be made")

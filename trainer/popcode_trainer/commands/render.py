@@ -76,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
     shard = parse_shard(args.shard)  # every option checked before anything is written
     settings = _scene_settings(args) if args.scenes is not None else _image_settings(args)
+    if args.out.is_dir() and not (args.out / RENDER_MARKER).is_file() \
+            and any(entry.name != BUILTIN_MODELS_FOLDER for entry in args.out.iterdir()):
+        raise PopcodeError(f"--out {args.out} holds files but no {RENDER_MARKER}: not a split this command made "
+                           "(or one whose settings are lost); render into an empty or new folder")
     if args.objects == "builtin":
         unknown = sorted(set(args.obj_ids or ()) - {part.obj_id for part in BUILTIN_PARTS})
         if unknown:
