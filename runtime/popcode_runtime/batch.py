@@ -29,7 +29,7 @@ import os
 import sys
 import time
 from collections import Counter, defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -158,15 +158,20 @@ class PartialResults:
             if not self.path.exists():  # a finished run's files; with a partial beside them, a rerun that resumes
                 refuse_existing(out, "--out", overwrite)
                 refuse_existing(self.sources, "--out's translation sources", overwrite)
-            self.lines: list[str] = []
-            self.done: set[ImageKey] = set()
+            self.blocks: dict[ImageKey, list[str]] = {}  # each closed image's lines, its closing mark last
             if self.path.exists():
                 self._resume(fingerprint, expected)
-            write_bytes_atomic(self.path, "\n".join([RUN_MARK + fingerprint, *self.lines]).encode() + b"\n")
+            lines = [line for block in self.blocks.values() for line in block]
+            write_bytes_atomic(self.path, "\n".join([RUN_MARK + fingerprint, *lines]).encode() + b"\n")
             self._handle = self.path.open("a")
         except BaseException:
             self._lock.release()
             raise
+
+    @property
+    def done(self) -> Collection[ImageKey]:
+        """The images closed so far."""
+        return self.blocks.keys()
 
     def _refuse(self, why: str) -> PopcodeError:
         return PopcodeError(f"{self.path} {why}; remove it to start again, or rerun the command that made it")
@@ -202,8 +207,7 @@ class PartialResults:
             if problem is not None or mark is None:
                 raise self._refuse(f"was changed after it was written ({problem})")
             key, checksum = mark
-            self.lines += [*lines, f"{DONE_MARK}{key[0]} {key[1]} {checksum}"]
-            self.done.add(key)
+            self.blocks[key] = [*lines, f"{DONE_MARK}{key[0]} {key[1]} {checksum}"]
 
     def add(self, key: ImageKey, estimates: Sequence[PoseEstimate], sources: Sequence[str] = ()) -> None:
         """Append one image's estimates, its lines of the translation file (``sources``) and its closing mark,
@@ -213,21 +217,13 @@ class PartialResults:
         self._handle.write("\n".join(lines) + "\n")
         self._handle.flush()
         os.fsync(self._handle.fileno())
-        self.lines += lines
-        self.done.add(key)
+        self.blocks[key] = lines
 
     def finish(self) -> None:
         """Write the results file (header and every estimate, images in the run's order whatever the order of
         the partial file's blocks) atomically and remove the partial file."""
         self._handle.close()
-        blocks: dict[ImageKey, list[str]] = {}
-        pending: list[str] = []
-        for line in self.lines:
-            if line.startswith(DONE_MARK):
-                blocks[_done_key(line)[0]], pending = pending, []
-            else:
-                pending.append(line)
-        lines = [line for key in sorted(blocks) for line in blocks[key]]
+        lines = [line for key in sorted(self.blocks) for line in self.blocks[key]]
         write_bop19_lines(self.out, [line for line in lines if not line.startswith("#")])
         sources = [line[len(SOURCE_MARK):] for line in lines if line.startswith(SOURCE_MARK)]
         if sources:
@@ -242,7 +238,8 @@ class PartialResults:
 
 
 def _block_problem(lines: Sequence[str], mark: tuple[ImageKey, str] | None,
-                   expected: Mapping[ImageKey, Sequence[int]], done: set[ImageKey], fingerprint: str) -> str | None:
+                   expected: Mapping[ImageKey, Sequence[int]], done: Collection[ImageKey],
+                   fingerprint: str) -> str | None:
     """What is wrong with one image's lines in a partial file of the run ``fingerprint``, or None."""
     if mark is None:
         return "a closing mark is torn or malformed"

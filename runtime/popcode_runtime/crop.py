@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .checks import integer
+from .checks import integer, shown
 from .checks import path as checked_path
 from .errors import PopcodeError, library_step
 from .image_size import image_size
@@ -119,26 +119,26 @@ def check_box(box: Sequence[float], image_shape: tuple[int, ...]) -> tuple[float
     longer side (its crop would be mostly fill, and its square unbounded memory).
     """
     if isinstance(box, (str, bytes)) or not hasattr(box, "__len__") or len(box) != 4:
-        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {shown(box, 80)}")
     try:
         x, y, w, h = (float(v) for v in box)
     except (TypeError, ValueError, OverflowError) as error:
-        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}") from error
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {shown(box, 80)}") from error
     if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in box):
-        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {_shown(box)}")
+        raise PopcodeError(f"a box is 4 numbers x, y, w, h; got {shown(box, 80)}")
     if not all(np.isfinite([x, y, w, h])):
-        raise PopcodeError(f"box {_shown(box)} contains NaN or inf")
+        raise PopcodeError(f"box {shown(box, 80)} contains NaN or inf")
     if w <= 0 or h <= 0:
-        raise PopcodeError(f"box {_shown(box)} is empty: width and height must be positive")
+        raise PopcodeError(f"box {shown(box, 80)} is empty: width and height must be positive")
     if max(w, h) < MIN_BOX_PX:
-        raise PopcodeError(f"box {_shown(box)} is smaller than a pixel")
+        raise PopcodeError(f"box {shown(box, 80)} is smaller than a pixel")
     height, width = image_shape[:2]
     limit = MAX_BOX_FACTOR * max(height, width)
     if max(w, h) > limit:
-        raise PopcodeError(f"box {_shown(box)} is larger than {MAX_BOX_FACTOR:g}x the {width}x{height} image "
+        raise PopcodeError(f"box {shown(box, 80)} is larger than {MAX_BOX_FACTOR:g}x the {width}x{height} image "
                            f"({limit:g} px)")
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
-        raise PopcodeError(f"box {_shown(box)} lies wholly outside the {width}x{height} image")
+        raise PopcodeError(f"box {shown(box, 80)} lies wholly outside the {width}x{height} image")
     return x, y, w, h
 
 
@@ -149,11 +149,6 @@ def check_padding(padding: float) -> float:
     if not (np.isfinite(padding) and MIN_CROP_PADDING <= padding <= MAX_CROP_PADDING):
         raise PopcodeError(f"crop padding must lie in [{MIN_CROP_PADDING:g}, {MAX_CROP_PADDING:g}], got {padding}")
     return float(padding)
-
-
-def _shown(box: object, width: int = 80) -> str:
-    text = repr(box.tolist() if isinstance(box, np.ndarray) else box)
-    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def crop_square(
@@ -173,7 +168,7 @@ def crop_square(
     x, y, w, h = check_box(box, image.shape)
     side = max(1, int(round(check_padding(padding) * max(w, h))))
     if side * side > MAX_SQUARE_PIXELS:
-        raise PopcodeError(f"box {_shown(box)} needs a {side}x{side} crop square, more than the limit of "
+        raise PopcodeError(f"box {shown(box, 80)} needs a {side}x{side} crop square, more than the limit of "
                            f"{MAX_SQUARE_PIXELS} pixels")
     centre_x = x + w / 2.0 + shift_px[0]
     centre_y = y + h / 2.0 + shift_px[1]

@@ -96,8 +96,13 @@ def write_bytes_atomic(path: Path, data: bytes) -> None:
         temporary.unlink(missing_ok=True)
 
 
+def json_bytes(data: Any) -> bytes:
+    """How popcode writes a JSON file (its bytes, so a writer can compare them with a file's)."""
+    return json.dumps(data, indent=1).encode()
+
+
 def write_json_atomic(path: Path, data: Any) -> None:
-    write_bytes_atomic(path, json.dumps(data, indent=1).encode())
+    write_bytes_atomic(path, json_bytes(data))
 
 
 def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[str | os.PathLike] = ()) -> Path:

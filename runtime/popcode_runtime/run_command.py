@@ -55,7 +55,8 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     run.add_argument("--depth", action="store_true",
                      help="the translation from each image's depth image (depth/ and scene_camera.json's "
                           "depth_scale) instead of the box; where an instance's depth is unusable it keeps the box's. "
-                          "Each estimate's source is written to <CSV stem>.translation.csv (the CSV's own suffix)")
+                          "Each estimate's source is written to <CSV stem>.translation<CSV suffix> "
+                          "(results.translation.csv)")
     run.add_argument("--refine", action="store_true",
                      help="with --depth: also refine rotation and translation against the observed points (ICP; "
                           "needs pip install ./runtime[depth])")

@@ -7,7 +7,6 @@ tests check that each one really maps the mesh onto itself.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ import trimesh
 from scipy.spatial.distance import pdist
 
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import check_writable_file, write_bytes_atomic
+from popcode_runtime.files import check_writable_file, json_bytes, write_bytes_atomic
 from popcode_runtime.rotations import axis_angle_to_matrix
 
 _SECTIONS = 96  # facets of revolved surfaces: deviates from a true circle by < 0.06 % of the radius
@@ -150,8 +149,8 @@ def write_builtin_models(out_dir: str | Path) -> Path:
     meshes = {part.obj_id: build_part(part.obj_id) for part in BUILTIN_PARTS}
     files = {f"obj_{obj_id:06d}.ply": mesh.export(file_type="ply", encoding="binary")
              for obj_id, mesh in meshes.items()}
-    files["models_info.json"] = json.dumps({str(part.obj_id): model_info(meshes[part.obj_id], part.symmetries)
-                                            for part in BUILTIN_PARTS}, indent=1).encode()
+    files["models_info.json"] = json_bytes({str(part.obj_id): model_info(meshes[part.obj_id], part.symmetries)
+                                            for part in BUILTIN_PARTS})
     for name in files if out_dir.is_dir() else ():
         check_writable_file(out_dir / name, "built-in model file")  # a folder, link or FIFO there is refused
     other = [name for name, data in files.items() if (out_dir / name).is_file()

@@ -26,6 +26,7 @@ import trimesh
 from tqdm import tqdm
 
 from popcode_runtime.camera import project_points
+from popcode_runtime.checks import shown
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.files import read_json, write_json_atomic, write_png_atomic
 from popcode_runtime.rotations import random_rotations, rotation_between
@@ -226,17 +227,12 @@ def check_settings(out_dir: Path, settings: dict[str, Any]) -> None:
         previous = read_json(marker)
         if previous != settings:
             differing = sorted(key for key in {*previous, *settings} if previous.get(key) != settings.get(key))
-            shown = "; ".join(f"{key}: {_shown(previous.get(key))} there, {_shown(settings.get(key))} here"
-                              for key in differing[:4])
-            raise PopcodeError(f"{out_dir} was rendered with other settings ({shown}); use the same settings "
+            differences = "; ".join(f"{key}: {shown(previous.get(key))} there, {shown(settings.get(key))} here"
+                                    for key in differing[:4])
+            raise PopcodeError(f"{out_dir} was rendered with other settings ({differences}); use the same settings "
                                "and objects to complete it, or another folder")
     else:
         write_json_atomic(marker, settings)
-
-
-def _shown(value: Any) -> str:
-    text = json.dumps(value)
-    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def parse_shard(text: str) -> tuple[int, int]:
