@@ -22,7 +22,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.objects import BUILTIN_PARTS, model_info
-from popcode_trainer.demo.group_codes import choose_group_code, finer_grids
+from popcode_trainer.demo.group_codes import choose_group_code, choose_group_codes, finer_grids
 from popcode_trainer.demo.parts import check_models_folder
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import DEMO_SIZES
@@ -245,3 +245,19 @@ def test_a_grid_too_coarse_for_a_part_is_refined_and_said() -> None:
     assert "object 4's 4 symmetric poses merge" in chosen.note
     kept = choose_group_code(code, four_fold, finer=False)
     assert kept.code == code and "the grid is too coarse" in kept.note
+
+
+@pytest.mark.slow
+def test_a_part_that_needs_a_finer_code_trains_apart() -> None:
+    """A 4-fold part needs 162 x 24 at sigma 15 on the smoke grid; pooled with it, the asymmetric bracket would
+    train on that grid and width too. It keeps the size's code in a model of its own, and both notes say why; the
+    built-in demo (finer=False) keeps its one group."""
+    code = small_config(1, 42, 12, sigma_deg=30.0).code
+    info = {part.obj_id: part.symmetries for part in BUILTIN_PARTS if part.obj_id in (4, 6)}
+    fine, kept = choose_group_codes(code, info, [[4, 6]])
+    assert fine.obj_ids == (4,) and (fine.code.n_axes, fine.code.n_angles) == (162, 24) and fine.sigma_deg < 30.0
+    assert fine.note.endswith("; a model apart from object 6, whose code differs")
+    assert kept.obj_ids == (6,) and kept.code == code and kept.sigma_deg == 30.0
+    assert kept.note.endswith("; a model apart from object 4, whose code differs")
+    pooled, = choose_group_codes(code, info, [[4, 6]], finer=False)
+    assert pooled.obj_ids == (4, 6) and pooled.code.n_axes == 42

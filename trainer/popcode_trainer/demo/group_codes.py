@@ -5,7 +5,9 @@ symmetric poses would merge (:mod:`popcode_trainer.train.code_sigma`), but only 
 resolves; a part with many symmetric poses (a 12-fold nut) needs a finer grid than the demo's. So each
 group gets the first grid of :func:`finer_grids` on which, after narrowing, even an exact code decodes
 every part within :data:`~popcode_trainer.train.code_sigma.EXACT_TOLERANCE_DEG`, and a sentence saying
-what was chosen and why. A group the size's settings resolve keeps them unchanged. The built-in demo keeps
+what was chosen and why. A group the size's settings resolve keeps them unchanged; a user's group whose parts
+need different codes alone is split, one model per code, so that one fine part does not move the rest onto its
+grid (:func:`split_by_code`). The built-in demo keeps
 its sizes' grids (they resolve every built-in part), so only its test-sized runs narrow sigma alone.
 """
 
@@ -49,6 +51,10 @@ def finer_grids(n_axes: int, n_angles: int, axis_only: bool) -> list[tuple[int, 
         grids.append(finer)
 
 
+def _names(ids: Sequence[int]) -> str:
+    return f"object {ids[0]}" if len(ids) == 1 else f"objects {', '.join(map(str, ids))}"
+
+
 def _layout(code: CodeConfig, objects: Mapping[int, Mapping[str, Any]], grid: tuple[int, int]) -> CodeLayout:
     return code_layout(objects, grid[0], grid[1], code.sigma_deg)
 
@@ -75,7 +81,7 @@ def choose_group_code(code: CodeConfig, objects: Mapping[int, Mapping[str, Any]]
     """The code of the group ``objects`` (see the module docstring); without ``finer`` the size's grid is kept and
     only sigma narrowed."""
     ids = tuple(sorted(objects))
-    names = f"object {ids[0]}" if len(ids) == 1 else f"objects {', '.join(map(str, ids))}"
+    names = _names(ids)
     size_layout = _layout(code, objects, (code.n_axes, code.n_angles))
     merged_at_size = _worst(size_layout, objects)
     if merged_at_size is None:
@@ -103,7 +109,36 @@ def choose_group_code(code: CodeConfig, objects: Mapping[int, Mapping[str, Any]]
                      f"object {worst[0]} keeps errors of about {worst[1]:.1f} deg even with an exact code")
 
 
+def _needs(group: GroupCode) -> tuple[int, int, float]:
+    return group.code.n_axes, group.code.n_angles, round(group.sigma_deg, 3)
+
+
+def split_by_code(code: CodeConfig, models_info: Mapping[int, Mapping[str, Any]], group: Sequence[int]
+                  ) -> list[GroupCode]:
+    """``group`` as models of parts that need the same code alone (grid and width), in order of first id.
+
+    One part with many symmetric poses (a 12-fold gear) would otherwise move every part it is pooled with onto
+    its fine grid and narrow width: a head many times larger and targets so narrow that those parts barely train
+    in a short budget (bench/results/validation-parts-quick.md). Each split-off model's note says why.
+    """
+    alone = {obj_id: choose_group_code(code, {obj_id: models_info[obj_id]}) for obj_id in group}
+    by_needs: dict[tuple[int, int, float], list[int]] = {}
+    for obj_id in sorted(group):
+        by_needs.setdefault(_needs(alone[obj_id]), []).append(obj_id)
+    if len(by_needs) == 1:
+        return [alone[group[0]] if len(group) == 1 else choose_group_code(code, {i: models_info[i] for i in group})]
+    chosen = []
+    for ids in by_needs.values():
+        one = alone[ids[0]] if len(ids) == 1 else choose_group_code(code, {i: models_info[i] for i in ids})
+        others = [i for i in sorted(group) if i not in ids]
+        chosen.append(replace(one, note=f"{one.note}; a model apart from {_names(others)}, whose code differs"))
+    return chosen
+
+
 def choose_group_codes(code: CodeConfig, models_info: Mapping[int, Mapping[str, Any]],
                        groups: Sequence[Sequence[int]], finer: bool = True) -> list[GroupCode]:
-    """:func:`choose_group_code` for every group, in the groups' order."""
-    return [choose_group_code(code, {obj_id: models_info[obj_id] for obj_id in group}, finer) for group in groups]
+    """Each group's code, in the groups' order. With ``finer`` a group whose parts need different codes alone is
+    split into one model per code (:func:`split_by_code`); without, every group keeps the size's grid."""
+    if not finer:
+        return [choose_group_code(code, {obj_id: models_info[obj_id] for obj_id in group}, finer) for group in groups]
+    return [chosen for group in groups for chosen in split_by_code(code, models_info, group)]
