@@ -21,6 +21,7 @@ Plates with holes are extruded from a Delaunay triangulation of their outline (n
 parts of several solids overlap, as the built-in parts do. Every circle has a vertex count that the part's
 rotations map onto itself, so each declared symmetry holds to rounding, and the symmetry check
 (``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_validation_parts.py`` checks both.
+``bench/tuning_parts.py`` builds the tuning set, on which recipe settings are chosen, from the same helpers.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ _CIRCLE_SECTIONS = 48  # vertices of a hole or boss circle; divisible by 3, 4 an
 _RIM_SECTIONS = 96
 
 
-def _circle(radius_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0),
+def circle(radius_mm: float, centre_mm: tuple[float, float] = (0.0, 0.0),
             sections: int = _CIRCLE_SECTIONS) -> np.ndarray:
     """``(sections, 2)`` points of a circle, the first at angle 0 (so a mirror about x keeps it)."""
     angle = 2 * np.pi * np.arange(sections) / sections
@@ -84,7 +85,7 @@ def _signed_area(ring: np.ndarray) -> float:
     return 0.5 * float(np.sum(ring[:, 0] * following[:, 1] - following[:, 0] * ring[:, 1]))
 
 
-def _slab(outline_mm: np.ndarray, holes_mm: Sequence[np.ndarray], thickness_mm: float,
+def slab(outline_mm: np.ndarray, holes_mm: Sequence[np.ndarray], thickness_mm: float,
           z0_mm: float = 0.0) -> trimesh.Trimesh:
     """A closed plate: the outline less the holes (2-D, mm), from ``z0_mm`` up by ``thickness_mm``."""
     rings = [_densify(ring) for ring in (outline_mm, *holes_mm)]
@@ -105,13 +106,15 @@ def _slab(outline_mm: np.ndarray, holes_mm: Sequence[np.ndarray], thickness_mm: 
     return mesh
 
 
-def _placed(mesh: trimesh.Trimesh, rotation: np.ndarray, offset_mm: Sequence[float]) -> trimesh.Trimesh:
+def placed(mesh: trimesh.Trimesh, rotation: np.ndarray, offset_mm: Sequence[float]) -> trimesh.Trimesh:
+    """``mesh`` turned by ``rotation (3, 3)`` about the origin, then moved by ``offset_mm`` (in place)."""
     transform = np.eye(4)
     transform[:3, :3], transform[:3, 3] = rotation, offset_mm
     return mesh.apply_transform(transform)
 
 
-def _polar(angle_deg: float, radius_mm: float) -> tuple[float, float]:
+def polar(angle_deg: float, radius_mm: float) -> tuple[float, float]:
+    """The 2-D point ``radius_mm`` from the origin at ``angle_deg`` from x."""
     return radius_mm * np.cos(np.deg2rad(angle_deg)), radius_mm * np.sin(np.deg2rad(angle_deg))
 
 
@@ -122,32 +125,32 @@ def _gear_12() -> trimesh.Trimesh:
     outline = []
     for tooth in range(12):
         centre = 30.0 * tooth
-        outline += [_polar(centre - 8.0, root)]
-        outline += [_polar(angle, tip) for angle in np.linspace(centre - 4.5, centre + 4.5, sections + 1)]
-        outline += [_polar(angle, root) for angle in np.linspace(centre + 8.0, centre + 22.0, sections + 1)[:-1]]
-    return _slab(np.array(outline), [_circle(10.0)], 12.0)
+        outline += [polar(centre - 8.0, root)]
+        outline += [polar(angle, tip) for angle in np.linspace(centre - 4.5, centre + 4.5, sections + 1)]
+        outline += [polar(angle, root) for angle in np.linspace(centre + 8.0, centre + 22.0, sections + 1)[:-1]]
+    return slab(np.array(outline), [circle(10.0)], 12.0)
 
 
 def _three_rib_flange() -> trimesh.Trimesh:
     """Round flange with a bore and three bolt holes, a hub and three ribs on the top face: 3-fold, no flip."""
-    holes = [_circle(10.0)] + [_circle(5.0, _polar(angle, 32.0)) for angle in (90, 210, 330)]
-    parts = [_slab(_circle(45.0, sections=_RIM_SECTIONS), holes, 8.0),
-             _slab(_circle(17.0), [_circle(10.0)], 20.0, z0_mm=4.0)]
+    holes = [circle(10.0)] + [circle(5.0, polar(angle, 32.0)) for angle in (90, 210, 330)]
+    parts = [slab(circle(45.0, sections=_RIM_SECTIONS), holes, 8.0),
+             slab(circle(17.0), [circle(10.0)], 20.0, z0_mm=4.0)]
     for angle in (30, 150, 270):
         rib = trimesh.creation.box(extents=(27.0, 6.0, 16.0))
         rotation = trimesh.transformations.rotation_matrix(np.deg2rad(angle), (0, 0, 1))[:3, :3]
-        parts.append(_placed(rib, rotation, (*_polar(angle, 28.5), 14.0)))
+        parts.append(placed(rib, rotation, (*polar(angle, 28.5), 14.0)))
     return trimesh.util.concatenate(parts)
 
 
 def _bent_bracket() -> trimesh.Trimesh:
     """Base plate and a narrower upright at one edge, holes off-centre, one corner chamfered: no symmetry."""
     base_outline = np.array([(0, 0), (72, 0), (72, 34), (60, 46), (0, 46)], dtype=np.float64)
-    base_holes = [_circle(4.5, (50.0, 14.0)), _circle(3.0, (30.0, 34.0)), _circle(3.0, (62.0, 30.0))]
+    base_holes = [circle(4.5, (50.0, 14.0)), circle(3.0, (30.0, 34.0)), circle(3.0, (62.0, 30.0))]
     upright_outline = np.array([(0, 0), (30, 0), (30, 40), (22, 52), (0, 52)], dtype=np.float64)  # (y, z)
-    upright = _slab(upright_outline, [_circle(5.0, (14.0, 36.0))], 6.0)
+    upright = slab(upright_outline, [circle(5.0, (14.0, 36.0))], 6.0)
     uv_w_to_xyz = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # outline (u, v) -> (y, z), w -> x
-    return trimesh.util.concatenate([_slab(base_outline, base_holes, 6.0), _placed(upright, uv_w_to_xyz, (0, 0, 0))])
+    return trimesh.util.concatenate([slab(base_outline, base_holes, 6.0), placed(upright, uv_w_to_xyz, (0, 0, 0))])
 
 
 def _stepped_shaft() -> trimesh.Trimesh:
@@ -161,33 +164,35 @@ def _square_flange_with_chamfer() -> trimesh.Trimesh:
     the 4-fold symmetry it otherwise has."""
     chamfer = 13.0
     outline = np.array([(-35, -35), (35, -35), (35, 35 - chamfer), (35 - chamfer, 35), (-35, 35)], dtype=np.float64)
-    holes = [_circle(12.0)] + [_circle(4.0, (x, y)) for x in (-22.0, 22.0) for y in (-22.0, 22.0)]
-    return trimesh.util.concatenate([_slab(outline, holes, 8.0), _slab(_circle(19.0), [_circle(12.0)], 26.0, 4.0)])
+    holes = [circle(12.0)] + [circle(4.0, (x, y)) for x in (-22.0, 22.0) for y in (-22.0, 22.0)]
+    return trimesh.util.concatenate([slab(outline, holes, 8.0), slab(circle(19.0), [circle(12.0)], 26.0, 4.0)])
 
 
 def _connecting_rod() -> trimesh.Trimesh:
     """Flat tapered link between a big and a small eye, a thick boss round the big eye on both faces: 2-fold
     about the long axis x only (the boss and the eyes tell the ends apart)."""
-    ends = np.concatenate([_circle(16.0, (-40.0, 0.0)), _circle(11.0, (40.0, 0.0))])
+    ends = np.concatenate([circle(16.0, (-40.0, 0.0)), circle(11.0, (40.0, 0.0))])
     outline = ends[ConvexHull(ends).vertices]
-    link = _slab(outline, [_circle(8.0, (-40.0, 0.0)), _circle(4.5, (40.0, 0.0))], 8.0, z0_mm=-4.0)
-    boss = _slab(_circle(17.0, (-40.0, 0.0)), [_circle(8.0, (-40.0, 0.0))], 20.0, z0_mm=-10.0)
+    link = slab(outline, [circle(8.0, (-40.0, 0.0)), circle(4.5, (40.0, 0.0))], 8.0, z0_mm=-4.0)
+    boss = slab(circle(17.0, (-40.0, 0.0)), [circle(8.0, (-40.0, 0.0))], 20.0, z0_mm=-10.0)
     return trimesh.util.concatenate([link, boss])
 
 
-def _about_z(order: int) -> list[list[float]]:
+def about_z(order: int) -> list[list[float]]:
+    """The ``order - 1`` turns about z by multiples of ``360 / order`` deg (BOP ``symmetries_discrete``)."""
     return [rotation_4x4((0, 0, 1), 2 * np.pi * k / order) for k in range(1, order)]
 
 
-def _flips(count: int) -> list[list[float]]:
+def flips(count: int) -> list[list[float]]:
     """Half turns about ``count`` in-plane axes, the first along x, spread over 180 deg."""
     return [rotation_4x4((np.cos(np.pi * k / count), np.sin(np.pi * k / count), 0.0), np.pi) for k in range(count)]
 
 
 @dataclass(frozen=True)
-class ValidationPart:
-    """One validation part: how to build it (mm), its symmetries (BOP ``models_info`` keys), and whether it
-    nearly has a symmetry it does not declare (the near-symmetry finder must report it)."""
+class OwnPart:
+    """One part of our own (a validation or a tuning part): how to build it (mm), its symmetries (BOP
+    ``models_info`` keys), and whether it nearly has a symmetry it does not declare (the near-symmetry finder must
+    report it)."""
 
     obj_id: int
     name: str
@@ -196,46 +201,51 @@ class ValidationPart:
     near_symmetric: bool = False
 
 
-VALIDATION_PARTS: tuple[ValidationPart, ...] = (
-    ValidationPart(1, "gear_12", _gear_12, {"symmetries_discrete": _about_z(12) + _flips(12)}),
-    ValidationPart(2, "three_rib_flange", _three_rib_flange, {"symmetries_discrete": _about_z(3)}),
-    ValidationPart(3, "bent_bracket", _bent_bracket, {}),
-    ValidationPart(4, "stepped_shaft", _stepped_shaft, {"symmetries_continuous": [Z_AXIS]}),
-    ValidationPart(5, "square_flange_with_chamfer", _square_flange_with_chamfer, {}, near_symmetric=True),
-    ValidationPart(6, "connecting_rod", _connecting_rod, {"symmetries_discrete": [rotation_4x4((1, 0, 0), np.pi)]}),
+VALIDATION_PARTS: tuple[OwnPart, ...] = (
+    OwnPart(1, "gear_12", _gear_12, {"symmetries_discrete": about_z(12) + flips(12)}),
+    OwnPart(2, "three_rib_flange", _three_rib_flange, {"symmetries_discrete": about_z(3)}),
+    OwnPart(3, "bent_bracket", _bent_bracket, {}),
+    OwnPart(4, "stepped_shaft", _stepped_shaft, {"symmetries_continuous": [Z_AXIS]}),
+    OwnPart(5, "square_flange_with_chamfer", _square_flange_with_chamfer, {}, near_symmetric=True),
+    OwnPart(6, "connecting_rod", _connecting_rod, {"symmetries_discrete": [rotation_4x4((1, 0, 0), np.pi)]}),
 )
 
 
-def build_validation_part(part: ValidationPart) -> trimesh.Trimesh:
-    """The mesh (mm) of a validation part, centred on its bounding box."""
+def build_own_part(part: OwnPart) -> trimesh.Trimesh:
+    """The mesh (mm) of one of our own parts, centred on its bounding box."""
     mesh = part.build()
     mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return mesh
 
 
-def write_validation_models(out_dir: str | Path) -> Path:
-    """Write every validation part as ``obj_XXXXXX.ply`` plus ``models_info.json`` (the built-in parts' format,
+def write_models(parts: Sequence[OwnPart], out_dir: str | Path) -> Path:
+    """Write each of ``parts`` as ``obj_XXXXXX.ply`` plus ``models_info.json`` (the built-in parts' format,
     ``popcode_trainer.data.objects.write_builtin_models``); returns the folder."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     models_info = {}
-    for part in VALIDATION_PARTS:
-        mesh = build_validation_part(part)
+    for part in parts:
+        mesh = build_own_part(part)
         write_bytes_atomic(out_dir / f"obj_{part.obj_id:06d}.ply", mesh.export(file_type="ply", encoding="binary"))
         models_info[str(part.obj_id)] = model_info(mesh, part.symmetries)
     write_json_atomic(out_dir / "models_info.json", models_info)
     return out_dir
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def write_models_main(parts: Sequence[OwnPart], description: str, argv: Sequence[str] | None = None) -> Path:
+    """The command line of a parts module: ``--out DIR``, the folder :func:`write_models` writes ``parts`` to."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--out", type=Path, required=True, help="models folder to write (created if missing)")
     args = parser.parse_args(argv)
-    out_dir = write_validation_models(args.out)
-    for part in VALIDATION_PARTS:
+    out_dir = write_models(parts, args.out)
+    for part in parts:
         print(f"obj_{part.obj_id:06d}.ply  {part.name}")
-    print(f"wrote {len(VALIDATION_PARTS)} parts and models_info.json to {out_dir}")
+    print(f"wrote {len(parts)} parts and models_info.json to {out_dir}")
     return out_dir
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    return write_models_main(VALIDATION_PARTS, __doc__.splitlines()[0], argv)
 
 
 if __name__ == "__main__":
