@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -127,3 +129,43 @@ def test_a_run_from_before_these_settings_resumes(tmp_path):
     checkpoint.save_atomic(state, tmp_path / "run" / LAST_CHECKPOINT)
     history = train(replace(config, train=replace(config.train, epochs=2)), rep, train_set, val_set, resume=True)
     assert [row.epoch for row in history] == [2]
+
+
+def test_a_compile_that_hangs_falls_back_at_the_deadline(monkeypatch):
+    def hanging_compile(module):
+        def run(images):
+            time.sleep(120)  # a compile that never ends; without the deadline the call returns None after it
+        return run
+
+    monkeypatch.setattr(torch, "compile", hanging_compile)
+    monkeypatch.setattr(fast_path, "COMPILE_DEADLINE_S", 0.2)
+    model, images = tiny_model_and_batch()
+    forward = GuardedForward(model, StepPath(True, "fp32", True, "test"))
+    with pytest.warns(UserWarning, match=r"training eager instead of compiled: the compile took longer than 0.2 s$"):
+        output = forward(images)
+    torch.testing.assert_close(output, model(images), rtol=0, atol=0)
+    assert not forward.path.compiled and "took longer" in forward.path.reason
+
+
+def test_the_compile_warm_up_leaves_weights_gradients_and_statistics_as_one_step_would(monkeypatch):
+    """Each new batch shape runs once, forward and backward, before its step: the batch-norm statistics then move
+    once, as in an eager step, and no gradient is left behind; a shape seen before runs once."""
+    calls = []
+
+    def counting_compile(module):
+        def run(images):
+            calls.append(tuple(images.shape))
+            return module(images)
+        return run
+
+    monkeypatch.setattr(torch, "compile", counting_compile)
+    model, images = tiny_model_and_batch()
+    eager = copy.deepcopy(model)
+    forward = GuardedForward(model, StepPath(True, "fp32", True, "test"))
+    torch.testing.assert_close(forward(images), eager(images), rtol=0, atol=0)
+    for ours, theirs in zip(model.buffers(), eager.buffers(), strict=True):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
+    assert all(weight.grad is None for weight in model.parameters())
+    forward(images)
+    forward(images[:2])
+    assert calls == [(4, 1, 128, 128)] * 3 + [(2, 1, 128, 128)] * 2

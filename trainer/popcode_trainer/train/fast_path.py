@@ -16,8 +16,9 @@
   step was no clear gain over the eager ``channels_last`` one (slower in an
   earlier run, faster in the latest of ``bench/results/training.md``). ``"on"`` / ``"off"``
   force it. A missing C++
-  compiler or a failing compile falls back to the eager step, saying why in
-  one line.
+  compiler, a failing compile or one that runs past :data:`COMPILE_DEADLINE_S`
+  (each new batch shape compiles its forward and backward once, under that
+  bound) falls back to the eager step, saying why in one line.
 
 Resuming a run is bit-exact on the fp32 eager path; bf16 and compiled steps may
 round differently after a resume (another compile, another kernel choice).
@@ -26,9 +27,12 @@ round differently after a resume (another compile, another kernel choice).
 from __future__ import annotations
 
 import shutil
+import signal
 import sys
+import threading
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
@@ -45,6 +49,7 @@ NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
 CHANNELS_LAST_WIDTH_MULTIPLE = 8  # widths 8, 16, 24, 32, 64, ... ran; 4 and 6 hung or aborted in backward
 COMPILE_MIN_STEPS = 2000  # a compile costs 15-60 s on a 2-core VM; shorter runs do not win it back
 CPUINFO = Path("/proc/cpuinfo")
+COMPILE_DEADLINE_S = 300.0  # a first compile took 15-60 s on 2-core VMs; one 5x longer is taken for a hang
 
 
 @dataclass(frozen=True)
@@ -123,13 +128,45 @@ def eager_fallback(path: StepPath, why: str) -> StepPath:
     return StepPath(path.channels_last, path.precision, False, f"{path.reason}; fell back to eager: {why}")
 
 
+class CompileTimeoutError(Exception):
+    """A compile ran past its deadline."""
+
+
+@contextmanager
+def deadline(seconds: float) -> Iterator[None]:
+    """Raise :class:`CompileTimeoutError` in the block once it has run ``seconds`` (a real-time alarm signal, which
+    interrupts Python code and waits on compiler processes alike). Only the main thread of a Unix process can take
+    the signal; elsewhere the block runs unbounded."""
+    if not hasattr(signal, "setitimer") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expire(signum: int, frame: object) -> None:
+        raise CompileTimeoutError
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, previous)
+
+
 class GuardedForward:
-    """The model's forward, compiled where the path says so; a compile that fails on the first batch falls back to
-    the eager forward of the same model (the same weights), saying why in one line."""
+    """The model's forward, compiled where the path says so. A compile that fails, or that runs past
+    :data:`COMPILE_DEADLINE_S`, falls back to the eager forward of the same model (the same weights), saying why in
+    one line.
+
+    torch compiles lazily, the forward on its first call with a new input shape and the backward on its first
+    backward; so each new batch shape is first run once, forward and backward, under the deadline (a warm-up that
+    leaves no gradient and restores the batch-norm statistics it moved), then the step itself runs compiled.
+    """
 
     def __init__(self, model: nn.Module, path: StepPath) -> None:
         self.model, self.path = model, path
         self.compiled: Callable[[torch.Tensor], torch.Tensor] | None = None
+        self._ready: set[tuple[int, ...]] = set()  # batch shapes compiled, forward and backward
         if path.compiled:
             missing = compiler_missing()
             if missing is None:
@@ -140,11 +177,34 @@ class GuardedForward:
     def __call__(self, images: torch.Tensor) -> torch.Tensor:
         if self.compiled is not None:
             try:
+                if tuple(images.shape) not in self._ready:
+                    with deadline(COMPILE_DEADLINE_S):
+                        self._warm_up(images)
+                    self._ready.add(tuple(images.shape))
                 return self.compiled(images)
+            except CompileTimeoutError:
+                self._fall_back(f"the compile took longer than {COMPILE_DEADLINE_S:g} s")
             except Exception as error:  # dynamo and inductor raise many types; any of them means: run eager
-                self.compiled = None
-                self.path = eager_fallback(self.path, f"the compile failed ({first_line(error)})")
+                self._fall_back(f"the compile failed ({first_line(error)})")
         return self.model(images)
+
+    def _warm_up(self, images: torch.Tensor) -> None:
+        """Compile forward and backward for this batch shape; weights, gradients and statistics stay as they were."""
+        assert self.compiled is not None
+        buffers = [(buffer, buffer.detach().clone()) for buffer in self.model.buffers()]
+        try:
+            output = self.compiled(images)
+            if torch.is_grad_enabled() and not isinstance(self.model, nn.parallel.DistributedDataParallel):
+                weights = [weight for weight in self.model.parameters() if weight.requires_grad]
+                torch.autograd.grad(output.float().sum(), weights, allow_unused=True)  # DDP syncs only in steps
+        finally:
+            with torch.no_grad():
+                for buffer, saved in buffers:
+                    buffer.copy_(saved)
+
+    def _fall_back(self, why: str) -> None:
+        self.compiled = None
+        self.path = eager_fallback(self.path, why)
 
 
 def autocast(path: StepPath, device: torch.device, cuda_amp: bool) -> torch.autocast:
