@@ -19,7 +19,6 @@ from popcode_trainer.train.representations import (
     PerObjectPopulationCodes,
     build_representation,
     code_layout,
-    target_sigma_deg,
 )
 
 SMALL = dict(n_axes=42, n_angles=12, sigma_deg=30.0)
@@ -101,33 +100,6 @@ def test_population_code_target_has_a_peak_per_symmetric_pose() -> None:
     target = rep.target_from_rotation(rep.code.preferred_rotations(np.array(100)), 1)
     assert target.shape == (42 * 12,)
     assert target.max() >= 1.0
-
-
-def test_target_width_narrows_geometrically_to_the_codes_over_the_first_half() -> None:
-    assert target_sigma_deg(20.0, 4.0, 0.0) == pytest.approx(80.0)
-    assert target_sigma_deg(20.0, 4.0, 0.25) == pytest.approx(40.0)
-    assert target_sigma_deg(20.0, 4.0, 0.5) == target_sigma_deg(20.0, 4.0, 1.0) == pytest.approx(20.0)
-    assert target_sigma_deg(20.0, 1.0, 0.0) == pytest.approx(20.0)
-    assert target_sigma_deg(30.0, 10.0, 0.0) == pytest.approx(90.0)  # capped: wider says little
-
-
-def test_wide_early_targets_peak_where_the_codes_do_and_reach_further() -> None:
-    rep = build_representation(Representation.POPULATION_CODE, {1: CASES["none"]}, loss="mse+cross_entropy",
-                               target_width_start=2.0, **SMALL)
-    R = random_rotations(8, np.random.default_rng(3))
-    wide = rep.targets(instances(R))
-    rep.set_progress(0.5)
-    narrow = rep.targets(instances(R))
-    assert rep.target_sigma_deg == 30.0 and np.allclose(narrow, rep.code.encode(R, np.eye(3)[None]), atol=1e-6)
-    peak = np.argmax(narrow, axis=1)
-    assert (wide[np.arange(8), peak] > 0.95 * wide.max(axis=1)).all()  # the wide peak is where the narrow one is
-    assert ((wide > 0.5).sum(axis=1) > 2 * (narrow > 0.5).sum(axis=1)).all()
-
-
-@pytest.mark.parametrize("value", [0.5, float("nan"), 11.0])
-def test_a_target_width_start_out_of_range_is_refused(value: float) -> None:
-    with pytest.raises(PopcodeError, match=r"train.target_width_start must (lie in \[1, 10\]|be a finite number)"):
-        Config.from_dict({"train": {"target_width_start": value}})
 
 
 def test_unknown_representation_names_the_choices() -> None:

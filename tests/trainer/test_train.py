@@ -53,18 +53,6 @@ def test_resume_continues_exactly(tmp_path: Path) -> None:
         assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1, 2]
 
 
-def test_the_targets_narrow_to_the_codes_width_during_training(tmp_path: Path) -> None:
-    """train.target_width_start 3: the first epoch's targets are 90 deg wide on the 30-degree code, and from half
-    of training on they have the code's own width (the loop tells the representation each epoch's progress)."""
-    config = tiny_config(tmp_path, epochs=4, target_width_start=3.0)
-    rep = tiny_representation(config)
-    train_set, _ = tiny_data(rep, val_count=0)
-    train(config, rep, train_set, stop_after_epoch=1)
-    assert rep.target_sigma_deg == pytest.approx(90.0)
-    train(config, rep, train_set, resume=True)
-    assert rep.target_sigma_deg == pytest.approx(30.0) and rep.layout.sigma_deg == 30.0
-
-
 def test_resume_with_another_config_is_refused(tmp_path: Path) -> None:
     config = tiny_config(tmp_path, epochs=1)
     rep = tiny_representation(config)

@@ -25,8 +25,7 @@ def tiny_config(out_dir: Path, **train: Any) -> Config:
 def tiny_representation(config: Config, case: str = "none") -> OutputRepresentation:
     code, cfg = config.code, config.train
     return build_representation(cfg.representation, {1: CASES[case]}, code.n_axes, code.n_angles, code.sigma_deg,
-                                cfg.rotation_frame, cfg.num_hypotheses, loss=cfg.loss,
-                                target_width_start=cfg.target_width_start)
+                                cfg.rotation_frame, cfg.num_hypotheses, loss=cfg.loss)
 
 
 def tiny_data(representation: OutputRepresentation, train_count: int = 64,

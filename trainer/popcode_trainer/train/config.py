@@ -40,7 +40,6 @@ BOX_KINDS = ("bbox_obj", "bbox_visib")
 BACKGROUND_POLICIES = ("auto", "always", "never")  # where rendered crops get a pasted background (samples.py)
 DEVICES = ("auto", "cpu", "cuda")
 MAX_CONV_CHANNELS = 4096  # the paper's widest is 256
-MAX_TARGET_WIDTH_START = 10.0  # targets wider than representations.MAX_TARGET_SIGMA_DEG are capped there
 # Network fields that follow from the representation and the crop, not from the user.
 DERIVED_NETWORK_FIELDS = ("output_dim", "input_size")
 
@@ -80,8 +79,6 @@ class TrainConfig:
 
     representation: str = Representation.POPULATION_CODE
     loss: str = "mse"  # population code: "mse" (the paper's), "cross_entropy" or both (representations.LOSSES)
-    target_width_start: float = 1.0  # population code: targets start this many times the code's sigma wide and
-    # narrow to it over the first half of training (representations.target_sigma_deg); 1 keeps the code's width
     rotation_frame: str = RotationFrame.EGOCENTRIC
     num_hypotheses: int = 20  # M of the multi_hypothesis baseline
     epochs: int = 80
@@ -210,9 +207,6 @@ def _check_choices(config: Config) -> None:
     if any(not weight > 0 for weight in weights):  # NaN too
         raise PopcodeError(f"data.split_weights must all be positive (a split you do not want: leave it out of "
                            f"data.splits), got {list(weights)}")
-    if not 1.0 <= config.train.target_width_start <= MAX_TARGET_WIDTH_START:  # NaN too
-        raise PopcodeError(f"train.target_width_start must lie in [1, {MAX_TARGET_WIDTH_START:g}] (1 keeps the "
-                           f"code's width throughout), got {config.train.target_width_start}")
     if not 0.0 <= config.data.val_fraction < 1.0:
         raise PopcodeError(f"data.val_fraction must lie in [0, 1), got {config.data.val_fraction}")
     for key in ("epochs", "batch_size", "num_hypotheses"):

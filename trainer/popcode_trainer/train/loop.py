@@ -209,7 +209,6 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
                                          config.data.models_dir) if context.is_main else {}
     history = []
     for epoch in range(start_epoch, cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)):
-        representation.set_progress(epoch / cfg.epochs)
         if hasattr(train_set, "set_epoch"):
             train_set.set_epoch(epoch)
         loader = _loader(train_set, rank_batch, context, cfg.seed, epoch, config.data.num_workers, train=True)

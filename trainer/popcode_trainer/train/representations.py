@@ -10,7 +10,6 @@ so a trained model decodes in training exactly as it will in the runtime.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -140,10 +139,6 @@ class OutputRepresentation:
         """Mean loss of a batch; ``progress`` in [0, 1] is the share of training done."""
         raise NotImplementedError
 
-    def set_progress(self, progress: float) -> None:
-        """Called before each epoch with the share of training done; targets that change during training
-        (the population code's narrowing width) follow it. Fixed targets ignore it."""
-
     def decode(self, output: np.ndarray) -> DecodedRotations:
         """Rotations in the model's frame, decoded exactly as the runtime does."""
         return decode_output(np.asarray(output, dtype=np.float32), self.metadata)
@@ -166,19 +161,6 @@ class OutputRepresentation:
 
 
 LOSSES = ("mse", "cross_entropy", "mse+cross_entropy")
-NARROWING_SHARE = 0.5  # of training over which a wider target width narrows to the code's
-
-
-def target_sigma_deg(sigma_deg: float, width_start: float, progress: float) -> float:
-    """The targets' width at ``progress``: ``width_start`` times the code's sigma at the start, narrowing
-    geometrically to it over the first :data:`NARROWING_SHARE` of training, then the code's own. Wide early
-    targets overlap the network's first guesses, so they pull toward the right pose from far away; the model
-    still ends on (and decodes with) the code's width."""
-    narrowing = min(max(progress / NARROWING_SHARE, 0.0), 1.0)
-    return float(min(sigma_deg * width_start ** (1.0 - narrowing), max(sigma_deg, MAX_TARGET_SIGMA_DEG)))
-
-
-MAX_TARGET_SIGMA_DEG = 90.0  # wider early targets cover most rotations and say little
 # Weight of the cross-entropy term in "mse+cross_entropy"; chosen on a validation split from 0.01 and 0.1
 # (bench/results/recipe.md). MSE averages over every neuron, most of them zero, so its gradient on a
 # peak neuron of a 642 x 36 code starts about 50x smaller than cross entropy's.
@@ -222,32 +204,19 @@ class PopulationCodeRepresentation(OutputRepresentation):
 
     name = Representation.POPULATION_CODE
 
-    def __init__(self, *args: Any, loss: str = "mse", target_width_start: float = 1.0, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, loss: str = "mse", **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if loss not in LOSSES:
             raise PopcodeError(f"unknown population-code loss {loss!r}; choose one of {list(LOSSES)}")
         self.loss_kind = loss
-        self.target_width_start = target_width_start
         self.code = PopulationCode(self.layout)
-        self._target_code = self.code
         self._logits_to_code = CodeSoftmax(code_mass(self.layout)) if loss == "cross_entropy" else None
-        self.set_progress(0.0)
-
-    def set_progress(self, progress: float) -> None:
-        sigma = target_sigma_deg(self.layout.sigma_deg, self.target_width_start, progress)
-        if sigma != self._target_code.layout.sigma_deg:
-            self._target_code = PopulationCode(replace(self.layout, sigma_deg=sigma))
-
-    @property
-    def target_sigma_deg(self) -> float:
-        """The width the targets have now (the code's own, or wider early in training)."""
-        return self._target_code.layout.sigma_deg
 
     def target_from_rotation(self, R: np.ndarray, obj_id: int) -> np.ndarray:
         return self.targets_from_rotations(R[None], obj_id)[0]
 
     def targets_from_rotations(self, R: np.ndarray, obj_id: int) -> np.ndarray:
-        return self._target_code.encode(R, self.symmetries(obj_id))
+        return self.code.encode(R, self.symmetries(obj_id))
 
     def loss(self, output: torch.Tensor, target: torch.Tensor, progress: float) -> torch.Tensor:
         if self.loss_kind == "cross_entropy":
@@ -361,7 +330,7 @@ REPRESENTATIONS: dict[str, type[OutputRepresentation]] = {
 def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_axes: int, n_angles: int,
                          sigma_deg: float, rotation_frame: str = RotationFrame.EGOCENTRIC,
                          num_hypotheses: int = 0, sigma_from_symmetries: bool = False,
-                         loss: str = "mse", target_width_start: float = 1.0) -> OutputRepresentation:
+                         loss: str = "mse") -> OutputRepresentation:
     """The representation called ``name`` for the pooled ``objects``; names the valid choices.
 
     The population code's width is checked against the objects' symmetries
@@ -374,8 +343,7 @@ def build_representation(name: str, objects: Mapping[int, Mapping[str, Any]], n_
     hypotheses = num_hypotheses if name == Representation.MULTI_HYPOTHESIS else 0
     if name == Representation.POPULATION_CODE:
         layout = checked_sigma(layout, objects, sigma_from_symmetries)
-        return PopulationCodeRepresentation(objects, layout, rotation_frame, hypotheses, loss=loss,
-                                            target_width_start=target_width_start)
+        return PopulationCodeRepresentation(objects, layout, rotation_frame, hypotheses, loss=loss)
     if loss != "mse":
         raise PopcodeError(f"train.loss = {loss!r} applies to the population code; {name} has its own loss")
     return REPRESENTATIONS[name](objects, layout, rotation_frame, hypotheses)

@@ -100,7 +100,7 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
     code, cfg = config.code, config.train
     representation = build_representation(cfg.representation, split.objects, code.n_axes, code.n_angles,
                                           code.sigma_deg, cfg.rotation_frame, cfg.num_hypotheses,
-                                          code.sigma_from_symmetries, cfg.loss, cfg.target_width_start)
+                                          code.sigma_from_symmetries, cfg.loss)
     train, val = split.train, split.val
     data = config.data
     augmentation = Augmentation(occlusion_p=data.occlusion_p) if data.augment else None
