@@ -28,7 +28,6 @@ import json
 import math
 import os
 import shutil
-import signal
 import sys
 import tempfile
 import time
@@ -50,6 +49,7 @@ from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.cli import main as popcode
 from popcode_runtime.detections import ground_truth_boxes
 from popcode_runtime.errors import PopcodeError
+from popcode_trainer.deadline import deadline
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 SHIPPED_MODELS = (MODELS_DIR / "builtin-parts-1-2.onnx", MODELS_DIR / "builtin-parts-3-6.onnx")
@@ -118,20 +118,6 @@ def _interrupting(after: int | None) -> Iterator[dict[str, bool]]:
 
 
 @contextlib.contextmanager
-def _watchdog(limit_s: float) -> Iterator[None]:
-    def expire(signum: int, frame: Any) -> None:
-        raise CallTimeout(f"still running after {limit_s:.0f} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, limit_s)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-
-
-@contextlib.contextmanager
 def _native_stderr() -> Iterator[list[str]]:
     """What libraries write to file descriptor 2 themselves (OpenCV's and onnxruntime's logs), which a user sees
     beside popcode's own line: in the list yielded, after the block."""
@@ -157,7 +143,7 @@ def invoke(argv: Sequence[str], interrupt_after: int | None = None, limit_s: flo
         warnings.simplefilter("always")
         result = Result(None, "", 0.0)
         try:
-            with _watchdog(limit_s):
+            with deadline(limit_s, CallTimeout(f"still running after {limit_s:.0f} s")):
                 result.code = popcode(list(argv))
         except SystemExit as exit_:
             result.code, result.argparse = (exit_.code if isinstance(exit_.code, int) else 1), True

@@ -18,7 +18,7 @@ those and the built-in parts (``popcode_trainer.data.objects``):
    D2, 4 poses).
 
 They are built with the helpers of ``bench/validation_parts.py`` (each circle's vertices map onto themselves under
-the part's rotations, so each declared symmetry holds to rounding); ``tests/bench/test_tuning_parts.py`` checks
+the part's rotations, so each declared symmetry holds to rounding); ``tests/bench/test_own_part_sets.py`` checks
 them with the symmetry check and the near-symmetry finder, and that ``popcode-train demo --objects DIR`` accepts
 the folder.
 """

@@ -20,7 +20,7 @@ do not have:
 Plates with holes are extruded from a Delaunay triangulation of their outline (no boolean engine needed);
 parts of several solids overlap, as the built-in parts do. Every circle has a vertex count that the part's
 rotations map onto itself, so each declared symmetry holds to rounding, and the symmetry check
-(``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_validation_parts.py`` checks both.
+(``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_own_part_sets.py`` checks both.
 ``bench/tuning_parts.py`` builds the tuning set, on which recipe settings are chosen, from the same helpers.
 """
 

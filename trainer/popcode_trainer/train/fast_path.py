@@ -27,12 +27,9 @@ round differently after a resume (another compile, another kernel choice).
 from __future__ import annotations
 
 import shutil
-import signal
 import sys
-import threading
 import warnings
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
@@ -42,6 +39,8 @@ import torch
 from torch import nn
 
 from popcode_runtime.errors import first_line
+
+from ..deadline import deadline
 
 PRECISIONS = ("auto", "fp32", "bf16")
 COMPILE_CHOICES = ("auto", "on", "off")
@@ -132,27 +131,6 @@ class CompileTimeoutError(Exception):
     """A compile ran past its deadline."""
 
 
-@contextmanager
-def deadline(seconds: float) -> Iterator[None]:
-    """Raise :class:`CompileTimeoutError` in the block once it has run ``seconds`` (a real-time alarm signal, which
-    interrupts Python code and waits on compiler processes alike). Only the main thread of a Unix process can take
-    the signal; elsewhere the block runs unbounded."""
-    if not hasattr(signal, "setitimer") or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def expire(signum: int, frame: object) -> None:
-        raise CompileTimeoutError
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
-        signal.signal(signal.SIGALRM, previous)
-
-
 class GuardedForward:
     """The model's forward, compiled where the path says so. A compile that fails, or that runs past
     :data:`COMPILE_DEADLINE_S`, falls back to the eager forward of the same model (the same weights), saying why in
@@ -178,7 +156,7 @@ class GuardedForward:
         if self.compiled is not None:
             try:
                 if tuple(images.shape) not in self._ready:
-                    with deadline(COMPILE_DEADLINE_S):
+                    with deadline(COMPILE_DEADLINE_S, CompileTimeoutError()):
                         self._warm_up(images)
                     self._ready.add(tuple(images.shape))
                 return self.compiled(images)
