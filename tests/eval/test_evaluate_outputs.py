@@ -18,6 +18,8 @@ import pytest
 from onnx_models import linear_model, save
 from scene_fixtures import SCENE_OBJECTS, scene_objects
 
+from bench.tuning_parts import TUNING_PARTS
+from bench.validation_parts import write_models
 from popcode_runtime import PoseEstimator, read_image
 from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.metadata import ModelMetadata, Representation
@@ -25,7 +27,7 @@ from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_sixd, random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.cli import main
-from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
+from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, RenderSettings, render_split
 from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
@@ -132,6 +134,7 @@ def test_rotation_error_up_to_symmetry_beside_the_raw_one(scenes: Path, tmp_path
     rows = {name: _rows(tmp_path / f"errors_{name}.csv") for name in ("symmetric", "tilted", "random")}
     columns = list(rows["symmetric"][0])
     assert columns.index("re_sym_deg") == columns.index("re_deg") + 1
+    assert "re_look_alike_deg" not in columns  # no built-in part has look-alike poses
     for name, found in rows.items():
         raw = np.array([float(row["re_deg"]) for row in found])
         up_to_symmetry = np.array([float(row["re_sym_deg"]) for row in found])
@@ -144,6 +147,28 @@ def test_rotation_error_up_to_symmetry_beside_the_raw_one(scenes: Path, tmp_path
             np.testing.assert_allclose(up_to_symmetry, 7.0, atol=1e-6)
             np.testing.assert_allclose(raw[~part_3], 7.0, atol=1e-6)  # no symmetry: both the same
             assert (raw[part_3] > 170.0).all()
+
+
+def test_a_look_alike_part_gets_the_error_up_to_its_look_alike_poses(tmp_path: Path) -> None:
+    """The tuning set's link looks 2-fold about z but declares nothing: an estimate half a turn off is 180 deg off
+    up to its (declared) symmetries, and 0 up to its look-alike poses; a part without look-alikes has no column."""
+    link = next(part for part in TUNING_PARTS if part.near_symmetric)
+    models = write_models([link], tmp_path / "models")
+    with pytest.warns(UserWarning, match=f"object {link.obj_id} looks 2-fold symmetric about z"):
+        split_dir = render_split(models, tmp_path / "split", RenderSettings(3, seed=5), progress=False)
+    split = read_eval_split([split_dir], models)
+    R_gt = np.stack([inst.R_m2c for inst in split.instances])
+    half_turn = axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.pi)
+    metrics = SplitMetrics(split, vsd=False)
+    try:
+        write_report([evaluate_rotations("turned", R_gt @ half_turn, metrics)], tmp_path / "eval")
+    finally:
+        metrics.close()
+    rows = _rows(tmp_path / "eval" / "errors_turned.csv")
+    assert len(rows) == 3 and list(rows[0])[4:7] == ["re_deg", "re_sym_deg", "re_look_alike_deg"]
+    for row in rows:
+        assert float(row["re_deg"]) == pytest.approx(180.0) and float(row["re_sym_deg"]) == pytest.approx(180.0)
+        assert float(row["re_look_alike_deg"]) < 1.0  # the look-alike axis is found from surface samples
 
 
 def test_several_decoders_are_methods_side_by_side(scenes: Path, code_model: Path, single_model: Path,

@@ -12,7 +12,7 @@ and no declared symmetry does the same.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,3 +95,15 @@ def look_alike_symmetries(sample: SurfaceSample, info: Mapping[str, Any], anchor
                     found.append(LookAlike(order, axis, share * diameter, diameter))
                 break  # the highest order that fits: its powers (the lower orders) look alike too
     return found
+
+
+def look_alike_rotations(look_alikes: Sequence[LookAlike]) -> np.ndarray:
+    """``(K, 3, 3)``: every product of powers of the look-alike rotations (identity first; the rotation part only,
+    which is all a rotation error sees). Composed with the declared symmetries they are the poses an estimate
+    cannot be told from where the feature that breaks the symmetry is hidden."""
+    rotations = [np.eye(3)]
+    for look_alike in look_alikes:
+        turns = [axis_angle_to_matrix(look_alike.axis, 2 * np.pi * k / look_alike.order)
+                 for k in range(look_alike.order)]
+        rotations = [R @ turn for R in rotations for turn in turns]
+    return np.stack(rotations)

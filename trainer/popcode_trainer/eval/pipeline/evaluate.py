@@ -73,6 +73,7 @@ class MethodResult:
     score: np.ndarray | None = None  # (N,) each estimate's score (Estimates.bop19_score); None: given rotations
     image_s: np.ndarray | None = None  # (N,) seconds of the estimates of the instance's image; None: given rotations
     depth_poses: tuple[DepthPoses, ...] = ()  # with depth: the 6-D poses of each depth mode, beside full_pose's
+    look_alikes: dict[int, np.ndarray] = field(default_factory=dict)  # SplitMetrics.look_alikes
 
 
 def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
@@ -104,7 +105,8 @@ def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, mode
     pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
     return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups, metrics.tightest(errors),
                         model_ms_per_crop, time.perf_counter() - started, pose, metrics.thresholds,
-                        by_visibility=metrics.by_visibility(errors), by_box_iou=metrics.by_box_iou(errors))
+                        by_visibility=metrics.by_visibility(errors), by_box_iou=metrics.by_box_iou(errors),
+                        look_alikes=metrics.look_alikes)
 
 
 def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progress: bool = True,

@@ -21,6 +21,8 @@ from ...data.bop import Instance, model_path
 from ...data.box_noise import IOU_BINS, iou_bin_label
 from ...data.gl import DepthRenderer
 from ...data.meshes import load_mesh
+from ...data.near_symmetry import look_alike_rotations
+from ...data.symmetry_check import check_object_symmetries
 from ...metrics.pose_errors import RenderDepth
 from ...metrics.recall import (
     InstanceErrors,
@@ -60,6 +62,10 @@ class SplitMetrics:
         self.objects = {obj_id: ObjectModel.from_info(np.asarray(mesh.vertices), split.models_info[obj_id])
                         for obj_id, mesh in self._meshes.items()}
         self.diameters_mm = {obj_id: model.diameter_mm for obj_id, model in self.objects.items()}
+        found = {obj_id: check_object_symmetries(model_path(split.models_dir, obj_id), split.models_info[obj_id],
+                                                 obj_id, mesh) for obj_id, mesh in self._meshes.items()}
+        # object -> the rotations its look-alike poses differ by, for parts that nearly have an undeclared symmetry
+        self.look_alikes = {obj_id: look_alike_rotations(found[obj_id]) for obj_id in found if found[obj_id]}
         self.ambiguous = ambiguous_objects(split.models_info)
         self._renderer: Any = None
         self._renderer_key: tuple[int, int, int] | None = None

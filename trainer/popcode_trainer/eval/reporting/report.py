@@ -85,13 +85,20 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
 
     ``re_deg`` is the raw rotation angle between estimate and ground truth (BOP's
     re); ``re_sym_deg`` the same up to the object's symmetries (the smallest over
-    its equivalent poses; the axis angle for a continuous symmetry), never larger.
+    its equivalent poses; the axis angle for a continuous symmetry), never larger;
+    where a part of the split nearly has a symmetry it does not declare,
+    ``re_look_alike_deg`` up to its look-alike poses too (the error an estimate
+    that cannot see the feature breaking the symmetry is held to).
     """
     split, pose = result.split, result.full_pose
     R_gt = np.stack([inst.R_m2c for inst in split.instances])
     t_gt = np.stack([inst.t_m2c_mm for inst in split.instances])
     re_deg = rotation_error_deg(result.R_est, R_gt)
     re_sym_deg = rotation_errors_deg(result.R_est, R_gt, result.errors.obj_id, split.models_info)
+    up_to = {"re_sym_deg": re_sym_deg}
+    if result.look_alikes:
+        up_to["re_look_alike_deg"] = rotation_errors_deg(result.R_est, R_gt, result.errors.obj_id,
+                                                         split.models_info, result.look_alikes)
     te = {} if pose is None else {
         name: (translation_error_mm(t, t_gt), relative_translation_error(t, t_gt))
         for name, t in (("te", pose.t_est_mm), ("te_gt_rotation", pose.t_gt_rotation_mm))
@@ -104,7 +111,7 @@ def instance_rows(result: MethodResult, thresholds: Thresholds) -> list[dict[str
             "scene_id": inst.scene_id, "im_id": inst.im_id, "obj_id": inst.obj_id, "gt_index": inst.gt_index}
         if split.detector_boxes is not None:
             row["box_iou"] = float(split.detector_boxes.iou[i])
-        row |= {"re_deg": float(re_deg[i]), "re_sym_deg": float(re_sym_deg[i]),
+        row |= {"re_deg": float(re_deg[i]), **{name: float(values[i]) for name, values in up_to.items()},
                 **_error_columns(result.errors, i, thresholds)}
         if result.best_of_top_k is not None:
             row[f"mssd_mm_best_of_top{result.top_k}"] = float(result.best_of_top_k.mssd_mm[-1, i])
