@@ -49,7 +49,7 @@ from popcode_runtime.bop19_csv import read_bop19_results
 from popcode_runtime.cli import main as popcode
 from popcode_runtime.detections import ground_truth_boxes
 from popcode_runtime.errors import PopcodeError
-from popcode_trainer.deadline import deadline
+from popcode_trainer.train.deadline import deadline
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 SHIPPED_MODELS = (MODELS_DIR / "builtin-parts-1-2.onnx", MODELS_DIR / "builtin-parts-3-6.onnx")
@@ -508,7 +508,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, metavar="DIR", help="with --call: keep the case's folder in DIR")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
-    from popcode_trainer.data.render import render_builtin_split  # the fuzz itself needs the runtime only
+    from popcode_trainer.data.render import render_builtin_split  # the fuzz calls the runtime; the trainer renders
 
     from .report import machine, machine_line, write_results
 

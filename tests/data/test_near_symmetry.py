@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_trainer.data import symmetry_check
-from popcode_trainer.data.near_symmetry import look_alike_symmetries
+from popcode_trainer.data.near_symmetry import LookAlike, look_alike_rotations, look_alike_symmetries
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info
 from popcode_trainer.data.surface_sample import diameter_mm, surface_sample
 from popcode_trainer.data.symmetry_check import _anchors_mm, check_object_symmetries
@@ -96,3 +97,17 @@ def test_look_alikes_follow_the_part_when_it_is_turned(angle_deg: float) -> None
     found = [l for l in _look_alikes(mesh, model_info(mesh, {})) if l.order == 4]
     assert len(found) == 1
     assert abs(abs(float(found[0].axis @ (turn[:3, :3] @ np.array([0.0, 0.0, 1.0])))) - 1.0) < 1e-2
+
+
+def test_look_alike_poses_are_the_group_the_turns_and_the_declared_symmetries_make() -> None:
+    """Each pose once: a look-alike quarter turn about z over a declared half turn about z makes 4 poses, not 8;
+    over a declared quarter turn about x it makes the cube's 24 rotations (not the 16 of a plain product)."""
+    def turns(axis: tuple[float, float, float], order: int) -> np.ndarray:
+        return np.stack([axis_angle_to_matrix(np.array(axis, float), 2 * np.pi * k / order) for k in range(order)])
+
+    quarter_z = LookAlike(4, np.array([0.0, 0.0, 1.0]), 0.5, 100.0)
+    about_z = look_alike_rotations([quarter_z], turns((0, 0, 1), 2))
+    assert len(about_z) == 4 and np.allclose(about_z[0], np.eye(3))
+    cube = look_alike_rotations([quarter_z], turns((1, 0, 0), 4))
+    assert len(cube) == 24
+    assert np.abs(cube[:, None] - cube[None]).max(axis=(2, 3))[~np.eye(24, dtype=bool)].min() > 0.1  # all distinct

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from collections import Counter, defaultdict
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from popcode_runtime.population_code import CodeLayout
 from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_sixd, random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.cli import main
+from popcode_trainer.data.objects import rotation_4x4
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, RenderSettings, render_split
 from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.split import read_eval_split
@@ -169,6 +171,25 @@ def test_a_look_alike_part_gets_the_error_up_to_its_look_alike_poses(tmp_path: P
     for row in rows:
         assert float(row["re_deg"]) == pytest.approx(180.0) and float(row["re_sym_deg"]) == pytest.approx(180.0)
         assert float(row["re_look_alike_deg"]) < 1.0  # the look-alike axis is found from surface samples
+
+
+def test_a_declaration_that_fails_the_symmetry_check_is_scored_as_declared(scenes: Path, tmp_path: Path) -> None:
+    """Evaluation never refused a split for its symmetry declarations; finding look-alikes must not start to."""
+    copy = tmp_path / "scenes"
+    shutil.copytree(scenes, copy)
+    info_path = copy / BUILTIN_MODELS_FOLDER / "models_info.json"
+    models_info = json.loads(info_path.read_text())
+    models_info["6"]["symmetries_discrete"] = [rotation_4x4((0, 0, 1), np.pi)]  # not so
+    info_path.write_text(json.dumps(models_info))
+    split = read_eval_split([copy], copy / BUILTIN_MODELS_FOLDER)
+    with pytest.warns(UserWarning, match=r"object 6 .*does not map the mesh onto itself.*scored as declared"):
+        metrics = SplitMetrics(split, vsd=False)
+    try:
+        assert metrics.look_alikes == {}
+        result = evaluate_rotations("truth", np.stack([inst.R_m2c for inst in split.instances]), metrics)
+    finally:
+        metrics.close()
+    assert result.groups["All objects"]["MSSD"] == pytest.approx(1.0)
 
 
 def test_several_decoders_are_methods_side_by_side(scenes: Path, code_model: Path, single_model: Path,

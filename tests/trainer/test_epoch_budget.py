@@ -13,6 +13,8 @@ import torch
 from popcode_runtime.errors import PopcodeError
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget
+from popcode_trainer.demo.group_codes import GroupCode
+from popcode_trainer.demo.run import DEMO_SIZES, fit_epochs
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
 from popcode_trainer.train.checkpoint import load
 from popcode_trainer.train.network import NetworkConfig
@@ -51,6 +53,21 @@ def test_fit_file_round_trip_and_bad_file(tmp_path: Path) -> None:
     (tmp_path / epoch_budget.FIT_FILE).write_text('{"epochs": 3}')
     with pytest.raises(PopcodeError, match="not an epoch fit"):
         epoch_budget.load(tmp_path)
+
+
+def test_a_folder_fitted_for_other_models_is_refused_not_resumed(tmp_path: Path) -> None:
+    """A run folder's fit names its models; a resume whose parts now group otherwise (a newer version splits them
+    by code) is refused in one line instead of failing on a model the fit never timed."""
+    demo = DEMO_SIZES["quick"]
+    size, code = demo.pipeline, demo.pipeline.config.code
+    pooled = {run_dir(tmp_path, r, (1, 2)).name: 10.0 for r in size.representations}
+    epoch_budget.save(epoch_budget.EpochFit(5, 720.0, 600.0, pooled, (4, 40)), tmp_path)
+    same = [GroupCode((1, 2), code, 20.0, "")]
+    assert fit_epochs(size, demo, same, tmp_path, tmp_path, 0.0, None).epochs == 5  # kept: nothing is run
+    split = [GroupCode((1,), code, 20.0, ""), GroupCode((2,), code, 20.0, "")]
+    with pytest.raises(PopcodeError, match=r"was started with other models \(population_code_1-2, single_var.*"
+                                           r"now population_code_1, population_code_2, .*use another --out"):
+        fit_epochs(size, demo, split, tmp_path, tmp_path, 0.0, None)
 
 
 def test_first_epoch_seconds_names_a_run_without_epochs(tmp_path: Path) -> None:

@@ -21,9 +21,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render the six built-in parts (or the parts of a BOP models folder, --objects), train the "
                     "population code and the single-variable baseline with the same network and budget, one model "
                     "per object group (parts with a continuous symmetry about one axis together, the others "
-                    "together), export ONNX (float and int8), evaluate both with the BOP metrics through the "
-                    f"runtime, time the runtime, and write {REPORT_FILE} with tables and figures. A models folder is "
-                    "checked before anything is rendered. Rerun with the same --out to resume an interrupted demo.")
+                    "together; a user's parts that need different codes apart), export ONNX (float and int8), "
+                    "evaluate both with the BOP metrics through the runtime, time the runtime, and write "
+                    f"{REPORT_FILE} with tables and figures. A models folder is checked before anything is "
+                    "rendered. Rerun with the same --out to resume an interrupted demo.")
     parser.add_argument("--objects", default=BUILTIN, metavar="MODELS",
                         help="'builtin' (default: the six built-in parts) or a BOP models folder with "
                              "models_info.json and obj_XXXXXX.ply meshes in millimetres")

@@ -28,6 +28,8 @@ LOOK_ALIKE_PERCENTILE = 90.0  # of the moved samples: the feature that breaks th
 ORDERS = (2, 3, 4, 5, 6, 8, 12)
 SAME_AXIS_COS = 0.995  # candidate axes closer than about 6 deg are one
 SAME_TRANSFORM = 0.02  # of the diameter: a candidate that moves no anchor further from a declared symmetry is it
+SAME_ROTATION = 1e-6  # largest element difference of two rotation matrices that are one
+MAX_LOOK_ALIKE_POSES = 1000  # look-alike axes a little off the declared ones would generate ever more poses
 
 
 @dataclass(frozen=True)
@@ -97,13 +99,21 @@ def look_alike_symmetries(sample: SurfaceSample, info: Mapping[str, Any], anchor
     return found
 
 
-def look_alike_rotations(look_alikes: Sequence[LookAlike]) -> np.ndarray:
-    """``(K, 3, 3)``: every product of powers of the look-alike rotations (identity first; the rotation part only,
-    which is all a rotation error sees). Composed with the declared symmetries they are the poses an estimate
-    cannot be told from where the feature that breaks the symmetry is hidden."""
-    rotations = [np.eye(3)]
-    for look_alike in look_alikes:
-        turns = [axis_angle_to_matrix(look_alike.axis, 2 * np.pi * k / look_alike.order)
-                 for k in range(look_alike.order)]
-        rotations = [R @ turn for R in rotations for turn in turns]
-    return np.stack(rotations)
+def look_alike_rotations(look_alikes: Sequence[LookAlike], symmetries: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)``: the declared ``symmetries`` (rotations, identity first) closed under composition with the
+    look-alike turns, each once, at most :data:`MAX_LOOK_ALIKE_POSES` (the rotation part only, which is all a
+    rotation error sees). They are the poses an estimate cannot be told from where the feature that breaks the
+    symmetry is hidden."""
+    generators = [axis_angle_to_matrix(look_alike.axis, 2 * np.pi / look_alike.order) for look_alike in look_alikes]
+    found = [np.asarray(R, dtype=np.float64) for R in symmetries]
+    frontier = list(found)
+    while frontier and len(found) < MAX_LOOK_ALIKE_POSES:
+        grown = []
+        for R in frontier:
+            for step in (*generators, *symmetries):
+                candidate = R @ step
+                if np.abs(np.asarray(found) - candidate).max(axis=(1, 2)).min() > SAME_ROTATION:
+                    found.append(candidate)
+                    grown.append(candidate)
+        frontier = grown
+    return np.stack(found[:MAX_LOOK_ALIKE_POSES])

@@ -40,10 +40,10 @@ GROUP_TOLERANCE = 0.01  # of the diameter: two transforms that move no anchor fu
 CONTINUOUS_ANGLES_DEG = (37.0, 90.0, 180.0, 251.0)  # incommensurate with small n-folds
 MAX_GROUP = 1000  # elements; a declared set whose closure grows past this is no finite group
 
-_checked: dict[tuple[Any, ...], list[LookAlike]] = {}  # (mesh file, its size and mtime, declaration) passed
+_checked: dict[tuple[Any, ...], tuple[LookAlike, ...]] = {}  # (mesh file, its size and mtime, declaration) passed
 # (digest of the mesh file's bytes, its models_info entry) that passed -> the look-alikes found: the same part copied
 # into another folder (each split holds its models) is not sampled again, and warns as a new file does.
-_passed: dict[tuple[str, str], list[LookAlike]] = {}
+_passed: dict[tuple[str, str], tuple[LookAlike, ...]] = {}
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ def _declaration(info: Mapping[str, Any]) -> str:
 
 
 def check_object_symmetries(mesh_path: str | Path, info: Mapping[str, Any], obj_id: int,
-                            mesh: trimesh.Trimesh | None = None) -> list[LookAlike]:
+                            mesh: trimesh.Trimesh | None = None) -> tuple[LookAlike, ...]:
     """:func:`check_symmetries` of one object's mesh file, and a warning for each symmetry it nearly has
     without declaring it (:func:`.near_symmetry.look_alike_symmetries`), once per file and declaration in a
     process; a file with the bytes and entry of one that passed is not checked again, only warned about.
@@ -175,7 +175,7 @@ def check_object_symmetries(mesh_path: str | Path, info: Mapping[str, Any], obj_
         diameter = diameter_mm(mesh, info)
         sample = surface_sample(mesh, diameter, name)
         check_symmetries(mesh, info, name, sample)
-        look_alikes = _passed[content] = look_alike_symmetries(sample, info, _anchors_mm(info, diameter))
+        look_alikes = _passed[content] = tuple(look_alike_symmetries(sample, info, _anchors_mm(info, diameter)))
     for look_alike in look_alikes:
         warnings.warn(look_alike.describe(f"object {obj_id}"), stacklevel=2)
     _checked[key] = look_alikes

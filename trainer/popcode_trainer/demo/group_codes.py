@@ -131,7 +131,8 @@ def split_by_code(code: CodeConfig, models_info: Mapping[int, Mapping[str, Any]]
     for ids in by_needs.values():
         one = alone[ids[0]] if len(ids) == 1 else choose_group_code(code, {i: models_info[i] for i in ids})
         others = [i for i in sorted(group) if i not in ids]
-        chosen.append(replace(one, note=f"{one.note}; a model apart from {_names(others)}, whose code differs"))
+        differ = "code differs" if len(others) == 1 else "codes differ"
+        chosen.append(replace(one, note=f"{one.note}; a model apart from {_names(others)}, whose {differ}"))
     return chosen
 
 

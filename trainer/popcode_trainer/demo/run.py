@@ -1,7 +1,8 @@
 """The end-to-end demo: render the built-in objects (or the parts of a user's BOP models folder, checked first:
 :mod:`popcode_trainer.demo.parts`), train the population code and the single-variable baseline the same way,
 one model per object group (:func:`~popcode_trainer.demo.steps.object_groups`, each on the code
-:mod:`popcode_trainer.demo.group_codes` chooses), export (float and quantised), evaluate with the BOP metrics,
+:mod:`popcode_trainer.demo.group_codes` chooses; a user's group whose parts need different codes is split into
+one group per code), export (float and quantised), evaluate with the BOP metrics,
 time the runtime, draw the figures and write one report, all under one run folder.
 
 Every step resumes (see :mod:`popcode_trainer.demo.steps`), so rerunning an
@@ -185,8 +186,12 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], t
     """Train every model's first epoch and choose the epochs that fill ``demo.minutes`` counted from ``started``
     (see :mod:`popcode_trainer.demo.epoch_budget`); an interrupted run's earlier fit is kept."""
     earlier = epoch_budget.load(out_dir)
-    if earlier is not None:
+    names = {run_dir(out_dir, r, g.obj_ids).name for r in size.representations for g in codes}
+    if earlier is not None and set(earlier.first_epoch_seconds) == names:
         return earlier
+    if earlier is not None:  # started by a version that grouped the parts otherwise
+        raise PopcodeError(f"{out_dir} was started with other models ({', '.join(sorted(earlier.first_epoch_seconds))}"
+                           f"; now {', '.join(sorted(names))}): use another --out, or delete it to start over")
     if not first_epoch_rate_is_fixed(size.config.train.schedule, demo.epoch_bounds[0]):
         raise PopcodeError(f"fitting the epochs to a time budget needs a schedule whose first epoch does not depend "
                            f"on the run's length (constant, anneal), not {size.config.train.schedule!r}: pass --epochs")
@@ -333,7 +338,8 @@ SMOKE_LATENCY_ITERATIONS = 3
 
 def prepare_parts(objects: str | Path, code: CodeConfig) -> tuple[Parts, list[GroupCode]]:
     """The parts checked (:mod:`~popcode_trainer.demo.parts`), grouped, and each group's code chosen: every check
-    that comes before the long work. A user's parts may get a finer grid than ``code``'s; the built-in ones keep it."""
+    that comes before the long work. A user's parts may get a finer grid than ``code``'s (and a group of their own
+    where they need another code than the rest); the built-in ones keep the size's grid and groups."""
     parts = load_parts(objects)
     groups = object_groups(parts.models_info)
     return parts, choose_group_codes(code, parts.models_info, groups, finer=not parts.builtin)

@@ -30,18 +30,16 @@ COVERAGES = (1.0, 0.9, 0.75, 0.5)
 
 def rotation_errors_deg(R_est: np.ndarray, R_true: np.ndarray, obj_ids: np.ndarray,
                         models_info: Mapping[int, Mapping[str, Any]],
-                        look_alikes: Mapping[int, np.ndarray] | None = None) -> np.ndarray:
-    """Rotation error ``(N,)`` [deg] up to each object's symmetries (continuous ones: the axis angle); with
-    ``look_alikes`` (object -> rotations ``(K, 3, 3)``, ``near_symmetry.look_alike_rotations``) up to those too,
-    composed with the symmetries."""
+                        equivalent: Mapping[int, np.ndarray] | None = None) -> np.ndarray:
+    """Rotation error ``(N,)`` [deg] up to each object's symmetries (continuous ones: the axis angle); ``equivalent``
+    (object -> rotations ``(K, 3, 3)``, e.g. ``near_symmetry.look_alike_rotations``) replaces an object's declared
+    discrete symmetries."""
     errors = np.empty(len(obj_ids))
     for obj_id in np.unique(obj_ids):
         rows = np.flatnonzero(obj_ids == obj_id)
         info = models_info[int(obj_id)]
         axis = continuous_axis(info) if symmetry_class(info) is SymmetryClass.CONTINUOUS else None
-        symmetries = symmetry_rotations(info)
-        if look_alikes and int(obj_id) in look_alikes:
-            symmetries = (look_alikes[int(obj_id)][:, None] @ symmetries[None]).reshape(-1, 3, 3)
+        symmetries = equivalent[int(obj_id)] if equivalent and int(obj_id) in equivalent else symmetry_rotations(info)
         errors[rows] = rotation_error_up_to_symmetry(np.asarray(R_est)[rows], np.asarray(R_true)[rows],
                                                      symmetries, axis)
     return np.degrees(errors)

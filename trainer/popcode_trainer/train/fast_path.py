@@ -40,7 +40,7 @@ from torch import nn
 
 from popcode_runtime.errors import first_line
 
-from ..deadline import deadline
+from .deadline import deadline
 
 PRECISIONS = ("auto", "fp32", "bf16")
 COMPILE_CHOICES = ("auto", "on", "off")
@@ -127,8 +127,9 @@ def eager_fallback(path: StepPath, why: str) -> StepPath:
     return StepPath(path.channels_last, path.precision, False, f"{path.reason}; fell back to eager: {why}")
 
 
-class CompileTimeoutError(Exception):
-    """A compile ran past its deadline."""
+class CompileTimeoutError(BaseException):
+    """A compile ran past its deadline (a ``BaseException``: torch's ``except Exception`` neither swallows nor
+    rewraps it)."""
 
 
 class GuardedForward:
@@ -136,15 +137,17 @@ class GuardedForward:
     :data:`COMPILE_DEADLINE_S`, falls back to the eager forward of the same model (the same weights), saying why in
     one line.
 
-    torch compiles lazily, the forward on its first call with a new input shape and the backward on its first
-    backward; so each new batch shape is first run once, forward and backward, under the deadline (a warm-up that
-    leaves no gradient and restores the batch-norm statistics it moved), then the step itself runs compiled.
+    torch compiles lazily, the forward on its first call with a new kind of input and the backward on its first
+    backward; so each new kind of batch (shape, strides, dtype, grad mode) is first run once, forward and backward,
+    under the deadline (a warm-up that leaves no gradient and restores the batch-norm statistics it moved), then the
+    step itself runs compiled. The bound holds on the CPU, in the main thread; a CUDA backward runs on autograd's
+    own threads and a DDP-wrapped model warms its forward only, so there the backward's compile is not bounded.
     """
 
     def __init__(self, model: nn.Module, path: StepPath) -> None:
         self.model, self.path = model, path
         self.compiled: Callable[[torch.Tensor], torch.Tensor] | None = None
-        self._ready: set[tuple[int, ...]] = set()  # batch shapes compiled, forward and backward
+        self._ready: set[tuple[Any, ...]] = set()  # kinds of batch compiled, forward and backward
         if path.compiled:
             missing = compiler_missing()
             if missing is None:
@@ -155,10 +158,11 @@ class GuardedForward:
     def __call__(self, images: torch.Tensor) -> torch.Tensor:
         if self.compiled is not None:
             try:
-                if tuple(images.shape) not in self._ready:
-                    with deadline(COMPILE_DEADLINE_S, CompileTimeoutError()):
+                kind = (tuple(images.shape), images.stride(), images.dtype, torch.is_grad_enabled())
+                if kind not in self._ready:
+                    with deadline(COMPILE_DEADLINE_S, CompileTimeoutError(f"{COMPILE_DEADLINE_S:g} s")):
                         self._warm_up(images)
-                    self._ready.add(tuple(images.shape))
+                    self._ready.add(kind)
                 return self.compiled(images)
             except CompileTimeoutError:
                 self._fall_back(f"the compile took longer than {COMPILE_DEADLINE_S:g} s")

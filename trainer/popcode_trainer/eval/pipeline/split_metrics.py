@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from popcode_runtime.errors import PopcodeError
+from popcode_runtime.symmetries import symmetry_rotations
 
 from ...data.bop import Instance, model_path
 from ...data.box_noise import IOU_BINS, iou_bin_label
@@ -62,10 +63,7 @@ class SplitMetrics:
         self.objects = {obj_id: ObjectModel.from_info(np.asarray(mesh.vertices), split.models_info[obj_id])
                         for obj_id, mesh in self._meshes.items()}
         self.diameters_mm = {obj_id: model.diameter_mm for obj_id, model in self.objects.items()}
-        found = {obj_id: check_object_symmetries(model_path(split.models_dir, obj_id), split.models_info[obj_id],
-                                                 obj_id, mesh) for obj_id, mesh in self._meshes.items()}
-        # object -> the rotations its look-alike poses differ by, for parts that nearly have an undeclared symmetry
-        self.look_alikes = {obj_id: look_alike_rotations(found[obj_id]) for obj_id in found if found[obj_id]}
+        self.look_alikes = self._look_alike_poses()
         self.ambiguous = ambiguous_objects(split.models_info)
         self._renderer: Any = None
         self._renderer_key: tuple[int, int, int] | None = None
@@ -94,6 +92,21 @@ class SplitMetrics:
             self._renderer, self._renderer_key = DepthRenderer(mesh.vertices, mesh.faces, width, height), key
         renderer = self._renderer
         return lambda R, t: renderer.render(K, R, t)
+
+    def _look_alike_poses(self) -> dict[int, np.ndarray]:
+        """Object -> its symmetric and look-alike poses ``(K, 3, 3)``, for the parts that nearly have a symmetry
+        they do not declare. A part whose declared symmetries fail the check is scored as before, with a warning."""
+        poses = {}
+        for obj_id, mesh in self._meshes.items():
+            info = self.split.models_info[obj_id]
+            try:
+                found = check_object_symmetries(model_path(self.split.models_dir, obj_id), info, obj_id, mesh)
+            except PopcodeError as error:
+                warnings.warn(f"{error} (scored as declared; no re_look_alike_deg for it)", stacklevel=3)
+                continue
+            if found:
+                poses[obj_id] = look_alike_rotations(found, symmetry_rotations(info))
+        return poses
 
     def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None, depth: bool = True) -> InstanceErrors:
         """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order.
