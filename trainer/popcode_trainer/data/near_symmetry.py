@@ -21,6 +21,7 @@ import numpy as np
 from popcode_runtime.rotations import axis_angle_to_matrix
 from popcode_runtime.symmetries import discrete_transforms
 
+from .closure import closure
 from .surface_sample import SurfaceSample, surface_distance
 
 LOOK_ALIKE_TOLERANCE = 0.02  # of the diameter: most of the surface lands this close to itself in a look-alike pose
@@ -104,16 +105,9 @@ def look_alike_rotations(look_alikes: Sequence[LookAlike], symmetries: np.ndarra
     look-alike turns, each once, at most :data:`MAX_LOOK_ALIKE_POSES` (the rotation part only, which is all a
     rotation error sees). They are the poses an estimate cannot be told from where the feature that breaks the
     symmetry is hidden."""
-    generators = [axis_angle_to_matrix(look_alike.axis, 2 * np.pi / look_alike.order) for look_alike in look_alikes]
-    found = [np.asarray(R, dtype=np.float64) for R in symmetries]
-    frontier = list(found)
-    while frontier and len(found) < MAX_LOOK_ALIKE_POSES:
-        grown = []
-        for R in frontier:
-            for step in (*generators, *symmetries):
-                candidate = R @ step
-                if np.abs(np.asarray(found) - candidate).max(axis=(1, 2)).min() > SAME_ROTATION:
-                    found.append(candidate)
-                    grown.append(candidate)
-        frontier = grown
-    return np.stack(found[:MAX_LOOK_ALIKE_POSES])
+    turns = [axis_angle_to_matrix(look_alike.axis, 2 * np.pi / look_alike.order) for look_alike in look_alikes]
+    declared = [np.asarray(R, dtype=np.float64) for R in symmetries]
+    poses, _, _ = closure(declared, [*turns, *declared], np.matmul,
+                          lambda R, poses: bool(np.abs(np.asarray(poses) - R).max(axis=(1, 2)).min() <= SAME_ROTATION),
+                          MAX_LOOK_ALIKE_POSES)
+    return np.stack(poses[:MAX_LOOK_ALIKE_POSES])

@@ -31,6 +31,7 @@ from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from popcode_runtime.symmetries import continuous_symmetries, discrete_transforms
 
 from .bop import model_path
+from .closure import closure
 from .meshes import load_mesh
 from .near_symmetry import LookAlike, look_alike_symmetries
 from .surface_sample import PERCENTILE, SurfaceSample, diameter_mm, surface_distance, surface_sample
@@ -107,21 +108,11 @@ def check_closed(info: Mapping[str, Any], name: str, diameter_mm: float) -> None
     declared = [Transform(R, t, "identity" if k == 0 else f"symmetries_discrete[{k - 1}]")
                 for k, (R, t) in enumerate(zip(transforms.R, transforms.t_mm, strict=True))]
     anchors, tolerance = _anchors_mm(info, diameter_mm), GROUP_TOLERANCE * diameter_mm
-    group, missing = list(declared), []
-    frontier = list(declared)
-    while frontier:
-        found = []
-        for a in frontier:
-            for b in declared:
-                product = a.then(b)
-                if not any(_same(product, g, anchors, tolerance) for g in group):
-                    group.append(product)
-                    found.append(product)
-                    missing.append(product)
-                    if len(group) > MAX_GROUP:
-                        raise PopcodeError(f"{name}: the declared discrete symmetries generate more than "
-                                           f"{MAX_GROUP} transforms; they are not the symmetries of a rigid part")
-        frontier = found
+    group, missing, closed = closure(declared, declared, Transform.then,
+                                     lambda t, group: any(_same(t, g, anchors, tolerance) for g in group), MAX_GROUP)
+    if not closed:
+        raise PopcodeError(f"{name}: the declared discrete symmetries generate more than "
+                           f"{MAX_GROUP} transforms; they are not the symmetries of a rigid part")
     if missing:
         first = missing[0]
         raise PopcodeError(

@@ -7,8 +7,8 @@ group gets the first grid of :func:`finer_grids` on which, after narrowing, even
 every part within :data:`~popcode_trainer.train.code_sigma.EXACT_TOLERANCE_DEG`, and a sentence saying
 what was chosen and why. A group the size's settings resolve keeps them unchanged; a user's group whose parts
 need different codes alone is split, one model per code, so that one fine part does not move the rest onto its
-grid (:func:`split_by_code`). The built-in demo keeps
-its sizes' grids (they resolve every built-in part), so only its test-sized runs narrow sigma alone.
+grid (:func:`split_by_code`). The built-in demo keeps its sizes' grids (they resolve every built-in part), so
+only its test-sized runs narrow sigma alone.
 """
 
 from __future__ import annotations
@@ -125,14 +125,14 @@ def split_by_code(code: CodeConfig, models_info: Mapping[int, Mapping[str, Any]]
     by_needs: dict[tuple[int, int, float], list[int]] = {}
     for obj_id in sorted(group):
         by_needs.setdefault(_needs(alone[obj_id]), []).append(obj_id)
-    if len(by_needs) == 1:
-        return [alone[group[0]] if len(group) == 1 else choose_group_code(code, {i: models_info[i] for i in group})]
     chosen = []
     for ids in by_needs.values():
         one = alone[ids[0]] if len(ids) == 1 else choose_group_code(code, {i: models_info[i] for i in ids})
         others = [i for i in sorted(group) if i not in ids]
-        differ = "code differs" if len(others) == 1 else "codes differ"
-        chosen.append(replace(one, note=f"{one.note}; a model apart from {_names(others)}, whose {differ}"))
+        if others:
+            differ = "code differs" if len(others) == 1 else "codes differ"
+            one = replace(one, note=f"{one.note}; a model apart from {_names(others)}, whose {differ}")
+        chosen.append(one)
     return chosen
 
 
