@@ -12,13 +12,21 @@ For each network and torch thread count it times, in crops per second:
   the target), with each number of DataLoader workers;
 - ``forward_backward``: network, loss and backward on one fixed batch;
 - ``optimizer``: Adam's step alone;
-- ``step``: the real loop (loader -> forward -> loss -> backward -> step) per
+- ``step``: loader -> forward -> loss -> backward -> step as the loop runs them, per
   worker count, on the path ``popcode-train train`` chooses on this machine
   (``train.fast_path``: layout, precision, compiled or not), which is what a
   training run gets;
 - ``path: ...``: the whole step (forward, loss, backward, Adam) on a fixed
   batch for each path: eager or compiled, NCHW or ``channels_last``, fp32 or
-  bf16 autocast (``--paths``); the compile's seconds are in ``first_s``.
+  bf16 autocast (``--paths``); the compile's seconds are in ``first_s``;
+- ``loop``: ``popcode-train train``'s own loop (``train.loop.train``: loader,
+  step, progress bar, learning-rate schedule) over ``--loop-epochs`` epochs of
+  the split with the worker count of the quick recipe, one call per epoch (each
+  resumes the last); after each epoch but the first, the plain eager NCHW fp32
+  step is timed again on the fixed batch, in a process of its own that keeps
+  the C library's allocator defaults. Its crops/s are the median over those
+  epochs, and the note the median of each epoch's multiple of the plain step
+  timed beside it (the issue's measure of the training speed-up).
 
 Numbers, not assertions; results in ``bench/results/training.{json,md}``.
 """
@@ -27,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import multiprocessing
 import sys
 import tempfile
 import time
@@ -35,15 +44,19 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
 from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.train import allocator, checkpoint
+from popcode_trainer.train.config import Config
 from popcode_trainer.train.fast_path import GuardedForward, StepPath, adam, autocast, choose_path, to_layout
-from popcode_trainer.train.loop import network_config
+from popcode_trainer.train.loop import network_config, train
 from popcode_trainer.train.network import NetworkConfig, build_network
-from popcode_trainer.train.training_data import build_training_data
+from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from popcode_trainer.train.training_data import TrainingData, build_training_data
 
 from .report import machine, machine_line, write_results
 
@@ -61,7 +74,7 @@ PATHS = {  # name -> (channels_last, precision, compiled)
     "compiled-cl-bf16": StepPath(True, "bf16", True, "bench"),
 }
 BATCH = 32
-IMAGES_PER_OBJECT = 80  # 4 objects x 80 x 0.9 = 288 training crops: 9 batches
+IMAGES_PER_OBJECT = 2000  # as the quick demo: 4 x 2000 x 0.9 = 7200 training crops, loop epochs of 225 batches
 
 
 def _rate(crops: int, seconds: float) -> float:
@@ -108,8 +121,32 @@ def path_step_rate(base: torch.nn.Module, path: StepPath, batch: dict[str, Any],
     return _rate(batches * BATCH, time.perf_counter() - started), first_s, forward.path
 
 
+def _plain_step_rate(net_config: NetworkConfig, threads: int, batch: dict[str, Any], loss_of: Callable, lr: float,
+                     batches: int) -> float:
+    """Crops/s of the plain eager NCHW fp32 step of a new network of ``net_config`` (run in a process of its own)."""
+    torch.set_num_threads(threads)
+    model = build_network(net_config).train()
+    return path_step_rate(model, PATHS["eager-nchw-fp32"], batch, loss_of, lr, batches)[0]
+
+
+def loop_beside_plain(config: Config, data: TrainingData, epochs: int, out_dir: Path,
+                      plain_rate: Callable[[], float]) -> tuple[list[float], list[float], str]:
+    """Crops/s of each epoch of the training loop after the first, each with the plain step's crops/s measured right
+    after it, and the path the loop took. The host's speed drifts by tens of per cent within minutes, so only a
+    pair taken together compares like with like."""
+    config = replace(config, train=replace(config.train, epochs=epochs, out_dir=str(out_dir)))
+    loop_rates, plain_rates = [], []
+    for epoch in range(1, epochs + 1):  # one call per epoch: the run resumes, as after a kill
+        history = train(config, data.representation, data.train_set, resume=epoch > 1, stop_after_epoch=epoch)
+        if epoch > 1:  # the first pays the first allocations
+            loop_rates.append(history[-1].samples_per_s)
+            plain_rates.append(plain_rate())
+    path = StepPath(**checkpoint.load(out_dir / LAST_CHECKPOINT)["step_path"])
+    return loop_rates, plain_rates, path.describe()
+
+
 def measure(network_name: str, threads: int, workers: Sequence[int], batches: int, split: Path,
-            out_dir: Path, paths: Sequence[str] = tuple(PATHS)) -> list[dict[str, Any]]:
+            out_dir: Path, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3) -> list[dict[str, Any]]:
     """One network at one torch thread count: the rows of every part and worker count."""
     torch.set_num_threads(threads)
     size = PipelineSize(IMAGES_PER_OBJECT, 0, small_config(epochs=1, n_axes=642, n_angles=36,
@@ -124,7 +161,7 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     def row(part: str, seconds: float, crops: int, workers_used: int | None = None, **extra: Any) -> None:
         rows.append({"network": network_name, "threads": threads, "part": part, "workers": workers_used,
                      "crops_per_s": _rate(crops, seconds), "ms_per_batch": 1000 * seconds / (crops / BATCH),
-                     **extra})
+                     "memory_kept": allocator.freed_memory_kept(), **extra})
 
     def loader(num_workers: int) -> DataLoader:
         return DataLoader(data.train_set, batch_size=BATCH, shuffle=True, drop_last=True, num_workers=num_workers,
@@ -159,6 +196,15 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     chosen = choose_path(config.train.precision, config.train.compile, torch.device("cpu"),
                          config.train.epochs * (len(data.train_set) // BATCH),
                          conv_widths=NETWORKS[network_name].conv_channels)
+    # From here on as training runs: freed memory kept for the next step (train.allocator). The rows above ran
+    # with the C library's defaults unless an earlier network's measurement had already set it (memory_kept).
+    if not allocator.freed_memory_kept() and allocator.keep_freed_memory():
+        name = next((name for name, path in PATHS.items() if (path.channels_last, path.precision, path.compiled)
+                     == (chosen.channels_last, chosen.precision, chosen.compiled)), None)
+        if name is not None:
+            rate, first_s, ran = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
+            row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
+                fell_back=PATHS[name].compiled and not ran.compiled)
     model = model.to(memory_format=torch.channels_last) if chosen.channels_last else model
     forward = GuardedForward(model, chosen)
     for count in workers:
@@ -171,13 +217,32 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
             optimizer.step()
         row("step", _timed_batches(loader(count), batches, step), batches * BATCH, count,
             path=forward.path.describe())
+    if loop_epochs > 1:
+        # The plain step runs in a process of its own, with the C library's allocator defaults, as a plain PyTorch
+        # training process has them (this one keeps freed memory once the loop has run).
+        with multiprocessing.get_context("spawn").Pool(1) as plain_process:
+            plain_arguments = (network_config(config, data.representation), threads, fixed, loss_of,
+                               config.train.lr, batches)
+
+            def plain_rate() -> float:
+                return plain_process.apply(_plain_step_rate, plain_arguments)
+
+            loop_rates, plain_rates, path = loop_beside_plain(config, data, loop_epochs,
+                                                              out_dir / f"loop-{network_name}-{threads}", plain_rate)
+        ratios = [loop / plain for loop, plain in zip(loop_rates, plain_rates, strict=True)]
+        row("loop", BATCH / float(np.median(loop_rates)), BATCH, config.data.num_workers, path=path,
+            vs_plain_eager=float(np.median(ratios)), epoch_crops_per_s=loop_rates, plain_crops_per_s=plain_rates)
     return rows
 
 
 def _note(row: dict[str, Any]) -> str:
+    kept = "; freed memory kept" if row.get("memory_kept") else ""
+    if row.get("vs_plain_eager") is not None:
+        return f"{row['vs_plain_eager']:.2f}x the plain eager NCHW fp32 step; {row['path']}{kept}"
     if "first_s" in row:
-        return f"first step {row['first_s']:.1f} s" + (" (compile failed: ran eager)" if row["fell_back"] else "")
-    return row.get("path", "")
+        return (f"first step {row['first_s']:.1f} s" + (" (compile failed: ran eager)" if row["fell_back"] else "")
+                + kept)
+    return row.get("path", "") + kept
 
 
 def to_markdown(payload: dict[str, Any]) -> str:
@@ -191,20 +256,25 @@ def to_markdown(payload: dict[str, Any]) -> str:
         f"Population code 642 x 36, batch {BATCH}, "
         "the paper's augmentation on rendered 128 px images of built-in parts 3-6.",
         "`data`: DataLoader batches alone; `forward_backward`: network + loss + backward on a fixed batch; "
-        "`optimizer`: Adam's step; `step`: the real training loop on the path training chooses here (note); "
+        "`optimizer`: Adam's step; `step`: loader and step as the training loop runs them, on the path training "
+        "chooses here (note); `loop`: `popcode-train train`'s own loop, the median of its epochs after the first, "
+        "and the median of their multiples of the plain eager NCHW fp32 step timed again after each, in a process of "
+        "its own with the C library's defaults; "
         "`path: ...`: the whole step on a fixed batch, eager or compiled, NCHW or channels_last (cl), fp32 or bf16 "
-        "autocast; the first step's seconds include a compile.",
+        "autocast; the first step's seconds include a compile. \"freed memory kept\": measured after the trainer "
+        "kept freed memory for the next step (`train/allocator.py`), as training runs; the other rows with the C "
+        "library's defaults, as a plain PyTorch step runs.",
         markdown_table(header, rows),
     ])
 
 
 def run(networks: Sequence[str], threads: Sequence[int], workers: Sequence[int], batches: int, out_dir: Path,
-        arguments: str, paths: Sequence[str] = tuple(PATHS)) -> dict[str, Any]:
+        arguments: str, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as folder:
         size = PipelineSize(IMAGES_PER_OBJECT, 1, small_config(epochs=1, n_axes=642, n_angles=36))
         split, _ = render_splits(size, Path(folder), progress=False)
         rows = [row for name in networks for count in threads
-                for row in measure(name, count, workers, batches, split, Path(folder) / "run", paths)]
+                for row in measure(name, count, workers, batches, split, Path(folder) / "run", paths, loop_epochs)]
     payload = {"arguments": arguments, "batch": BATCH, "rows": rows}
     payload["machine"] = machine()
     write_results(out_dir, "training", payload, to_markdown(payload))
@@ -222,12 +292,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--batches", type=int, default=6, help="timed batches per measurement (after a warm-up)")
     parser.add_argument("--paths", nargs="*", choices=list(PATHS), default=list(PATHS),
                         help="step paths to time on a fixed batch (compiled ones compile first: 15-60 s each)")
+    parser.add_argument("--loop-epochs", type=int, default=3,
+                        help="epochs of the training loop itself to time (the first is not counted; 0 or 1: none)")
     args = parser.parse_args(argv)
-    if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1:
-        parser.error("--threads and --batches must be at least 1, --workers at least 0")
+    if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1 or args.loop_epochs < 0:
+        parser.error("--threads and --batches must be at least 1, --workers and --loop-epochs at least 0")
     batches = 2 if args.quick else args.batches
+    loop_epochs = min(args.loop_epochs, 2) if args.quick else args.loop_epochs
     arguments = " ".join(sys.argv[1:] if argv is None else argv)
-    return run(args.networks, args.threads, args.workers, batches, args.out, arguments, args.paths)
+    return run(args.networks, args.threads, args.workers, batches, args.out, arguments, args.paths, loop_epochs)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from popcode_runtime.rotations import random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
+from popcode_trainer.train import allocator
 
 LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms",
                   "compute_floor_ms"}
@@ -143,13 +144,21 @@ def test_training_throughput_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     # 30 images a part leave 108 training crops of parts 3-6, the 96 that --quick's batches need; the bench's 80
     # would render 480 images, in two processes, for rows this test only checks the shape of.
     monkeypatch.setattr(training, "IMAGES_PER_OBJECT", 30)
+    monkeypatch.setattr(allocator, "_outcome", [])  # as in a fresh process: the C library's defaults first
     payload = training.main(["--quick", "--networks", "tiny", "--threads", "1", "--workers", "0", "1",
                              "--paths", "eager-nchw-fp32", "eager-cl-bf16", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["rows"]
     assert rows == payload["rows"]
     parts = [(r["part"], r["workers"]) for r in rows]
     assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None),
-                     ("path: eager-nchw-fp32", None), ("path: eager-cl-bf16", None), ("step", 0), ("step", 1)]
+                     ("path: eager-nchw-fp32", None), ("path: eager-cl-bf16", None),
+                     ("path: eager-nchw-fp32", None), ("step", 0), ("step", 1), ("loop", 0)]
+    # the chosen path again once freed memory is kept, as training runs; the plain rows before it with the defaults
+    assert [r["memory_kept"] for r in rows] == [False] * 6 + [True] * 4
+    loop = rows[-1]  # the training loop itself; --quick: two epochs, the second beside a plain eager step
+    assert len(loop["epoch_crops_per_s"]) == len(loop["plain_crops_per_s"]) == 1
+    assert loop["vs_plain_eager"] == pytest.approx(loop["epoch_crops_per_s"][0] / loop["plain_crops_per_s"][0])
+    assert loop["crops_per_s"] == pytest.approx(loop["epoch_crops_per_s"][0])
     assert all(not r["fell_back"] and r["first_s"] > 0 for r in rows if r["part"].startswith("path"))
     assert all("NCHW" in r["path"] for r in rows if r["part"] == "step")  # tiny widths of 4: NCHW (fast_path)
     assert all(r["network"] == "tiny" and r["threads"] == 1 and r["crops_per_s"] > 0 for r in rows)

@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader
 from popcode_runtime import CodeLayout, PopcodeError, read_image
 from popcode_runtime.crop import crop_square
 from popcode_trainer.cli import main
+from popcode_trainer.data import samples
 from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.crop_cache import CACHE_SUFFIX, crop_with_margin
@@ -83,6 +84,28 @@ def test_sample_contents_and_targets(split) -> None:
     codes = _codes(split)
     assert codes.layout(1).axis_only and not codes.layout(3).axis_only
     assert all(codes.layout(obj_id).size == size for obj_id, size in sizes.items())
+
+
+def test_targets_are_made_once_and_equal_those_made_per_batch(split, monkeypatch) -> None:
+    one_size = [instance for instance in split.instances if instance.obj_id >= 3]  # the full code: one length
+    calls = []
+
+    def counted(instances):
+        calls.append(len(instances))
+        return _codes(split).targets(instances)
+
+    tabled = CropDataset(one_size, counted, augmentation=None)
+    assert sum(calls) == len(one_size)  # every instance once, when the data set is made
+    positions = [5, 0, 3, 3]
+    from_table = tabled.__getitems__(positions)
+    assert sum(calls) == len(one_size)
+    monkeypatch.setattr(samples, "TARGET_TABLE_BYTES", 0)
+    per_batch = CropDataset(one_size, counted, augmentation=None).__getitems__(positions)
+    assert calls[-1] == len(positions)  # too large for the table: made for each batch
+    for tabled_sample, batch_sample in zip(from_table, per_batch, strict=True):
+        assert torch.equal(tabled_sample["target"], batch_sample["target"])
+    mixed = CropDataset(split.instances, counted, augmentation=None)  # axis-only and full codes: no one table
+    assert mixed[0]["target"].numel() != mixed[len(mixed) - 1]["target"].numel()
 
 
 def test_augmented_samples_are_deterministic_per_seed_epoch_and_index(split) -> None:

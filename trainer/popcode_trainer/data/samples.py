@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
+from tqdm import tqdm
 
 from popcode_runtime.errors import PopcodeError
 
@@ -37,6 +38,11 @@ BACKGROUNDS_PER_EPOCH = 256
 # Drawing fresh noise for every crop cost more than the rest of its augmentation (bench/results/training.md).
 NOISE_FIELDS_PER_EPOCH = 8
 BOX_NOISE_TRIES = 4  # draws of a detector-like box before the sample falls back to its true box
+# A sample's target depends on its instance alone, so every instance's is made once, when the data set is, and kept
+# up to this size (the quick recipe's 7200 crops of a 642 x 36 code: 0.67 GB); a larger set makes them per batch.
+# Making them cost about a third of the data path of a step (bench/results/training.md).
+TARGET_TABLE_BYTES = 1 << 30
+TARGET_TABLE_CHUNK = 256  # instances per call of targets_fn while the table is made
 
 TargetsFn = Callable[[Sequence[Instance]], np.ndarray]
 
@@ -82,6 +88,26 @@ class CropDataset(Dataset):
         self.epoch = 0
         self._bank: tuple[int, np.ndarray, np.ndarray] | None = None
         self._order: tuple[int, np.ndarray] | None = None
+        self._targets = self._target_table(progress)
+
+    def _target_table(self, progress: bool) -> np.ndarray | None:
+        """Every instance's target ``(N, D)`` float32, made object by object; None where the table would pass
+        :data:`TARGET_TABLE_BYTES` or the objects' targets differ in size (one model's data never do)."""
+        obj_ids = np.array([int(instance.obj_id) for instance in self.instances])
+        chunks = [rows[start : start + TARGET_TABLE_CHUNK] for obj_id in np.unique(obj_ids)
+                  for rows in [np.flatnonzero(obj_ids == obj_id)] for start in range(0, len(rows), TARGET_TABLE_CHUNK)]
+        table: np.ndarray | None = None
+        for rows in tqdm(chunks, desc="making targets", unit="chunk", disable=not progress or len(chunks) < 2,
+                         leave=False):
+            part = np.asarray(self.targets_fn([self.instances[row] for row in rows]), dtype=np.float32)
+            if table is None:
+                if len(self.instances) * part[0].nbytes > TARGET_TABLE_BYTES:
+                    return None
+                table = np.empty((len(self.instances), *part.shape[1:]), np.float32)
+            elif part.shape[1:] != table.shape[1:]:
+                return None
+            table[rows] = part
+        return table
 
     def set_epoch(self, epoch: int) -> None:
         """Draw new augmentations: the generator of each sample is seeded by (seed, epoch, position in the epoch)."""
@@ -209,7 +235,8 @@ class CropDataset(Dataset):
 
     def _samples(self, positions: Sequence[int]) -> list[dict[str, Any]]:
         indices = [self.instance_index(position) for position in positions]
-        targets = self.targets_fn([self.instances[i] for i in indices])
+        targets = (self._targets[indices] if self._targets is not None
+                   else self.targets_fn([self.instances[i] for i in indices]))
         crops = torch.from_numpy(self.crops(positions))
         return [{
             "image": crops[row][None],

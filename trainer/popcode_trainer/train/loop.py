@@ -28,7 +28,7 @@ from tqdm import tqdm
 from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import RotationFrame
 
-from . import checkpoint, distributed, fast_path
+from . import allocator, checkpoint, distributed, fast_path
 from .config import Config
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
@@ -160,6 +160,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     if cfg.batch_size % context.world_size:
         raise PopcodeError(f"train.batch_size {cfg.batch_size} must be divisible by the {context.world_size} ranks")
     rank_batch = cfg.batch_size // context.world_size
+    memory_kept = allocator.keep_freed_memory()
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
@@ -200,7 +201,8 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     trained = DistributedDataParallel(model) if context.distributed else model
     forward = fast_path.GuardedForward(trained, path)
     if context.is_main:
-        tqdm.write(f"training step: {path.describe()}")
+        tqdm.write(f"training step: {path.describe()}" + ("; freed memory kept for the next step" if memory_kept
+                                                           else ""))
     if context.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
     tensorboard = _TensorBoard(out_dir) if context.is_main else None
