@@ -6,8 +6,9 @@ before each epoch (with ``persistent_workers=False``, the default, workers see t
 
 Crops are stored as uint8 with a margin for the shift augmentation (:mod:`.crop_cache`): decoded
 once into a memory-mapped cache when a ``cache_dir`` is given (training), else from the images on
-each access (a preview of a few crops). Targets of a DataLoader batch are built in one vectorised
-call (``__getitems__``), and so is the pixel arithmetic of their crops.
+each access (a preview of a few crops). Every instance's target is made once, when the data set is
+(a sample's target depends on its instance alone), or for a set too large for that, per DataLoader
+batch in one vectorised call (``__getitems__``); the pixel arithmetic of a batch's crops is one too.
 """
 
 from __future__ import annotations

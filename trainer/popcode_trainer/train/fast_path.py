@@ -13,10 +13,9 @@
 - ``train.compile``: ``"auto"`` compiles the step (``torch.compile``) where it
   was measured to pay for its compile time: a CPU with native bf16 and a run of
   at least :data:`COMPILE_MIN_STEPS` steps; on an AVX2-only CPU the compiled
-  step was no clear gain over the eager ``channels_last`` one (slower in an
-  earlier run, faster in the latest of ``bench/results/training.md``). ``"on"`` / ``"off"``
-  force it. A missing C++
-  compiler, a failing compile or one that runs past :data:`COMPILE_DEADLINE_S`
+  step was no clear gain over the eager ``channels_last`` one (slower in two
+  runs, faster in one; ``bench/results/training.md``). ``"on"`` / ``"off"``
+  force it. A missing C++ compiler, a failing compile or one that runs past :data:`COMPILE_DEADLINE_S`
   (each new batch shape compiles its forward and backward once, under that
   bound) falls back to the eager step, saying why in one line.
 
