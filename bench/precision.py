@@ -1,7 +1,7 @@
 """Does bf16 training lose accuracy? The quick recipe in fp32 and in bf16 autocast at equal epochs, per seed.
 
     python -m bench.precision [--config trainer/configs/quick.toml] [--set KEY=VALUE ...] [--epochs 12]
-        [--images 800] [--seeds 0 1] [--obj-ids 3 4 5 6] [--work DIR]
+        [--images 800] [--seeds 0 1] [--obj-ids 3 4 5 6] [--work DIR] [--name precision]
 
 Each (precision, seed) trains one model with ``bench.budget_curve.curve`` (the built-in parts' training split,
 seed 0, and its validation split, seed 2000) and scores its last checkpoint: MSSD on the validation split and
@@ -12,7 +12,7 @@ On a CPU without native bf16 the bf16 run is emulated (several times slower than
 way: autocast casts the convolutions' and matmuls' inputs to bf16 and their products are summed in fp32, as
 AMX and AVX512-BF16 do; so the accuracy measured here is the accuracy a bf16 run gets on a CPU that has it,
 and only the speed differs (``bench/results/training.md``). ``--work`` keeps splits and runs: an interrupted
-comparison resumes. Results: ``bench/results/precision.{json,md}``.
+comparison resumes. Results: ``bench/results/precision.{json,md}`` (``--name``).
 """
 
 from __future__ import annotations
@@ -101,6 +101,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="training seeds, one run per precision")
     parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
     parser.add_argument("--work", type=Path, default=Path("runs/precision"), help="splits and runs (resumable)")
+    parser.add_argument("--name", default="precision", help="results file stem (bench/results/NAME.{json,md})")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args(argv)
     if args.epochs < 1 or args.images < 1:
@@ -112,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     rounding = autocast_rounding()
     payload = {"arguments": arguments, "config": str(args.config), "overrides": args.overrides, "rows": rows,
                "autocast_rounding": rounding}
-    write_results(args.out, "precision", payload, to_markdown(rows, rounding, arguments, machine()))
+    write_results(args.out, args.name, payload, to_markdown(rows, rounding, arguments, machine()))
     return rows
 
 
