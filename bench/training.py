@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import copy
 import multiprocessing
+import resource
 import sys
 import tempfile
 import time
@@ -92,9 +93,10 @@ def _timed_batches(loader: DataLoader, batches: int, work: Callable[[dict[str, A
 
 
 def path_step_rate(base: torch.nn.Module, path: StepPath, batch: dict[str, Any], loss_of: Callable, lr: float,
-                   batches: int) -> tuple[float, float, StepPath]:
+                   batches: int) -> tuple[float, float, StepPath, dict[str, float]]:
     """Crops/s of the whole step on one fixed batch on ``path`` (a copy of ``base``), the first step's seconds (a
-    compile's included) and the path that ran (a failed compile falls back to eager)."""
+    compile's included), the path that ran (a failed compile falls back to eager) and the kernel's share of a
+    timed step: its minor page faults and system CPU milliseconds (the work ``train.allocator`` saves)."""
     model = copy.deepcopy(base)
     if path.channels_last:
         model = model.to(memory_format=torch.channels_last)
@@ -115,10 +117,13 @@ def path_step_rate(base: torch.nn.Module, path: StepPath, batch: dict[str, Any],
     step()
     first_s = time.perf_counter() - started
     step()  # a compiled backward may finish compiling on its second call
-    started = time.perf_counter()
+    usage, started = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     for _ in range(batches):
         step()
-    return _rate(batches * BATCH, time.perf_counter() - started), first_s, forward.path
+    seconds, after = time.perf_counter() - started, resource.getrusage(resource.RUSAGE_SELF)
+    kernel = {"page_faults_per_step": (after.ru_minflt - usage.ru_minflt) / batches,
+              "kernel_ms_per_step": 1000 * (after.ru_stime - usage.ru_stime) / batches}
+    return _rate(batches * BATCH, seconds), first_s, forward.path, kernel
 
 
 def _plain_step_rate(net_config: NetworkConfig, threads: int, batch: dict[str, Any], loss_of: Callable, lr: float,
@@ -190,9 +195,9 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
         optimizer.step()
     row("optimizer", time.perf_counter() - started, batches * BATCH)
     for name in paths:
-        rate, first_s, ran = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
+        rate, first_s, ran, kernel = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
         row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
-            fell_back=PATHS[name].compiled and not ran.compiled)
+            fell_back=PATHS[name].compiled and not ran.compiled, **kernel)
     chosen = choose_path(config.train.precision, config.train.compile, torch.device("cpu"),
                          config.train.epochs * (len(data.train_set) // BATCH),
                          conv_widths=NETWORKS[network_name].conv_channels)
@@ -202,9 +207,10 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
         name = next((name for name, path in PATHS.items() if (path.channels_last, path.precision, path.compiled)
                      == (chosen.channels_last, chosen.precision, chosen.compiled)), None)
         if name is not None:
-            rate, first_s, ran = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
+            rate, first_s, ran, kernel = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr,
+                                                        batches)
             row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
-                fell_back=PATHS[name].compiled and not ran.compiled)
+                fell_back=PATHS[name].compiled and not ran.compiled, **kernel)
     model = model.to(memory_format=torch.channels_last) if chosen.channels_last else model
     forward = GuardedForward(model, chosen)
     for count in workers:
@@ -241,7 +247,8 @@ def _note(row: dict[str, Any]) -> str:
         return f"{row['vs_plain_eager']:.2f}x the plain eager NCHW fp32 step; {row['path']}{kept}"
     if "first_s" in row:
         return (f"first step {row['first_s']:.1f} s" + (" (compile failed: ran eager)" if row["fell_back"] else "")
-                + kept)
+                + f"; {row['page_faults_per_step']:.0f} page faults, {row['kernel_ms_per_step']:.1f} ms in the "
+                "kernel a step" + kept)
     return row.get("path", "") + kept
 
 

@@ -13,7 +13,7 @@
 - ``train.compile``: ``"auto"`` compiles the step (``torch.compile``) where it
   was measured to pay for its compile time: a CPU with native bf16 and a run of
   at least :data:`COMPILE_MIN_STEPS` steps; on an AVX2-only CPU the compiled
-  step was no clear gain over the eager ``channels_last`` one (slower in two
+  step was no clear gain over the eager ``channels_last`` one (slower in three
   runs, faster in one; ``bench/results/training.md``). ``"on"`` / ``"off"``
   force it. A missing C++ compiler, a failing compile or one that runs past :data:`COMPILE_DEADLINE_S`
   (each new batch shape compiles its forward and backward once, under that
