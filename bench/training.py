@@ -194,10 +194,13 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
     for _ in range(batches):
         optimizer.step()
     row("optimizer", time.perf_counter() - started, batches * BATCH)
-    for name in paths:
+    def path_row(name: str) -> None:
         rate, first_s, ran, kernel = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr, batches)
         row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
             fell_back=PATHS[name].compiled and not ran.compiled, **kernel)
+
+    for name in paths:
+        path_row(name)
     chosen = choose_path(config.train.precision, config.train.compile, torch.device("cpu"),
                          config.train.epochs * (len(data.train_set) // BATCH),
                          conv_widths=NETWORKS[network_name].conv_channels)
@@ -207,10 +210,7 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
         name = next((name for name, path in PATHS.items() if (path.channels_last, path.precision, path.compiled)
                      == (chosen.channels_last, chosen.precision, chosen.compiled)), None)
         if name is not None:
-            rate, first_s, ran, kernel = path_step_rate(model, PATHS[name], fixed, loss_of, config.train.lr,
-                                                        batches)
-            row(f"path: {name}", BATCH * batches / rate, BATCH * batches, first_s=first_s,
-                fell_back=PATHS[name].compiled and not ran.compiled, **kernel)
+            path_row(name)
     model = model.to(memory_format=torch.channels_last) if chosen.channels_last else model
     forward = GuardedForward(model, chosen)
     for count in workers:
@@ -225,7 +225,7 @@ def measure(network_name: str, threads: int, workers: Sequence[int], batches: in
             path=forward.path.describe())
     if loop_epochs > 1:
         # The plain step runs in a process of its own, with the C library's allocator defaults, as a plain PyTorch
-        # training process has them (this one keeps freed memory once the loop has run).
+        # training process has them (this one keeps freed memory since the rows above).
         with multiprocessing.get_context("spawn").Pool(1) as plain_process:
             plain_arguments = (network_config(config, data.representation), threads, fixed, loss_of,
                                config.train.lr, batches)
