@@ -236,7 +236,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
             loss_sum += float(loss.detach()) * len(image)
             seen += len(image)
             rate = seen * context.world_size / (time.perf_counter() - started)
-            bar.set_postfix(loss=f"{loss_sum / seen:.4g}", samples_per_s=f"{rate:.1f}")
+            bar.set_postfix(loss=f"{loss_sum / seen:.4g}", samples_per_s=f"{rate:.1f}", refresh=False)
         loss_sum, seen = distributed.sum_over_ranks([loss_sum, float(seen)], context)
         seconds = time.perf_counter() - started
 

@@ -1,0 +1,95 @@
+"""Train the shipped models: the medium demo's data, network and recipe, the population code alone, its epochs
+fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
+
+    python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
+
+Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
+single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
+models need neither of (they are scored on splits no run uses: ``models/README.md``). Here the whole budget
+goes to the population code's models, one per object group, each trained as the demo trains it (same split,
+seeds, code, mix of scene crops; first epochs timed, then all resumed to the fitted epochs). ``--copy-to``
+receives each model's ONNX files and training curve as soon as it is exported, so a run cut short keeps what
+it finished. ``--images`` / ``--scenes`` shrink the data for a check of the script itself. Rerunning with the
+same ``--out`` resumes, as the demo does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+from popcode_trainer.demo.epoch_budget import FIT_FILE
+from popcode_trainer.demo.parts import BUILTIN
+from popcode_trainer.demo.report import POPCODE
+from popcode_trainer.demo.run import (
+    DEMO_SIZES,
+    FIRST_EPOCHS,
+    StagePlan,
+    fit_epochs,
+    plan,
+    prepare_parts,
+    train_models,
+)
+from popcode_trainer.demo.steps import render_splits, run_dir
+from popcode_trainer.train.run_files import METRICS_FILE
+
+SIZE = "medium"
+
+
+def training_plan(stages: StagePlan) -> StagePlan:
+    """The demo's plan without its evaluation steps: rendering, the first epochs and the training."""
+    kept = [(name, seconds) for name, seconds in stages.estimates.items()
+            if name in ("render", FIRST_EPOCHS) or name.startswith("train ")]
+    return StagePlan(kept)
+
+
+def copy_exports(folder: Path, destination: Path) -> None:
+    """A model's ONNX files and its training curve into ``destination/<run folder name>/``."""
+    target = destination / folder.name
+    target.mkdir(parents=True, exist_ok=True)
+    for path in [*sorted(folder.glob("*.onnx")), folder / METRICS_FILE]:
+        shutil.copy2(path, target / path.name)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--minutes", type=float, default=8.0, help="budget of the whole run (default 8)")
+    parser.add_argument("--out", type=Path, default=Path("runs/shipped"))
+    parser.add_argument("--copy-to", type=Path, help="copy each model's exports here once it is exported")
+    parser.add_argument("--images", type=int, help="training images per part instead of the medium size's")
+    parser.add_argument("--scenes", type=int, help="training scenes instead of the medium size's")
+    args = parser.parse_args(argv)
+    if not args.minutes > 0:
+        parser.error(f"--minutes must be positive, not {args.minutes}")
+    started = time.perf_counter()
+    demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
+    size = replace(demo.pipeline, representations=(POPCODE,),
+                   train_images_per_object=args.images or demo.pipeline.train_images_per_object,
+                   train_scenes=args.scenes or demo.pipeline.train_scenes)
+    parts, codes = prepare_parts(BUILTIN, size.config.code)
+    stages = training_plan(plan(size, [list(g.obj_ids) for g in codes], len(parts.obj_ids), fit_epochs=True))
+    with stages.stage("render"):
+        train_split, _ = render_splits(size, args.out, parts=parts)
+    with stages.stage(FIRST_EPOCHS):
+        fit = fit_epochs(size, demo, codes, train_split, args.out, started, stages)
+    print(f"{fit.epochs} epochs (first epochs {fit.first_epoch_seconds}; {fit.seconds_left:.0f} s left for "
+          "training)", flush=True)
+    size = size.with_epochs(fit.epochs)
+    if args.copy_to:
+        args.copy_to.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(args.out / FIT_FILE, args.copy_to / FIT_FILE)
+    for group in codes:
+        train_models(size, [group], train_split, args.out, stages)
+        if args.copy_to:
+            copy_exports(run_dir(args.out, POPCODE, group.obj_ids), args.copy_to)
+    print(f"done in {(time.perf_counter() - started) / 60:.1f} min: {dict(stages.done)}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
