@@ -43,7 +43,7 @@ from .epoch_budget import first_epoch_seconds
 from .parts import Parts, builtin_parts
 
 RENDER_PROCESSES = 8  # at most this many shards of a split rendered side by side (the progress bar shows the first)
-GPU_LOADER_WORKERS = 14  # a 16-core GPU machine: 8 left the GPU waiting on crops (bench/results/shipped-models.md)
+GPU_LOADER_WORKERS = 8  # 14 trained no faster on a 16-core H100 machine (bench/results/shipped-models.md)
 MIN_IMAGES_PER_PROCESS_START = 400  # a process starts in seconds (spawn, imports): smaller splits render in this one
 IMAGES_PER_SCENE = 25  # a 720 x 540 scene costs about as much as this many 128 x 128 single-part images
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
