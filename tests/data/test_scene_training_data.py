@@ -11,6 +11,7 @@ import pytest
 
 from popcode_runtime import PopcodeError
 from popcode_runtime.crop import crop_square, read_image
+from popcode_trainer.data import crop_cache
 from popcode_trainer.data.augment import Augmentation
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.box_noise import box_noise_preset, noisy_box
@@ -132,3 +133,21 @@ def test_detector_like_boxes_crop_what_the_runtime_crops_of_them(builtin_split: 
     assert noisy.margin > exact.margin
     assert sum(not np.allclose(noisy.crop(i), exact.crop(i), atol=0.05) for i in range(len(instances))) >= 6
     assert all(np.array_equal(noisy.crop(i), noisy.crop(i)) for i in range(3))  # seeded per sample
+
+
+def test_the_cache_of_a_scene_split_built_by_threads_equals_crops_made_one_by_one(
+        scenes: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Threads fill runs of the cache side by side, each reading a scene's image once for its instances."""
+    instances = read_bop_split(scenes, scenes / BUILTIN_MODELS_FOLDER, obj_ids=PARTS, min_visib_fract=0.1).instances
+    images = {inst.image_path for inst in instances}
+    assert len(instances) > len(images) > 1  # several instances share each scene's image
+    reads: list[Path] = []
+    monkeypatch.setattr(crop_cache, "read_image", lambda path: reads.append(Path(path)) or read_image(path))
+    monkeypatch.setattr(crop_cache, "CACHE_THREADS", 3)
+    monkeypatch.setattr(crop_cache, "CHUNKS_PER_THREAD", 1)
+    cache = crop_cache.CropCache(instances, 32, 4, tmp_path, progress=False)
+    image_reads = [path for path in reads if path in images]
+    assert len(image_reads) < len(instances)  # an image is not read again for the next instance of its scene
+    for index, instance in enumerate(instances):
+        crops, size = crop_cache.crop_with_margin(instance, 32, 4)
+        assert np.array_equal(cache[index], crops) and cache.image_size(index) == size

@@ -14,7 +14,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,10 @@ CACHE_FORMAT = 2  # bump when what is stored changes
 CACHE_SUFFIX = ".crops.npy"
 BOX_NOISE_CONTEXT = 0.25  # of the crop side, stored on each side when training on detector-like boxes
 SIZES_SUFFIX = ".sizes.npy"  # beside the crops: (N, 2) width, height of each instance's image
+# OpenCV decodes without the GIL, so threads fill the cache side by side; each takes a run of consecutive
+# instances, which share their scene's image (read once per run).
+CACHE_THREADS = 8
+CHUNKS_PER_THREAD = 4
 
 
 def margin_for_shift(max_shift_crop_px: float) -> int:
@@ -66,16 +71,29 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def crop_with_margin(instance: Instance, crop_size: int, margin: int) -> tuple[np.ndarray, tuple[int, int]]:
+def last_image_reader() -> Callable[[Path], np.ndarray]:
+    """:func:`read_image` that keeps the last image it read: a scene's instances come one after another."""
+    last: dict[Path, np.ndarray] = {}
+
+    def read(path: Path) -> np.ndarray:
+        if path not in last:
+            last.clear()
+            last[path] = read_image(path)
+        return last[path]
+    return read
+
+
+def crop_with_margin(instance: Instance, crop_size: int, margin: int,
+                     read: Callable[[Path], np.ndarray] = read_image) -> tuple[np.ndarray, tuple[int, int]]:
     """Image and visible mask ``(2, C, C)`` uint8 with ``C = crop_size + 2 * margin``, centred like the runtime crop,
-    and the image's (width, height).
+    and the image's (width, height); ``read`` reads the image (the mask is read on its own).
 
     The inner ``crop_size`` square is the runtime's crop of the box; the mask
     is zero for instances without one (real images: no background pasting).
     """
     outer = crop_size + 2 * margin
     padding = CROP_PADDING * outer / crop_size
-    full = read_image(instance.image_path)
+    full = read(instance.image_path)
     check_image_matches(instance, full.shape[1], full.shape[0])
     image = crop_square(full, instance.box, outer, padding)
     mask = np.zeros_like(image)
@@ -125,10 +143,24 @@ class CropCache:
         temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         array = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8, shape=(len(instances), 2, outer, outer))
         sizes = np.zeros((len(instances), 2), np.int64)
+        threads = max(1, min(CACHE_THREADS, os.cpu_count() or 1))
+        runs = np.array_split(np.arange(len(instances)), threads * CHUNKS_PER_THREAD)
+
+        def fill(rows: np.ndarray, crops: np.ndarray, bar: tqdm) -> None:
+            read = last_image_reader()
+            for index in rows:
+                crops[index], sizes[index] = crop_with_margin(instances[index], crop_size, margin, read)
+                bar.update()
+
         try:
-            for index, instance in enumerate(tqdm(instances, desc="caching crops", unit="crop", disable=not progress,
-                                                  leave=False)):
-                array[index], sizes[index] = crop_with_margin(instance, crop_size, margin)
+            with tqdm(total=len(instances), desc="caching crops", unit="crop", disable=not progress,
+                      leave=False) as bar:
+                pool = ThreadPoolExecutor(threads)
+                try:
+                    for finished in [pool.submit(fill, rows, array, bar) for rows in runs if len(rows)]:
+                        finished.result()  # the first error is raised here; the runs not started are dropped
+                finally:
+                    pool.shutdown(cancel_futures=True)
             array.flush()
             del array
             np.save(self.sizes_path, sizes)  # before the crops appear: their file means both are complete
