@@ -19,7 +19,9 @@ from popcode_trainer.data.crop_cache import CROP_PADDING, window_affine
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.data.samples import CropDataset
 from popcode_trainer.data.scene_render import render_cluttered_test_split
+from popcode_trainer.train.checkpoint import config_differences
 from popcode_trainer.train.config import Config
+from popcode_trainer.train.run_files import CROP_CACHE_FOLDER
 from popcode_trainer.train.training_data import build_training_data, sampling_weights
 
 PARTS = [3, 4, 5, 6]
@@ -151,3 +153,22 @@ def test_the_cache_of_a_scene_split_built_by_threads_equals_crops_made_one_by_on
     for index, instance in enumerate(instances):
         crops, size = crop_cache.crop_with_margin(instance, 32, 4)
         assert np.array_equal(cache[index], crops) and cache.image_size(index) == size
+
+
+def test_runs_that_name_one_cache_dir_decode_their_crops_once(scenes: Path, builtin_split: Path,
+                                                              tmp_path: Path) -> None:
+    """The demo's models of a group share a cache; a resume may move it (it is named by what it holds)."""
+    shared = tmp_path / "shared_cache"
+    first = _config([builtin_split, scenes], scenes / BUILTIN_MODELS_FOLDER, tmp_path / "a", cache_dir=str(shared))
+    build_training_data(first, progress=False)
+    cached = sorted(shared.glob("*.crops.npy"))
+    built = [path.stat().st_mtime_ns for path in cached]
+    assert cached and not (tmp_path / "a" / CROP_CACHE_FOLDER).exists()
+    second = dataclasses.replace(first, train=dataclasses.replace(first.train, out_dir=str(tmp_path / "b")))
+    build_training_data(second, progress=False)
+    assert sorted(shared.glob("*.crops.npy")) == cached and [p.stat().st_mtime_ns for p in cached] == built
+    assert not (tmp_path / "b").exists()
+    default = dataclasses.replace(first, data=dataclasses.replace(first.data, cache_dir=""))
+    build_training_data(default, progress=False)
+    assert sorted(p.name for p in (tmp_path / "a" / CROP_CACHE_FOLDER).glob("*.crops.npy")) == [p.name for p in cached]
+    assert config_differences(first.to_dict(), default.to_dict(), Config().to_dict()) == []

@@ -37,7 +37,7 @@ from ..export.onnx_export import export_trained
 from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
 from ..train.loop import train
 from ..train.network import NetworkConfig
-from ..train.run_files import LAST_CHECKPOINT, MODEL_FILE
+from ..train.run_files import CROP_CACHE_FOLDER, LAST_CHECKPOINT, MODEL_FILE
 from ..train.training_data import build_training_data, read_training_split, validation_crops
 from .epoch_budget import first_epoch_seconds
 from .parts import Parts, builtin_parts
@@ -165,7 +165,8 @@ def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[i
     """The training config of one model of the run: the size's settings, this model's data and output.
 
     ``train.loss`` chooses the population code's loss; the other representations keep their own. ``code``
-    replaces the size's grid for this model's objects (:mod:`popcode_trainer.demo.group_codes`).
+    replaces the size's grid for this model's objects (:mod:`popcode_trainer.demo.group_codes`). Every model of
+    the run caches its crops beside the training split, so the models of one object group decode them once.
     """
     loss = size.config.train.loss if representation == Representation.POPULATION_CODE else TrainConfig.loss
     splits, weights = (str(split),), ()
@@ -174,7 +175,8 @@ def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[i
     config = replace(size.config, code=code or size.config.code,
                      data=replace(size.config.data, splits=splits, split_weights=weights, obj_ids=tuple(obj_ids),
                                   models_dir=str(split / BUILTIN_MODELS_FOLDER),
-                                  num_workers=loader_workers(size.config)),
+                                  num_workers=loader_workers(size.config),
+                                  cache_dir=str(split.parent / CROP_CACHE_FOLDER)),
                      train=replace(size.config.train, representation=representation, out_dir=str(out_dir), loss=loss))
     return Config.from_dict(config.to_dict())  # checked like a config file
 

@@ -26,7 +26,8 @@ from ..data.hull import with_hull_points
 
 # Keys that may change when resuming: more epochs extend a run; the output folder may move; compiling only changes
 # how the step runs.
-RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers"), ("train", "compile")}
+RESUMABLE_CHANGES = {("train", "epochs"), ("train", "out_dir"), ("data", "num_workers"), ("data", "cache_dir"),
+                     ("train", "compile")}
 # What every checkpoint of ``popcode-train train`` holds (train/loop.py's state dict); export and evaluate need them.
 TRAINED_KEYS = frozenset({"network", "model", "metadata", "config", "epoch", "best_val_error_deg"})
 

@@ -61,6 +61,7 @@ class DataConfig:
     box_noise: str = "none"  # training crops from detector-like boxes: a preset of data.box_noise
     crop_size: int = CROP_SIZE
     num_workers: int = 2
+    cache_dir: str = ""  # the crop cache's folder; empty: crop_cache/ in train.out_dir (runs of a split may share one)
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,7 @@ class Config:
 
 
 SECTIONS: dict[str, type] = {"data": DataConfig, "code": CodeConfig, "network": NetworkConfig, "train": TrainConfig}
-PATH_SETTINGS = (("data", "splits"), ("data", "models_dir"), ("train", "out_dir"))  # (section, key)
+PATH_SETTINGS = (("data", "splits"), ("data", "models_dir"), ("data", "cache_dir"), ("train", "out_dir"))
 
 
 def _plain(value: Any) -> Any:

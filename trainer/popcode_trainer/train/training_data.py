@@ -95,7 +95,7 @@ def sampling_weights(instances: list[Instance], splits: tuple[str, ...], split_w
 
 def build_training_data(config: Config, progress: bool = True, split: TrainingSplit | None = None) -> TrainingData:
     """Instances, representation and data sets of ``config`` (``split``: already read); training crops are cached
-    in the run folder."""
+    in ``data.cache_dir``, by default in the run folder."""
     split = split or read_training_split(config)
     code, cfg = config.code, config.train
     representation = build_representation(cfg.representation, split.objects, code.n_axes, code.n_angles,
@@ -105,7 +105,7 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
     data = config.data
     augmentation = Augmentation(occlusion_p=data.occlusion_p) if data.augment else None
     size = data.crop_size
-    cache = Path(cfg.out_dir) / CROP_CACHE_FOLDER
+    cache = Path(config.data.cache_dir) if config.data.cache_dir else Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(
         representation=representation,
         train_set=CropDataset(train, representation.targets, augmentation=augmentation, crop_size=size, seed=cfg.seed,
