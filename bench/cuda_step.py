@@ -1,6 +1,7 @@
 """The training step alone on a CUDA GPU: does a GPU run wait on its step or on its crops?
 
-    python -m bench.cuda_step [--batch-sizes 32 128] [--steps 300] [--out bench/results] [--name cuda-step]
+    python -m bench.cuda_step [--batch-sizes 32 128] [--steps 300] [--compiled] [--out bench/results]
+        [--name cuda-step]
 
 The quick recipe's network and loss (642 x 36 code for built-in parts 3-6, MSE + cross entropy), random crops
 and targets already on the GPU, so nothing but the step is timed:
@@ -8,6 +9,8 @@ and targets already on the GPU, so nothing but the step is timed:
 - ``loop's step``: as ``train.loop`` runs it on CUDA: ``channels_last`` when the widths allow, fp16 autocast
   with a gradient scaler, fused Adam, the learning rate set and the loss read back (a synchronisation) every step;
 - ``no read-back``: the same without reading the loss back, so the CPU queues steps ahead of the GPU;
+- ``compiled`` (with ``--compiled``): the loop's step with ``train.compile = "on"``, whose forward and backward
+  ``train.fast_path`` compiles with CUDA graphs; its first step's seconds (the compile) in the note;
 - ``CUDA graph``: one step (bf16 autocast, no scaler, Adam with ``capturable``) captured once and replayed —
   what a captured step could reach, with the launches of a step's hundreds of small kernels gone.
 
@@ -30,7 +33,7 @@ from popcode_runtime.errors import first_line
 from popcode_trainer.demo.parts import builtin_parts
 from popcode_trainer.demo.steps import small_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.train.fast_path import adam, channels_last_is_safe
+from popcode_trainer.train.fast_path import GuardedForward, StepPath, adam, channels_last_is_safe
 from popcode_trainer.train.loop import network_config
 from popcode_trainer.train.network import build_network
 from popcode_trainer.train.representations import build_representation
@@ -68,8 +71,8 @@ def _timed(step: Callable[[], None], steps: int) -> float:
     return time.perf_counter() - started
 
 
-def measure(batch_size: int, steps: int, device: torch.device) -> list[dict[str, Any]]:
-    """The three steps' rates at one batch size."""
+def measure(batch_size: int, steps: int, device: torch.device, compiled: bool = False) -> list[dict[str, Any]]:
+    """The steps' rates at one batch size."""
     rows = []
     model, loss_of, width, layout = _model_and_loss(device)
     crop = small_config(epochs=1, n_axes=642, n_angles=36).data.crop_size
@@ -79,16 +82,19 @@ def measure(batch_size: int, steps: int, device: torch.device) -> list[dict[str,
     targets = torch.rand(batch_size, width, device=device)
     lr = 1e-3
 
-    for name, read_back in (("loop's step", True), ("no read-back", False)):
+    variants = [("loop's step", True, False), ("no read-back", False, False)]
+    variants += [("compiled", True, True)] if compiled else []
+    for name, read_back, compile_step in variants:
         optimizer = adam(model.parameters(), lr, device)
         scaler = torch.amp.GradScaler("cuda")
+        forward = GuardedForward(model, StepPath(layout, "fp32", compile_step, "bench"))
 
         def step(optimizer: torch.optim.Optimizer = optimizer, scaler: torch.amp.GradScaler = scaler,
-                 read_back: bool = read_back) -> None:
+                 read_back: bool = read_back, forward: GuardedForward = forward) -> None:
             for group in optimizer.param_groups:
                 group["lr"] = lr
             with torch.autocast("cuda", dtype=torch.float16):
-                output = model(images)
+                output = forward(images)
             loss = loss_of(output.float(), targets, 0.5)
             optimizer.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()
@@ -97,7 +103,12 @@ def measure(batch_size: int, steps: int, device: torch.device) -> list[dict[str,
             if read_back:
                 float(loss.detach())
 
-        rows.append(_row(name, batch_size, steps, _timed(step, steps)))
+        started = time.perf_counter()
+        step()
+        first_s = time.perf_counter() - started
+        row = _row(name, batch_size, steps, _timed(step, steps))
+        rows.append({**row, "note": f"first step {first_s:.1f} s; {forward.path.describe()}" if compile_step
+                     else ""})
 
     optimizer = torch.optim.Adam(model.parameters(), lr=lr, capturable=True)
 
@@ -145,6 +156,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[32, 128])
     parser.add_argument("--steps", type=int, default=300, help="timed steps per row (after warm-up steps)")
+    parser.add_argument("--compiled", action="store_true",
+                        help="also time the step compiled with CUDA graphs (train.compile = on; compiles first)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--name", default="cuda-step")
     args = parser.parse_args(argv)
@@ -153,7 +166,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if min(args.batch_sizes) < 2 or args.steps < 1:
         parser.error("--batch-sizes must be at least 2 (batch norm) and --steps at least 1")
     device = torch.device("cuda")
-    rows = [row for size in args.batch_sizes for row in measure(size, args.steps, device)]
+    rows = [row for size in args.batch_sizes for row in measure(size, args.steps, device, args.compiled)]
     arguments = " ".join(sys.argv[1:] if argv is None else argv)
     payload = {"arguments": arguments, "gpu": torch.cuda.get_device_name(), "rows": rows, "machine": machine()}
     write_results(args.out, args.name, payload, to_markdown(payload))

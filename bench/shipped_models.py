@@ -2,6 +2,7 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
+        [--compile auto|on|off]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -10,7 +11,8 @@ goes to the population code's models, one per object group, each trained as the 
 seeds, code, mix of scene crops; first epochs timed, then all resumed to the fitted epochs). ``--copy-to``
 receives each model's ONNX files and training curve as soon as it is exported, so a run cut short keeps what
 it finished. ``--images`` / ``--scenes`` shrink the data for a check of the script itself. Rerunning with the
-same ``--out`` resumes, as the demo does.
+same ``--out`` resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager
+step of this network is bound by its kernel launches, ``bench/results/cuda-step.md``).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from popcode_trainer.demo.run import (
     train_models,
 )
 from popcode_trainer.demo.steps import render_splits, run_dir
+from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.run_files import METRICS_FILE
 
 SIZE = "medium"
@@ -63,12 +66,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--copy-to", type=Path, help="copy each model's exports here once it is exported")
     parser.add_argument("--images", type=int, help="training images per part instead of the medium size's")
     parser.add_argument("--scenes", type=int, help="training scenes instead of the medium size's")
+    parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
     args = parser.parse_args(argv)
     if not args.minutes > 0:
         parser.error(f"--minutes must be positive, not {args.minutes}")
     started = time.perf_counter()
     demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
-    size = replace(demo.pipeline, representations=(POPCODE,),
+    config = demo.pipeline.config
+    config = replace(config, train=replace(config.train, compile=args.compile))
+    size = replace(demo.pipeline, representations=(POPCODE,), config=config,
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
                    train_scenes=args.scenes or demo.pipeline.train_scenes)
     parts, codes = prepare_parts(BUILTIN, size.config.code)

@@ -4,6 +4,7 @@ epochs trains exactly what one run of those epochs trains."""
 from __future__ import annotations
 
 import csv
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,9 +13,9 @@ import torch
 
 from popcode_runtime.errors import PopcodeError
 from popcode_trainer.data.render import render_builtin_split
-from popcode_trainer.demo import epoch_budget
+from popcode_trainer.demo import epoch_budget, run
 from popcode_trainer.demo.group_codes import GroupCode
-from popcode_trainer.demo.run import DEMO_SIZES, fit_epochs
+from popcode_trainer.demo.run import DEMO_SIZES, SECONDS_PER_EXPORT, StagePlan, fit_epochs
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
 from popcode_trainer.train.checkpoint import load
 from popcode_trainer.train.network import NetworkConfig
@@ -68,6 +69,29 @@ def test_a_folder_fitted_for_other_models_is_refused_not_resumed(tmp_path: Path)
     with pytest.raises(PopcodeError, match=r"was started with other models \(population_code_1-2, single_var.*"
                                            r"now population_code_1, population_code_2, .*use another --out"):
         fit_epochs(size, demo, split, tmp_path, tmp_path, 0.0, None)
+
+
+def test_a_compile_is_paid_once_not_per_epoch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A first epoch that compiled the step: its compile is left out of an epoch's cost and reserved once more for
+    the resume (a new process compiles again); metrics of an older trainer have no compile."""
+    demo = replace(DEMO_SIZES["quick"], minutes=10.0, epoch_bounds=(4, 1000))
+    size = replace(demo.pipeline, representations=("population_code",))
+    groups = [GroupCode((1, 2), size.config.code, 20.0, "")]
+
+    def compiled_first_epoch(size, representation, obj_ids, split, out_dir, code=None) -> float:
+        folder = run_dir(out_dir, representation, obj_ids)
+        folder.mkdir(parents=True)
+        (folder / METRICS_FILE).write_text("epoch,seconds,compile_seconds\n1,50.0,40.0\n")
+        return epoch_budget.first_epoch_seconds(folder)
+
+    monkeypatch.setattr(run, "train_first_epoch", compiled_first_epoch)
+    fit = fit_epochs(size, demo, groups, tmp_path, tmp_path / "out", time.perf_counter(), StagePlan([]))
+    assert fit.first_epoch_seconds == {"population_code_1-2": 10.0}
+    assert fit.seconds_left == pytest.approx(600.0 - SECONDS_PER_EXPORT - 40.0, abs=1.0)
+    older = tmp_path / "older"
+    older.mkdir()
+    (older / METRICS_FILE).write_text("epoch,seconds\n1,50.0\n")
+    assert epoch_budget.first_epoch_seconds(older) == 50.0 and epoch_budget.first_epoch_compile_seconds(older) == 0
 
 
 def test_first_epoch_seconds_names_a_run_without_epochs(tmp_path: Path) -> None:

@@ -50,28 +50,38 @@ def test_compile_auto_only_where_it_pays():
     assert choose_path("auto", "on", CPU, 1, AVX2).compiled
     assert not choose_path("auto", "off", CPU, 1 << 30, AMX).compiled
     assert choose_path("auto", "auto", torch.device("cuda"), 1 << 30, AMX).precision == "fp32"  # CUDA: train.amp
+    assert not choose_path("auto", "auto", torch.device("cuda"), 1 << 30, AMX).compiled  # not measured to pay yet
+    assert "CUDA graphs" in choose_path("auto", "on", torch.device("cuda"), 1, AVX2).describe()
 
 
-def tiny_model_and_batch() -> tuple[torch.nn.Module, torch.Tensor]:
+def tiny_model_and_batch(device: torch.device = CPU) -> tuple[torch.nn.Module, torch.Tensor]:
     config = tiny_config(Path("unused"))
     torch.manual_seed(0)
-    model = build_network(network_config(config, tiny_representation(config))).to(memory_format=torch.channels_last)
-    images = torch.rand(4, 1, config.data.crop_size, config.data.crop_size).contiguous(
-        memory_format=torch.channels_last)
-    return model, images
+    model = build_network(network_config(config, tiny_representation(config))).to(device)
+    images = torch.rand(4, 1, config.data.crop_size, config.data.crop_size, device=device)
+    return model.to(memory_format=torch.channels_last), images.contiguous(memory_format=torch.channels_last)
 
 
-def test_compiled_and_eager_steps_give_the_same_loss():
-    model, images = tiny_model_and_batch()
+# On CUDA the compiled step replays CUDA graphs; only a machine with a GPU runs that case (a lent one: README).
+DEVICES = [CPU, pytest.param(torch.device("cuda"), marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                              reason="needs a CUDA device"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_compiled_and_eager_steps_give_the_same_loss(device):
+    model, images = tiny_model_and_batch(device)
     path = StepPath(channels_last=True, precision="fp32", compiled=True, reason="test")
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="training eager")  # a fallback would compare eager with eager
         compiled = GuardedForward(model, path)
-        output = compiled(images)
-    assert compiled.path.compiled and compiled.compiled is not None
+        outputs = [compiled(images).detach().clone() for _ in range(3)]  # graphs replay from the second call
+    assert compiled.path.compiled and compiled.compiled is not None and compiled.compile_s > 0
+    assert compiled.cuda_graphs == (device.type == "cuda")
     eager = model(images)
-    torch.testing.assert_close(output, eager, rtol=1e-4, atol=1e-5)
-    output.square().mean().backward()  # the compiled backward runs too
+    for output in outputs:  # TF32 convolutions on a GPU round at about 1e-3
+        torch.testing.assert_close(output, eager, rtol=1e-3 if device.type == "cuda" else 1e-4, atol=1e-4)
+    compiled(images).square().mean().backward()  # the compiled backward runs too
+    assert all(weight.grad is not None for weight in model.parameters() if weight.requires_grad)
 
 
 def test_a_missing_compiler_falls_back_to_eager_with_one_line(monkeypatch):
@@ -81,6 +91,7 @@ def test_a_missing_compiler_falls_back_to_eager_with_one_line(monkeypatch):
         forward = GuardedForward(model, StepPath(True, "fp32", True, "test"))
     assert len(caught) == 1 and not forward.path.compiled and "fell back to eager" in forward.path.reason
     torch.testing.assert_close(forward(images), model(images), rtol=0, atol=0)
+    assert forward.compile_s == 0.0
 
 
 def test_a_failing_compile_falls_back_on_the_first_batch(monkeypatch):

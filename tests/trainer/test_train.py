@@ -14,7 +14,7 @@ from popcode_runtime.errors import PopcodeError
 from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_trainer.train import checkpoint
 from popcode_trainer.train.loop import train
-from popcode_trainer.train.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE
+from popcode_trainer.train.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE, read_metrics
 from popcode_trainer.train.schedule import first_epoch_rate_is_fixed, learning_rate
 
 
@@ -94,6 +94,22 @@ def test_a_fresh_start_drops_rows_of_a_run_killed_before_its_first_checkpoint(tm
     train(config, rep, train_set)
     with (tmp_path / METRICS_FILE).open() as handle:
         assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1]
+
+
+def test_a_resume_adds_the_metrics_columns_of_a_newer_trainer(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=2)
+    rep = tiny_representation(config)
+    train_set, _ = tiny_data(rep, val_count=0)
+    train(config, rep, train_set, stop_after_epoch=1)
+    with (tmp_path / METRICS_FILE).open(newline="") as handle:
+        rows = [row[:-1] for row in csv.reader(handle)]  # as an older trainer wrote it: no compile_seconds
+    assert rows[0][-1] == "seconds"
+    with (tmp_path / METRICS_FILE).open("w", newline="") as handle:
+        csv.writer(handle).writerows(rows)
+    train(config, rep, train_set, resume=True)
+    metrics = read_metrics(tmp_path)
+    assert list(metrics["epoch"]) == [1, 2] and metrics["compile_seconds"][0] == 0.0
+    assert metrics["seconds"][0] == float(rows[1][-1])
 
 
 def test_learning_rate_schedules_warm_up_and_decay() -> None:

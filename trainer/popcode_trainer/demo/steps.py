@@ -39,7 +39,7 @@ from ..train.loop import train
 from ..train.network import NetworkConfig
 from ..train.run_files import CROP_CACHE_FOLDER, LAST_CHECKPOINT, MODEL_FILE
 from ..train.training_data import build_training_data, read_training_split, validation_crops
-from .epoch_budget import first_epoch_seconds
+from .epoch_budget import first_epoch_compile_seconds, first_epoch_seconds
 from .parts import Parts, builtin_parts
 
 RENDER_PROCESSES = 8  # at most this many shards of a split rendered side by side (the progress bar shows the first)
@@ -196,7 +196,8 @@ def run_dir(out_dir: Path, representation: str, obj_ids: Sequence[int]) -> Path:
 
 def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path,
                       out_dir: Path, code: CodeConfig | None = None) -> float:
-    """Train the first epoch of one model of ``size``; returns its seconds (training loop, validation, checkpoint).
+    """Train the first epoch of one model of ``size``; returns its seconds (training loop, validation, checkpoint)
+    without the step's compile, which later epochs do not repeat.
 
     :func:`train_and_export` later resumes it to the epochs it is given, which is the same as training them
     in one go when the first epoch's rate does not depend on the run's length
@@ -211,7 +212,7 @@ def train_first_epoch(size: PipelineSize, representation: str, obj_ids: Sequence
     started = time.perf_counter()
     train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances,
           stop_after_epoch=1)
-    return time.perf_counter() - started
+    return time.perf_counter() - started - first_epoch_compile_seconds(folder)
 
 
 def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[int], split: Path, out_dir: Path,

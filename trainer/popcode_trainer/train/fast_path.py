@@ -17,7 +17,10 @@
   runs, faster in one; ``bench/results/training.md``). ``"on"`` / ``"off"``
   force it. A missing C++ compiler, a failing compile or one that runs past :data:`COMPILE_DEADLINE_S`
   (each new batch shape compiles its forward and backward once, under that
-  bound) falls back to the eager step, saying why in one line.
+  bound) falls back to the eager step, saying why in one line. On a CUDA device
+  ``"auto"`` stays eager (not yet measured to pay there); ``"on"`` compiles with
+  CUDA graphs (:data:`CUDA_COMPILE_MODE`): the eager step of the small network is
+  bound by launching its kernels, not by the GPU (``bench/results/cuda-step.md``).
 
 Resuming a run is bit-exact on the fp32 eager path; bf16 and compiled steps may
 round differently after a resume (another compile, another kernel choice).
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import shutil
 import sys
+import time
 import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
@@ -48,6 +52,7 @@ CHANNELS_LAST_WIDTH_MULTIPLE = 8  # widths 8, 16, 24, 32, 64, ... ran; 4 and 6 h
 COMPILE_MIN_STEPS = 2000  # a compile costs 15-60 s on a 2-core VM; shorter runs do not win it back
 CPUINFO = Path("/proc/cpuinfo")
 COMPILE_DEADLINE_S = 300.0  # a first compile took 15-60 s on 2-core VMs; one 5x longer is taken for a hang
+CUDA_COMPILE_MODE = "reduce-overhead"  # replays CUDA graphs: a step's hundreds of launches become one
 
 
 @dataclass(frozen=True)
@@ -106,6 +111,8 @@ def choose_path(precision: str, compile_step: str, device: torch.device, planned
     else:
         compiled = compile_step == "on"
         why += f"; {'compiled' if compiled else 'eager'} asked for"
+    if compiled and device.type == "cuda":
+        why += " (CUDA graphs)"
     channels_last = channels_last_is_safe(conv_widths)
     if not channels_last:
         why += f"; NCHW: conv widths not multiples of {CHANNELS_LAST_WIDTH_MULTIPLE}"
@@ -147,10 +154,12 @@ class GuardedForward:
         self.model, self.path = model, path
         self.compiled: Callable[[torch.Tensor], torch.Tensor] | None = None
         self._ready: set[tuple[Any, ...]] = set()  # kinds of batch compiled, forward and backward
+        self.compile_s = 0.0  # seconds spent compiling so far (the demo's epoch fit does not repeat them per epoch)
+        self.cuda_graphs = any(weight.is_cuda for weight in model.parameters())
         if path.compiled:
             missing = compiler_missing()
             if missing is None:
-                self.compiled = torch.compile(model)
+                self.compiled = torch.compile(model, **({"mode": CUDA_COMPILE_MODE} if self.cuda_graphs else {}))
             else:
                 self.path = eager_fallback(path, missing)
 
@@ -159,9 +168,15 @@ class GuardedForward:
             try:
                 kind = (tuple(images.shape), images.stride(), images.dtype, torch.is_grad_enabled())
                 if kind not in self._ready:
-                    with deadline(COMPILE_DEADLINE_S, CompileTimeoutError(f"{COMPILE_DEADLINE_S:g} s")):
-                        self._warm_up(images)
+                    started = time.perf_counter()
+                    try:
+                        with deadline(COMPILE_DEADLINE_S, CompileTimeoutError(f"{COMPILE_DEADLINE_S:g} s")):
+                            self._warm_up(images)
+                    finally:
+                        self.compile_s += time.perf_counter() - started
                     self._ready.add(kind)
+                if self.cuda_graphs:
+                    torch.compiler.cudagraph_mark_step_begin()  # the last step's graph outputs may be reused
                 return self.compiled(images)
             except CompileTimeoutError:
                 self._fall_back(f"the compile took longer than {COMPILE_DEADLINE_S:g} s")

@@ -90,12 +90,31 @@ def validate(model: nn.Module, loader: DataLoader, representation: OutputReprese
 
 
 def _append_metrics(path: Path, row: EpochMetrics) -> None:
+    columns = [f.name for f in dataclasses.fields(EpochMetrics)]
+    if path.exists():
+        _add_missing_columns(path, columns)
     new = not path.exists()
     with path.open("a", newline="") as handle:
         writer = csv.writer(handle)
         if new:
-            writer.writerow([f.name for f in dataclasses.fields(EpochMetrics)])
+            writer.writerow(columns)
         writer.writerow(dataclasses.astuple(row))
+
+
+def _add_missing_columns(path: Path, columns: list[str]) -> None:
+    """A resumed run of an older trainer: its rows get the columns added since, at their defaults."""
+    with path.open(newline="") as handle:
+        rows = [row for row in csv.reader(handle) if row]
+    if not rows or rows[0] == columns:
+        return
+    defaults = {f.name: f.default for f in dataclasses.fields(EpochMetrics)}
+    by_name = [dict(zip(rows[0], row, strict=False)) for row in rows[1:]]
+    temporary = path.with_name(f".{path.name}.tmp")
+    with temporary.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        writer.writerows([[old.get(name, defaults[name]) for name in columns] for old in by_name])
+    temporary.replace(path)
 
 
 def _truncate_metrics(path: Path, last_epoch: int) -> None:
@@ -218,7 +237,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
         if steps == 0:
             raise PopcodeError(f"the training set ({len(train_set)} crops) is smaller than one batch per rank "
                                f"({rank_batch}); lower train.batch_size")
-        started = time.perf_counter()
+        started, compiled_before = time.perf_counter(), forward.compile_s
         loss_sum, seen = 0.0, 0
         bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not context.is_main, leave=False)
         for step, batch in enumerate(bar):
@@ -249,7 +268,7 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
             epoch=epoch + 1, train_loss=loss_sum / seen, val_loss=val_loss,
             val_error_mean_deg=float(errors_deg.mean()) if errors_deg.size else math.nan,
             val_error_median_deg=float(np.median(errors_deg)) if errors_deg.size else math.nan,
-            samples_per_s=seen / seconds, seconds=seconds,
+            samples_per_s=seen / seconds, seconds=seconds, compile_seconds=forward.compile_s - compiled_before,
         )
         history.append(row)
         if context.is_main:

@@ -33,6 +33,7 @@ class EpochMetrics:
     val_error_median_deg: float
     samples_per_s: float
     seconds: float
+    compile_seconds: float = 0.0  # of ``seconds``, compiling the step (a one-time cost; metrics of older runs lack it)
 
 
 def read_metrics(run: str | Path, columns: Sequence[str] = ()) -> dict[str, np.ndarray]:
