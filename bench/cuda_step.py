@@ -73,6 +73,7 @@ def _timed(step: Callable[[], None], steps: int) -> float:
 
 def measure(batch_size: int, steps: int, device: torch.device, compiled: bool = False) -> list[dict[str, Any]]:
     """The steps' rates at one batch size."""
+    torch._dynamo.reset()  # each batch size compiles afresh, as a run would (not a dynamic-batch recompile)
     rows = []
     model, loss_of, width, layout = _model_and_loss(device)
     crop = small_config(epochs=1, n_axes=642, n_angles=36).data.crop_size

@@ -17,6 +17,7 @@ from popcode_trainer.demo import epoch_budget, run
 from popcode_trainer.demo.group_codes import GroupCode
 from popcode_trainer.demo.run import DEMO_SIZES, SECONDS_PER_EXPORT, StagePlan, fit_epochs
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
+from popcode_trainer.train import fast_path
 from popcode_trainer.train.checkpoint import load
 from popcode_trainer.train.network import NetworkConfig
 from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
@@ -92,6 +93,22 @@ def test_a_compile_is_paid_once_not_per_epoch(tmp_path: Path, monkeypatch: pytes
     older.mkdir()
     (older / METRICS_FILE).write_text("epoch,seconds\n1,50.0\n")
     assert epoch_budget.first_epoch_seconds(older) == 50.0 and epoch_budget.first_epoch_compile_seconds(older) == 0
+
+
+def test_the_resume_keeps_the_first_epochs_choice_to_compile(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """"auto" weighs a compile against the run's length, which the fit changes; the fit reserved the first epoch's
+    compile (or none), so the resume must not decide otherwise."""
+    split = render_builtin_split(tmp_path / "split", images_per_object=TINY.train_images_per_object, obj_ids=[3, 4])
+    train_first_epoch(TINY.with_epochs(7), "population_code", [3, 4], split, tmp_path)  # short: eager
+    folder = run_dir(tmp_path, "population_code", [3, 4])
+    assert not load(folder / LAST_CHECKPOINT)["step_path"]["compiled"]
+    monkeypatch.setattr(fast_path, "COMPILE_MIN_STEPS", 1)  # "auto" would now compile this run...
+    monkeypatch.setattr(fast_path, "cpu_flags", lambda: frozenset({"amx_bf16"}))
+    assert fast_path.choose_path("auto", "auto", torch.device("cpu"), 10).compiled
+    train_and_export(TINY, "population_code", [3, 4], split, tmp_path)  # ...but the resume keeps eager
+    state = load(folder / LAST_CHECKPOINT)
+    assert state["epoch"] == TINY.config.train.epochs and not state["step_path"]["compiled"]
+    assert state["config"]["train"]["compile"] == "off"
 
 
 def test_first_epoch_seconds_names_a_run_without_epochs(tmp_path: Path) -> None:

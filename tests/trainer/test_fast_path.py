@@ -62,7 +62,8 @@ def tiny_model_and_batch(device: torch.device = CPU) -> tuple[torch.nn.Module, t
     return model.to(memory_format=torch.channels_last), images.contiguous(memory_format=torch.channels_last)
 
 
-# On CUDA the compiled step replays CUDA graphs; only a machine with a GPU runs that case (a lent one: README).
+# On CUDA the compiled step replays CUDA graphs (inductor may still skip them; bench/cuda_step.py shows the speed);
+# only a machine with a GPU runs that case (a lent one: README).
 DEVICES = [CPU, pytest.param(torch.device("cuda"), marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                               reason="needs a CUDA device"))]
 
@@ -74,7 +75,7 @@ def test_compiled_and_eager_steps_give_the_same_loss(device):
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="training eager")  # a fallback would compare eager with eager
         compiled = GuardedForward(model, path)
-        outputs = [compiled(images).detach().clone() for _ in range(3)]  # graphs replay from the second call
+        outputs = [compiled(images).detach().clone() for _ in range(3)]  # on CUDA: recorded, then replayed
     assert compiled.path.compiled and compiled.compiled is not None and compiled.compile_s > 0
     assert compiled.cuda_graphs == (device.type == "cuda")
     eager = model(images)

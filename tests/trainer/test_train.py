@@ -112,6 +112,21 @@ def test_a_resume_adds_the_metrics_columns_of_a_newer_trainer(tmp_path: Path) ->
     assert metrics["seconds"][0] == float(rows[1][-1])
 
 
+def test_metrics_without_a_header_or_of_something_else_are_handled(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, epochs=1)
+    rep = tiny_representation(config)
+    train_set, _ = tiny_data(rep, val_count=0)
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    (tmp_path / METRICS_FILE).write_text("")  # left empty by a run killed as it began
+    train(config, rep, train_set)
+    assert list(read_metrics(tmp_path)["epoch"]) == [1]
+    other = tiny_config(tmp_path / "other", epochs=2)
+    train(other, rep, train_set, stop_after_epoch=1)
+    (tmp_path / "other" / METRICS_FILE).write_text("epoch,loss\n1,0.5\n")  # not what popcode writes
+    with pytest.raises(PopcodeError, match=r"has no column train_loss, .*not the metrics of a popcode training"):
+        train(other, rep, train_set, resume=True)
+
+
 def test_learning_rate_schedules_warm_up_and_decay() -> None:
     assert learning_rate(1e-3, "constant", 7.3, 20) == 1e-3
     assert learning_rate(1e-3, "constant", 0.5, 20, warmup_epochs=1.0) == pytest.approx(5e-4)

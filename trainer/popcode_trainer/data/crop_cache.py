@@ -14,8 +14,9 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from pathlib import Path
 
 import numpy as np
@@ -145,28 +146,42 @@ class CropCache:
         sizes = np.zeros((len(instances), 2), np.int64)
         threads = max(1, min(CACHE_THREADS, os.cpu_count() or 1))
         runs = np.array_split(np.arange(len(instances)), threads * CHUNKS_PER_THREAD)
+        stop, counted = threading.Event(), threading.Lock()
 
         def fill(rows: np.ndarray, crops: np.ndarray, bar: tqdm) -> None:
             read = last_image_reader()
             for index in rows:
+                if stop.is_set():  # another run failed, or the build was interrupted
+                    return
                 crops[index], sizes[index] = crop_with_margin(instances[index], crop_size, margin, read)
-                bar.update()
+                with counted:
+                    bar.update()
 
+        # Named *.npy: np.save appends the suffix to other names.
+        sizes_temporary = self.sizes_path.with_name(f".{os.getpid()}.{self.sizes_path.name}")
         try:
             with tqdm(total=len(instances), desc="caching crops", unit="crop", disable=not progress,
                       leave=False) as bar:
                 pool = ThreadPoolExecutor(threads)
                 try:
-                    for finished in [pool.submit(fill, rows, array, bar) for rows in runs if len(rows)]:
-                        finished.result()  # the first error is raised here; the runs not started are dropped
+                    futures = [pool.submit(fill, rows, array, bar) for rows in runs if len(rows)]
+                    wait(futures, return_when=FIRST_EXCEPTION)
+                    for future in futures:
+                        if future.done() and future.exception() is not None:
+                            raise future.exception()  # the first run that failed
                 finally:
+                    stop.set()  # a no-op once every run is done; otherwise the threads stop at their next crop
                     pool.shutdown(cancel_futures=True)
             array.flush()
             del array
-            np.save(self.sizes_path, sizes)  # before the crops appear: their file means both are complete
+            # Both files are replaced whole, so a process reading a cache another process rebuilds (runs sharing
+            # data.cache_dir) never sees a partial file; the sizes first: the crops' file means both are complete.
+            np.save(sizes_temporary, sizes)
+            os.replace(sizes_temporary, self.sizes_path)
             os.replace(temporary, self.path)
         except BaseException:
             temporary.unlink(missing_ok=True)
+            sizes_temporary.unlink(missing_ok=True)
             raise
 
     @property

@@ -6,8 +6,10 @@ of the run first trains one epoch; the seconds those epochs took give the cost o
 models together, and the run trains as many epochs as fit in what the budget leaves. Every model then
 resumes to that many epochs, so the representations stay on equal terms (same epochs, data and network).
 A compiled step's compile (``compile_seconds`` of the metrics) is a one-time cost: it is left out of an
-epoch's cost and reserved once more for the resume, which compiles again (a compile of the quick network
-took 72 s on 2 threads of an AMX CPU, eight times its epoch: counted per epoch it would have cost most of them).
+epoch's cost and reserved once more for the resume, which compiles again (at most as long: torch's caches
+can make it shorter; a compile of the quick network took 72 s on 2 threads of an AMX CPU, eight times its
+epoch: counted per epoch it would have cost most of them). The resume keeps the first epoch's choice to
+compile or not (:func:`~popcode_trainer.demo.steps.train_and_export`), whose compile the fit reserved.
 The fit is written to the run folder, so an interrupted run resumes with the same epochs.
 """
 

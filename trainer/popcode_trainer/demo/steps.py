@@ -34,6 +34,7 @@ from ..data.render import BUILTIN_MODELS_FOLDER
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import load_trained_model
 from ..export.onnx_export import export_trained
+from ..train import checkpoint
 from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
 from ..train.loop import train
 from ..train.network import NetworkConfig
@@ -224,6 +225,11 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
     folder = run_dir(out_dir, representation, obj_ids)
     onnx_path = folder / MODEL_FILE
     config = training_config(size, representation, obj_ids, split, folder, code)
+    if config.train.compile == "auto" and (folder / LAST_CHECKPOINT).exists():
+        # "auto" weighs a compile against the run's length, which the fit changed: keep the first epoch's choice,
+        # whose compile the fit reserved (a compile that failed there is not tried again).
+        compiled = checkpoint.load(folder / LAST_CHECKPOINT).get("step_path", {}).get("compiled", False)
+        config = replace(config, train=replace(config.train, compile="on" if compiled else "off"))
     started = time.perf_counter()
     quantised = [folder / f"{onnx_path.stem}.{kind}.onnx" for kind in quantisations]
     if not onnx_path.exists() or not all(path.exists() for path in quantised):

@@ -155,7 +155,9 @@ class GuardedForward:
         self.compiled: Callable[[torch.Tensor], torch.Tensor] | None = None
         self._ready: set[tuple[Any, ...]] = set()  # kinds of batch compiled, forward and backward
         self.compile_s = 0.0  # seconds spent compiling so far (the demo's epoch fit does not repeat them per epoch)
-        self.cuda_graphs = any(weight.is_cuda for weight in model.parameters())
+        # CUDA graphs for one GPU; with DDP's gradient hooks they are untested, so a DDP model compiles without them.
+        self.cuda_graphs = (any(weight.is_cuda for weight in model.parameters())
+                            and not isinstance(model, nn.parallel.DistributedDataParallel))
         if path.compiled:
             missing = compiler_missing()
             if missing is None:

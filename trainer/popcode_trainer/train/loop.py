@@ -93,7 +93,7 @@ def _append_metrics(path: Path, row: EpochMetrics) -> None:
     columns = [f.name for f in dataclasses.fields(EpochMetrics)]
     if path.exists():
         _add_missing_columns(path, columns)
-    new = not path.exists()
+    new = not path.exists() or path.stat().st_size == 0
     with path.open("a", newline="") as handle:
         writer = csv.writer(handle)
         if new:
@@ -107,13 +107,16 @@ def _add_missing_columns(path: Path, columns: list[str]) -> None:
         rows = [row for row in csv.reader(handle) if row]
     if not rows or rows[0] == columns:
         return
-    defaults = {f.name: f.default for f in dataclasses.fields(EpochMetrics)}
+    defaults = {f.name: f.default for f in dataclasses.fields(EpochMetrics) if f.default is not dataclasses.MISSING}
+    lacking = [name for name in columns if name not in rows[0] and name not in defaults]
+    if lacking:
+        raise PopcodeError(f"{path} has no column {', '.join(lacking)}: not the metrics of a popcode training run")
     by_name = [dict(zip(rows[0], row, strict=False)) for row in rows[1:]]
     temporary = path.with_name(f".{path.name}.tmp")
     with temporary.open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(columns)
-        writer.writerows([[old.get(name, defaults[name]) for name in columns] for old in by_name])
+        writer.writerows([[old[name] if name in old else defaults[name] for name in columns] for old in by_name])
     temporary.replace(path)
 
 
