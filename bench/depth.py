@@ -31,6 +31,7 @@ import numpy as np
 
 from popcode_runtime.depth import TranslationSource, check_depth, object_surface, read_depth
 from popcode_runtime.depth_pose import pose_with_depth
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.translation import object_points_mm, translation_from_box
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.data.hull import with_hull_points
@@ -248,10 +249,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     images, scenes, size = (2, 3, (360, 270)) if args.quick else (args.images, args.scenes, tuple(args.size))
     work = args.out / ("depth-work-quick" if args.quick else "depth-work")
-    clean = render_builtin_split(work / f"clean-{images}-{args.clean_seed}", images, seed=args.clean_seed,
-                                 random_position=True, progress=True)
-    clutter = render_cluttered_test_split(work / f"clutter-{scenes}x{size[0]}-{args.sensor}-{args.seed}",
-                                          scenes=scenes, size=size, seed=args.seed, sensor=args.sensor, progress=True)
+    try:  # the splits are kept in `work` and reused; one an older renderer wrote is refused
+        clean = render_builtin_split(work / f"clean-{images}-{args.clean_seed}", images, seed=args.clean_seed,
+                                     random_position=True, progress=True)
+        clutter = render_cluttered_test_split(work / f"clutter-{scenes}x{size[0]}-{args.sensor}-{args.seed}",
+                                              scenes=scenes, size=size, seed=args.seed, sensor=args.sensor,
+                                              progress=True)
+    except PopcodeError as error:
+        parser.exit(2, f"bench.depth: {error} (delete {work} to render the splits again)\n")
     descriptions = {"clean": f"one part per 128×128 image at a random position, {images} images per part, seed "
                              f"{args.clean_seed}",
                     "cluttered": f"{scenes} bin scenes at {size[0]}×{size[1]} px, sensor `{args.sensor}` (its depth "
