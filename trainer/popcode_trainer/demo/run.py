@@ -203,9 +203,7 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], t
     elapsed_s = time.perf_counter() - started
     training = [_train_stage(r, g.obj_ids) for r in size.representations for g in codes]
     exports = stages.scale * SECONDS_PER_EXPORT * len(training)
-    compiles = sum(epoch_budget.first_epoch_compile_seconds(run_dir(out_dir, r, g.obj_ids))  # resumes compile again
-                   for r in size.representations for g in codes)
-    other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports + compiles
+    other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports
     result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps,
                               demo.epoch_bounds)
     epoch_budget.save(result, out_dir)
