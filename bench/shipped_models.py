@@ -10,9 +10,11 @@ models need neither of (they are scored on splits no run uses: ``models/README.m
 goes to the population code's models, one per object group, each trained as the demo trains it (same split,
 seeds, code, mix of scene crops; first epochs timed, then all resumed to the fitted epochs). ``--copy-to``
 receives each model's ONNX files and training curve as soon as it is exported, so a run cut short keeps what
-it finished. ``--images`` / ``--scenes`` shrink the data for a check of the script itself. Rerunning with the
-same ``--out`` resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager
-step of this network is bound by its kernel launches, ``bench/results/cuda-step.md``).
+it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, library versions), the GPU, the
+arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` shrink the data for a check of the
+script itself. Rerunning with the same ``--out`` resumes, as the demo does. ``--compile on`` compiles the step
+(on a GPU with CUDA graphs: the eager step of this network is bound by its kernel launches,
+``bench/results/cuda-step.md``).
 """
 
 from __future__ import annotations
@@ -25,6 +27,9 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
+import torch
+
+from popcode_runtime.files import write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
 from popcode_trainer.demo.report import POPCODE
@@ -41,7 +46,10 @@ from popcode_trainer.demo.steps import render_splits, run_dir
 from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.run_files import METRICS_FILE
 
+from .report import machine
+
 SIZE = "medium"
+RUN_FILE = "run.json"  # beside the copied exports
 
 
 def training_plan(stages: StagePlan) -> StagePlan:
@@ -94,6 +102,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.copy_to:
             copy_exports(run_dir(args.out, POPCODE, group.obj_ids), args.copy_to)
     print(f"done in {(time.perf_counter() - started) / 60:.1f} min: {dict(stages.done)}", flush=True)
+    if args.copy_to:  # what a results file must name: the machine, the libraries, the command, the steps' seconds
+        write_json_atomic(args.copy_to / RUN_FILE, {
+            "machine": machine(), "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+            "arguments": list(sys.argv[1:] if argv is None else argv), "epochs": fit.epochs,
+            "step_seconds": dict(stages.done)})
     return 0
 
 
