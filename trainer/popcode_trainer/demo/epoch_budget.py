@@ -46,7 +46,7 @@ def first_epoch_seconds(run_dir: Path) -> float:
 
 def first_epoch_compile_seconds(run_dir: Path) -> float:
     """Seconds the first epoch spent compiling the step (0 for an eager step, or metrics of an older trainer): a
-    one-time cost, paid once more when the run resumes in a new process."""
+    one-time cost (a resume in the same process finds torch's compile caches warm)."""
     try:
         return _first_epoch(run_dir, "compile_seconds")
     except PopcodeError:

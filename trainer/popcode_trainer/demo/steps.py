@@ -227,7 +227,7 @@ def train_and_export(size: PipelineSize, representation: str, obj_ids: Sequence[
     config = training_config(size, representation, obj_ids, split, folder, code)
     if config.train.compile == "auto" and (folder / LAST_CHECKPOINT).exists():
         # "auto" weighs a compile against the run's length, which the fit changed: keep the first epoch's choice,
-        # whose compile the fit reserved (a compile that failed there is not tried again).
+        # whose epoch cost the fit measured (a compile that failed there is not tried again).
         compiled = checkpoint.load(folder / LAST_CHECKPOINT).get("step_path", {}).get("compiled", False)
         config = replace(config, train=replace(config.train, compile="on" if compiled else "off"))
     started = time.perf_counter()

@@ -89,46 +89,38 @@ def validate(model: nn.Module, loader: DataLoader, representation: OutputReprese
     return loss_sum / max(count, 1.0), np.asarray(distributed.gather_lists(errors, context))
 
 
+METRICS_COLUMNS = [f.name for f in dataclasses.fields(EpochMetrics)]
+
+
 def _append_metrics(path: Path, row: EpochMetrics) -> None:
-    columns = [f.name for f in dataclasses.fields(EpochMetrics)]
-    if path.exists():
-        _add_missing_columns(path, columns)
     new = not path.exists() or path.stat().st_size == 0
     with path.open("a", newline="") as handle:
         writer = csv.writer(handle)
         if new:
-            writer.writerow(columns)
+            writer.writerow(METRICS_COLUMNS)
         writer.writerow(dataclasses.astuple(row))
 
 
-def _add_missing_columns(path: Path, columns: list[str]) -> None:
-    """A resumed run of an older trainer: its rows get the columns added since, at their defaults."""
-    with path.open(newline="") as handle:
-        rows = [row for row in csv.reader(handle) if row]
-    if not rows or rows[0] == columns:
-        return
-    defaults = {f.name: f.default for f in dataclasses.fields(EpochMetrics) if f.default is not dataclasses.MISSING}
-    lacking = [name for name in columns if name not in rows[0] and name not in defaults]
-    if lacking:
-        raise PopcodeError(f"{path} has no column {', '.join(lacking)}: not the metrics of a popcode training run")
-    by_name = [dict(zip(rows[0], row, strict=False)) for row in rows[1:]]
-    temporary = path.with_name(f".{path.name}.tmp")
-    with temporary.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        writer.writerows([[old[name] if name in old else defaults[name] for name in columns] for old in by_name])
-    temporary.replace(path)
-
-
 def _truncate_metrics(path: Path, last_epoch: int) -> None:
-    """Drop rows a crashed run wrote after its last checkpoint, so the log matches the state."""
+    """On resume: drop rows a crashed run wrote after its last checkpoint, so the log matches the state, and give
+    the rows of an older trainer the columns added since, at their defaults."""
     if not path.exists():
         return
     with path.open(newline="") as handle:
-        rows = list(csv.reader(handle))
-    kept = rows[:1] + [r for r in rows[1:] if int(r[0]) <= last_epoch]
-    with path.open("w", newline="") as handle:
-        csv.writer(handle).writerows(kept)
+        rows = [row for row in csv.reader(handle) if row]
+    if not rows:
+        return
+    defaults = {f.name: f.default for f in dataclasses.fields(EpochMetrics) if f.default is not dataclasses.MISSING}
+    lacking = [name for name in METRICS_COLUMNS if name not in rows[0] and name not in defaults]
+    if lacking:
+        raise PopcodeError(f"{path} has no column {', '.join(lacking)}: not the metrics of a popcode training run")
+    kept = [dict(zip(rows[0], row, strict=False)) for row in rows[1:] if int(row[0]) <= last_epoch]
+    temporary = path.with_name(f".{path.name}.tmp")
+    with temporary.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(METRICS_COLUMNS)
+        writer.writerows([[old[name] if name in old else defaults[name] for name in METRICS_COLUMNS] for old in kept])
+    temporary.replace(path)
 
 
 class _TensorBoard:

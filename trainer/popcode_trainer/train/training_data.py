@@ -105,7 +105,7 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
     data = config.data
     augmentation = Augmentation(occlusion_p=data.occlusion_p) if data.augment else None
     size = data.crop_size
-    cache = Path(config.data.cache_dir) if config.data.cache_dir else Path(cfg.out_dir) / CROP_CACHE_FOLDER
+    cache = Path(data.cache_dir) if data.cache_dir else Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(
         representation=representation,
         train_set=CropDataset(train, representation.targets, augmentation=augmentation, crop_size=size, seed=cfg.seed,
