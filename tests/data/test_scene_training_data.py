@@ -83,6 +83,8 @@ def test_split_weights_set_each_splits_share_of_an_epoch(scenes: Path, builtin_s
     ({"split_weights": [1.0, -2.0]}, "data.split_weights"),
     ({"split_weights": [1.0]}, "data.split_weights"),
     ({"box_noise": "sloppy"}, "data.box_noise"),
+    ({"box_noise": "detector", "box_noise_p": 0.0}, "data.box_noise_p"),
+    ({"box_noise": "detector", "box_noise_p": 1.5}, "data.box_noise_p"),
     ({"background": "sometimes"}, "data.background"),
 ])
 def test_bad_mix_settings_name_the_field(data: dict, field: str, tmp_path: Path) -> None:
@@ -135,6 +137,18 @@ def test_detector_like_boxes_crop_what_the_runtime_crops_of_them(builtin_split: 
     assert noisy.margin > exact.margin
     assert sum(not np.allclose(noisy.crop(i), exact.crop(i), atol=0.05) for i in range(len(instances))) >= 6
     assert all(np.array_equal(noisy.crop(i), noisy.crop(i)) for i in range(3))  # seeded per sample
+
+
+def test_a_share_of_the_crops_comes_from_noisy_boxes_the_rest_from_the_true_one(builtin_split: Path) -> None:
+    instances = read_bop_split(builtin_split, builtin_split / "models").instances[:8]
+    only_box_noise = Augmentation(brightness_p=0.0, background_p=0.0, noise_p=0.0, shift_p=0.0)
+    exact = CropDataset(instances, _zeros, augmentation=only_box_noise)
+    half = CropDataset(instances, _zeros, augmentation=only_box_noise, box_noise=box_noise_preset("detector"),
+                       box_noise_p=0.5)
+    true_boxes = [np.array_equal(half.crop(i), exact.crop(i)) for i in range(len(instances))]
+    assert 0 < sum(true_boxes) < len(instances)  # some crops of the true box, some of a noisy one
+    with pytest.raises(PopcodeError, match="box_noise_p"):
+        CropDataset(instances, _zeros, augmentation=only_box_noise, box_noise_p=float("nan"))
 
 
 def test_the_cache_of_a_scene_split_built_by_threads_equals_crops_made_one_by_one(

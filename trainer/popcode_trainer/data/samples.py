@@ -58,7 +58,8 @@ class CropDataset(Dataset):
 
     ``targets_fn`` maps a list of instances to their targets ``(B, D)``. ``background``: which rendered
     crops get a pasted background ("auto": single-object renders, not scenes, which keep their clutter;
-    "always"; "never"). ``box_noise``: crops of detector-like boxes instead of the true ones (training).
+    "always"; "never"). ``box_noise``: crops of detector-like boxes instead of the true ones (training), for a
+    share ``box_noise_p`` of the crops (the rest from the true box).
     ``weights`` (one per instance): an epoch draws its crops with these relative chances (with
     replacement) instead of taking every crop once; ``index`` is then the instance drawn.
     """
@@ -67,7 +68,8 @@ class CropDataset(Dataset):
                  augmentation: Augmentation | None = PAPER_AUGMENTATION,
                  backgrounds: Backgrounds | str | Path | None = None, crop_size: int = 128, seed: int = 0,
                  cache_dir: str | Path | None = None, progress: bool = False, background: str = "auto",
-                 box_noise: BoxNoise | None = None, weights: Sequence[float] | None = None) -> None:
+                 box_noise: BoxNoise | None = None, weights: Sequence[float] | None = None,
+                 box_noise_p: float = 1.0) -> None:
         if len(instances) == 0:
             raise PopcodeError("no instances to make training samples from")
         if weights is not None and (len(weights) != len(instances) or not np.all(np.asarray(weights) > 0)):
@@ -78,7 +80,10 @@ class CropDataset(Dataset):
         self.augmentation = augmentation
         self.backgrounds = backgrounds if isinstance(backgrounds, Backgrounds) else Backgrounds(backgrounds)
         self.background = background
+        if not 0.0 < box_noise_p <= 1.0:  # NaN too
+            raise PopcodeError(f"box_noise_p must lie in (0, 1], got {box_noise_p}")
         self.box_noise = None if box_noise is None or box_noise.is_none or augmentation is None else box_noise
+        self.box_noise_p = box_noise_p
         self.crop_size = crop_size
         self.margin = margin_for_shift(augmentation.max_shift_crop_px) if augmentation else 0
         self.margin += margin_for_box_noise(crop_size) if self.box_noise else 0
@@ -158,7 +163,8 @@ class CropDataset(Dataset):
     def _window(self, index: int, shift: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
         """The stored crop's ``(2, S, S)`` window: the true box shifted, or a detector-like box's crop."""
         size, (stored, image_size) = self.crop_size, self._stored(index)
-        if self.box_noise is None:  # the shift (the paper's +-5 crop px), to the nearest pixel: a slice
+        true_box = self.box_noise is None or (self.box_noise_p < 1.0 and rng.random() >= self.box_noise_p)
+        if true_box:  # the shift (the paper's +-5 crop px), to the nearest pixel: a slice
             dx, dy = (int(round(v)) for v in shift)
             return stored[:, self.margin + dy : self.margin + dy + size, self.margin + dx : self.margin + dx + size]
         box = self.instances[index].box

@@ -59,6 +59,7 @@ class DataConfig:
     occlusion_p: float = 0.0  # rendered crops: probability of an occluder over part of the object (not the paper's)
     background: str = "auto"  # "auto": pasted behind single-object renders, scenes keep their own clutter
     box_noise: str = "none"  # training crops from detector-like boxes: a preset of data.box_noise
+    box_noise_p: float = 1.0  # the share of training crops cut from such a box (the rest: the true box)
     crop_size: int = CROP_SIZE
     num_workers: int = 2
     cache_dir: str = ""  # the crop cache's folder; empty: crop_cache/ in train.out_dir (runs of a split may share one)
@@ -201,6 +202,8 @@ def _check_choices(config: Config) -> None:
         box_noise_preset(config.data.box_noise)
     except PopcodeError as error:
         raise PopcodeError(f"data.box_noise: {error}") from error
+    if not 0.0 < config.data.box_noise_p <= 1.0:  # NaN too
+        raise PopcodeError(f"data.box_noise_p must lie in (0, 1], got {config.data.box_noise_p}")
     weights = config.data.split_weights
     if weights and len(weights) != len(config.data.splits):
         raise PopcodeError(f"data.split_weights has {len(weights)} entries for {len(config.data.splits)} "

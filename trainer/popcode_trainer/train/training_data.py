@@ -110,7 +110,7 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
         representation=representation,
         train_set=CropDataset(train, representation.targets, augmentation=augmentation, crop_size=size, seed=cfg.seed,
                               cache_dir=cache, progress=progress, background=data.background,
-                              box_noise=box_noise_preset(data.box_noise),
+                              box_noise=box_noise_preset(data.box_noise), box_noise_p=data.box_noise_p,
                               weights=sampling_weights(train, data.splits, data.split_weights)),
         val_set=CropDataset(val, representation.targets, augmentation=None, crop_size=size, seed=cfg.seed,
                             cache_dir=cache, progress=progress) if val else None,
