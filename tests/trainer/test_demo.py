@@ -69,6 +69,7 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     assert "| population_code, depth |" in report and "| population_code, depth + ICP |" in report
     assert "## The robot's bin: clean and cluttered test splits" in report  # both methods on both splits
     assert "2 cluttered bin scenes of them that make 50 % of every epoch's crops" in report  # trained on scenes
+    assert "trained population_code, single_variable on crops of true boxes with" in report  # tiny: true boxes
     assert set(summary["cluttered_scores"]) == {"population_code", "single_variable",
                                                 "population_code, detector-like boxes"}
     assert all(0.0 <= s["groups"]["All objects"]["MSSD"] <= 1.0 for s in summary["cluttered_scores"].values())
@@ -77,6 +78,9 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     assert summary["cluttered_scores"]["single_variable"]["best_of_top_k"] is None
     assert "| best of top-2 | best of top-3 |" in report and "| population_code, detector-like boxes |" in report
     assert "| MSSD in the cluttered bin |" in report and "| lead over single_variable in the bin |" in report
+    detector_target = next(line for line in report.splitlines() if line.startswith("| detector-like boxes"))
+    # a missed detector target names the lever and what this run trained on
+    assert ("missed" in detector_target) == ("this run trained on crops of true boxes." in report)
     # 3 models x 2 batches x 2 stages, each with a positive median
     assert len(summary["latency"]) == 12
     assert all(record["median_ms"] > 0 for record in summary["latency"])

@@ -22,6 +22,7 @@ from ..eval.reporting.markdown import markdown_table
 from ..eval.reporting.report import REPORT_MD, full_pose_markdown
 from ..eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
 from ..export.model_io import read_onnx_metadata
+from ..train.config import DataConfig
 from ..train.fast_path import StepPath
 from ..train.network import NetworkConfig
 from .epoch_budget import EpochFit
@@ -121,7 +122,7 @@ def write_model_card(run: DemoRun) -> Path:
         "## Training",
         f"Rendered grey 128 x 128 images of {run.parts} (random rotation, position and lighting; "
         f"`popcode_trainer.data.render`), {size.train_images_per_object} per object, the paper's augmentation"
-        f"{_scenes_text(size)}; "
+        f"{_scenes_text(size)}, {_training_boxes_text(size.config.data)}; "
         f"{train.epochs} epochs, batch {train.batch_size}, Adam lr {train.lr}, {train.loss} loss on the code; "
         f"network {network_summary(network)}." + (f" {run.render_note}" if run.render_note else ""),
         *(["", *_code_lines(run)] if run.code_notes else []),
@@ -190,7 +191,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"# popcode demo (`--size {run.size_name}`)",
         f"Rendered {run.parts} ({size.train_images_per_object} training and "
         f"{size.test_images_per_object} test images per object{_scenes_text(size)}), trained "
-        f"{', '.join(size.representations)} "
+        f"{', '.join(size.representations)} on {_training_boxes_text(size.config.data)} "
         f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores)"
@@ -231,6 +232,16 @@ def _scenes_text(size: PipelineSize) -> str:
         return ""
     return (f", and {size.train_scenes} cluttered bin scenes of them that make {100 * size.scene_share:g} % of "
             "every epoch's crops, each keeping its own clutter")
+
+
+def _training_boxes_text(data: DataConfig) -> str:
+    """Which boxes the training crops were cut from."""
+    if data.box_noise == "none":
+        return "crops of true boxes"
+    noisy = f"crops of `{data.box_noise}` boxes (`data.box_noise`)"
+    if data.box_noise_p == 1.0:
+        return noisy
+    return f"{noisy} for {100 * data.box_noise_p:g} % of them, true boxes for the rest"
 
 
 def _step_path_text(training: dict[str, Any]) -> str:
@@ -297,16 +308,23 @@ def cluttered_markdown(run: DemoRun) -> str:
         targets_table(found),
     ]
     if not all(t.met for t in found):
-        parts.append(_clutter_limit_text(run))
+        parts.append(_clutter_limit_text(run, detector_missed=any(t.name.startswith("detector") and not t.met
+                                                                  for t in found)))
     return "\n\n".join(parts)
 
 
-def _clutter_limit_text(run: DemoRun) -> str:
+def _clutter_limit_text(run: DemoRun, detector_missed: bool) -> str:
     """What limits a missed bin target, as measured on the validation splits."""
-    return ("What limits it: bench/results/scene-mix-quick.md measures MSSD on a cluttered validation split against "
+    text = ("What limits it: bench/results/scene-mix-quick.md measures MSSD on a cluttered validation split against "
             "the share of scene crops in training, and the bin's accuracy still rises with training compute "
             "(the quick budget trains a few epochs); `--size medium` or `--minutes M` buys more"
             + (f"; this run trained on {run.size.train_scenes} scenes." if run.size.train_scenes else "."))
+    if not detector_missed:
+        return text
+    return (f"{text} What a detector's boxes cost grows with training; crops of detector-like boxes in training "
+            "(`data.box_noise`, `data.box_noise_p`) halve it from about the medium budget on and cost the clean "
+            f"split at the quick one (bench/results/box-noise-training.md); this run trained on "
+            f"{_training_boxes_text(run.size.config.data)}.")
 
 
 def _confidence_section(run: DemoRun) -> str:

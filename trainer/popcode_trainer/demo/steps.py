@@ -88,19 +88,22 @@ SMALL_NETWORK = NetworkConfig(conv_channels=(16, 32, 64), squeeze_channels=8, hi
 
 
 def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig = SMALL_NETWORK,
-                 sigma_deg: float = PAPER_SIGMA_DEG, **train: Any) -> Config:
+                 sigma_deg: float = PAPER_SIGMA_DEG, box_noise: tuple[str, float] = ("none", 1.0),
+                 **train: Any) -> Config:
     """Settings for a CPU budget: the paper's recipe with batch 32, lr 1e-3 annealed over the last fifth of the
     run, no data-loader workers and the population code trained with MSE plus cross entropy (it learns parts
     without symmetry, which MSE alone does not at this budget, and keeps MSE's accuracy on symmetric ones:
     bench/results/recipe.md); sigma is narrowed where a part's symmetric peaks would merge
     (:mod:`popcode_trainer.train.code_sigma`).
 
+    ``box_noise``: ``data.box_noise`` and ``data.box_noise_p`` (training crops from detector-like boxes).
     ``train`` overrides further :class:`~popcode_trainer.train.config.TrainConfig` fields.
     """
     train_config = TrainConfig(**{"epochs": epochs, "batch_size": 32, "lr": 1e-3, "schedule": "anneal",
                                   "loss": "mse+cross_entropy", **train})
     code = CodeConfig(n_axes, n_angles, sigma_deg, sigma_from_symmetries=True)
-    return Config(data=DataConfig(num_workers=0), code=code, network=network, train=train_config)
+    data = DataConfig(num_workers=0, box_noise=box_noise[0], box_noise_p=box_noise[1])
+    return Config(data=data, code=code, network=network, train=train_config)
 
 
 def scene_split_of(train_split: Path) -> Path:
