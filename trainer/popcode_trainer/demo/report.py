@@ -27,7 +27,7 @@ from ..train.fast_path import StepPath
 from ..train.network import NetworkConfig
 from .epoch_budget import EpochFit
 from .steps import PipelineSize
-from .targets import clutter_targets, targets_markdown, targets_table
+from .targets import DETECTOR_TARGET, clutter_targets, targets_markdown, targets_table
 
 POPCODE = Representation.POPULATION_CODE
 QUANTISATION = "int8"
@@ -308,7 +308,7 @@ def cluttered_markdown(run: DemoRun) -> str:
         targets_table(found),
     ]
     if not all(t.met for t in found):
-        parts.append(_clutter_limit_text(run, detector_missed=any(t.name.startswith("detector") and not t.met
+        parts.append(_clutter_limit_text(run, detector_missed=any(t.name == DETECTOR_TARGET and not t.met
                                                                   for t in found)))
     return "\n\n".join(parts)
 
