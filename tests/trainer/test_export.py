@@ -229,6 +229,36 @@ def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
 
 
 
+def test_fp16_halves_the_file_and_runs_in_float(tmp_path: Path) -> None:
+    """fp16 stores every weight in half precision: the file halves, onnxruntime folds the casts away (the graph it
+    runs computes in float32, as the float model's), the outputs stay within half precision's rounding and the
+    metadata travels; a weight beyond float16's range is refused, not turned into inf."""
+    config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4, hidden=(32, 32, 32))
+    torch.manual_seed(0)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE,
+                             code=CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0), objects={1: {"diameter": 100.0}})
+    float_path = export_onnx(PopcodeNet(config).eval(), metadata, tmp_path / "model.onnx")
+    half_path = quantise(float_path, "fp16", metadata)
+    assert half_path.name == "model.fp16.onnx"
+    assert half_path.stat().st_size < 0.6 * float_path.stat().st_size
+    stored = onnx.load(str(half_path)).graph
+    assert {init.data_type for init in stored.initializer} <= {onnx.TensorProto.FLOAT16, onnx.TensorProto.INT64}
+    assert "Cast" not in optimised_op_types(half_path, tmp_path / "optimised.onnx")
+    crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])
+    half, full = OnnxEngine(half_path)(crops), OnnxEngine(float_path)(crops)
+    assert half.dtype == np.float32
+    np.testing.assert_allclose(half, full, atol=5e-3 * np.abs(full).max())
+    assert read_onnx_metadata(half_path) == read_onnx_metadata(float_path)
+    huge = onnx.load(str(float_path))
+    first = next(init for init in huge.graph.initializer if init.data_type == onnx.TensorProto.FLOAT)
+    first.CopyFrom(onnx.numpy_helper.from_array(np.full(onnx.numpy_helper.to_array(first).shape, 1e6, np.float32),
+                                                first.name))
+    onnx.save(huge, str(tmp_path / "huge.onnx"))
+    with pytest.raises(PopcodeError, match="beyond float16"):
+        quantise(tmp_path / "huge.onnx", "fp16", metadata)
+    assert not (tmp_path / "huge.fp16.onnx").exists()
+
+
 def test_residual_trunk_exports_and_quantises_statically(tmp_path: Path) -> None:
     """The residual trunk's graph: onnxruntime matches torch, and int8 runs every conv as QLinearConv."""
     config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 16), squeeze_channels=4, hidden=(32, 32, 32),

@@ -1,4 +1,5 @@
-"""Quantised copies of a float ONNX model: static int8 QDQ and weight-only n-bit output layers."""
+"""Quantised copies of a float ONNX model: static int8 QDQ, weight-only n-bit output layers, half-precision
+weights."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+from onnx import helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
 from popcode_runtime.errors import PopcodeError
@@ -15,7 +17,7 @@ from popcode_runtime.metadata import INPUT_NAME, ModelMetadata
 
 from .model_io import save_onnx
 
-QUANTISATIONS = ("int8", "nbits4", "nbits8")
+QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16")
 NBITS_BLOCK_SIZE = 32
 INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
 
@@ -69,6 +71,33 @@ def _quantise_int8(float_path: Path, calibration: np.ndarray) -> onnx.ModelProto
         return onnx.load(str(out_path))
 
 
+def _half_weights(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Store every float32 initializer as float16, read back through a ``Cast`` to float32.
+
+    The graph computes in float32 as before: onnxruntime folds the casts of
+    constants when the session starts, so the file halves and the speed stays
+    fp32's. A tensor that float16 cannot hold (a value beyond its range) is
+    refused rather than turned into inf.
+    """
+    half_max = float(np.finfo(np.float16).max)
+    casts = []
+    for init in model.graph.initializer:
+        if init.data_type != onnx.TensorProto.FLOAT:
+            continue
+        values = numpy_helper.to_array(init)
+        if values.size and float(np.abs(values).max()) > half_max:
+            raise PopcodeError(f"initializer {init.name!r} holds values beyond float16's range "
+                               f"({float(np.abs(values).max()):.3g}); keep this model in float32")
+        name = init.name
+        init.CopyFrom(numpy_helper.from_array(values.astype(np.float16), f"{name}.fp16"))
+        casts.append(helper.make_node("Cast", [init.name], [name], to=onnx.TensorProto.FLOAT,
+                                           name=f"{name}.to_float"))
+    nodes = [*casts, *model.graph.node]
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    return model
+
+
 def quantised_path(float_path: Path, kind: str) -> Path:
     """Where the ``kind`` copy of a float model is written: beside it, ``<stem>.<kind>.onnx``."""
     return float_path.with_name(f"{float_path.stem}.{kind}.onnx")
@@ -85,6 +114,10 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     (measured: bench/results/quantisation.md).
     nbits4/nbits8: weight-only ``MatMulNBits`` (blocks of 32) on the MatMul
     nodes, i.e. the large output layer; the rest stays float.
+    fp16: every weight stored in half precision and computed in float32
+    (:func:`_half_weights`): half the file at float's speed and nearly its
+    outputs, for a model too large to ship in float whose int8 copy loses
+    accuracy (bench/results/shipped-models.md).
     """
     if kind not in QUANTISATIONS:
         raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
@@ -93,6 +126,8 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
         if calibration is None or len(calibration) == 0:
             raise PopcodeError("int8 quantisation needs calibration crops float32 [N, 1, S, S] (N >= 1)")
         quantised = _quantise_int8(float_path, calibration)
+    elif kind == "fp16":
+        quantised = _half_weights(onnx.load(str(float_path)))
     else:
         from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
 
