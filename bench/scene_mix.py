@@ -3,10 +3,12 @@ against the share of scene crops, at an equal number of crop-updates.
 
     python -m bench.scene_mix [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
         [--shares 0 0.25 0.5 0.75] [--images 500] [--scenes 300] [--crop-updates 24000]
-        [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
+        [--objects builtin|MODELS_DIR] [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
 
-Renders the built-in parts alone (seed 0, as the demo's training split) and in cluttered bin scenes
-(seed 3000, as the demo's training scenes), and two validation splits no recipe is reported on: clean
+Renders the built-in parts (or those of a BOP models folder, ``--objects``: e.g. the validation parts of
+``bench.validation_parts``, to judge a recipe on parts no choice was tuned on) alone (seed 0, as the demo's
+training split) and in cluttered bin scenes (seed 3000, as the demo's training scenes), and two validation
+splits no recipe is reported on: clean
 single parts (seed 5000) and cluttered scenes (seed 4000). The demo's test splits (seeds 1000 and
 2000) are never read here. Each share trains one model from the config (``data.splits`` and
 ``data.split_weights`` replaced; share 0 trains on the single parts alone) for the epochs that give
@@ -21,7 +23,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,7 @@ from popcode_runtime.files import write_json_atomic
 from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.data.scene_render import render_cluttered_test_split
+from popcode_trainer.demo.parts import BUILTIN, load_parts
 from popcode_trainer.demo.steps import TRAIN_SCENES_SEED_OFFSET
 from popcode_trainer.eval.pipeline.detector_boxes import with_detector_boxes
 from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
@@ -71,16 +74,44 @@ def _score(run_dir: Path, name: str, split_dir: Path, obj_ids: Sequence[int], bo
     return _scores(evaluate_models(methods, split, vsd=False, progress=False)[0])
 
 
-def compare(base: Config, shares: Sequence[float], images: int, scenes: int, crop_updates: int,
-            obj_ids: Sequence[int], work: Path, name: str) -> list[dict[str, Any]]:
-    single = render_builtin_split(work / "train", images, seed=TRAIN_SEED, obj_ids=obj_ids, random_position=True,
-                                  progress=True)
-    scene_split = render_cluttered_test_split(work / "train_scenes", scenes, progress=True, obj_ids=obj_ids,
-                                              seed=TRAIN_SEED + TRAIN_SCENES_SEED_OFFSET)
-    clean = render_builtin_split(work / "val_clean", VALIDATION_IMAGES, seed=CLEAN_VALIDATION_SEED, obj_ids=obj_ids,
-                                 random_position=True, progress=True)
-    cluttered = render_cluttered_test_split(work / "val_cluttered", VALIDATION_SCENES, progress=True,
-                                            obj_ids=obj_ids, seed=CLUTTERED_VALIDATION_SEED)
+@dataclass(frozen=True)
+class Splits:
+    """Where the comparison's renders lie: two training splits and two validation splits."""
+
+    single: Path
+    scenes: Path
+    clean: Path
+    cluttered: Path
+
+
+def render_all(objects: str | Path, obj_ids: Sequence[int], images: int, scenes: int, work: Path) -> Splits:
+    """Render (or complete) the four splits of ``obj_ids``: built-in parts, or those of the models folder
+    ``objects`` (rendered as ``popcode-train demo --objects`` renders them; only ``obj_ids`` appear)."""
+    scene_seed = TRAIN_SEED + TRAIN_SCENES_SEED_OFFSET
+    if objects == BUILTIN:
+        return Splits(
+            render_builtin_split(work / "train", images, seed=TRAIN_SEED, obj_ids=obj_ids, random_position=True,
+                                 progress=True),
+            render_cluttered_test_split(work / "train_scenes", scenes, progress=True, obj_ids=obj_ids,
+                                        seed=scene_seed),
+            render_builtin_split(work / "val_clean", VALIDATION_IMAGES, seed=CLEAN_VALIDATION_SEED, obj_ids=obj_ids,
+                                 random_position=True, progress=True),
+            render_cluttered_test_split(work / "val_cluttered", VALIDATION_SCENES, progress=True, obj_ids=obj_ids,
+                                        seed=CLUTTERED_VALIDATION_SEED))
+    parts = load_parts(objects)
+    if missing := sorted(set(obj_ids) - set(parts.obj_ids)):
+        raise SystemExit(f"--obj-ids {missing} are not in {objects} (objects {parts.obj_ids})")
+    chosen = replace(parts, models_info={i: parts.models_info[i] for i in obj_ids},
+                     reach_mm={i: r for i, r in parts.reach_mm.items() if i in obj_ids})
+    return Splits(chosen.render_split(work / "train", images, TRAIN_SEED, True),
+                  chosen.render_scenes(work / "train_scenes", scenes, scene_seed, True),
+                  chosen.render_split(work / "val_clean", VALIDATION_IMAGES, CLEAN_VALIDATION_SEED, True),
+                  chosen.render_scenes(work / "val_cluttered", VALIDATION_SCENES, CLUTTERED_VALIDATION_SEED, True))
+
+
+def compare(base: Config, shares: Sequence[float], splits: Splits, crop_updates: int, obj_ids: Sequence[int],
+            work: Path, name: str) -> list[dict[str, Any]]:
+    single, scene_split, clean, cluttered = splits.single, splits.scenes, splits.clean, splits.cluttered
     rows = []
     for share in shares:
         run_dir = work / "runs" / f"{name}-share{share:g}"
@@ -143,7 +174,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--images", type=int, default=500, help="single-part training images per part")
     parser.add_argument("--scenes", type=int, default=300, help="training scenes")
     parser.add_argument("--crop-updates", type=int, default=24000, help="training budget of every model")
-    parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
+    parser.add_argument("--objects", default=BUILTIN,
+                        help="'builtin' (default) or a BOP models folder of your own parts")
+    parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="parts of one model")
     parser.add_argument("--work", type=Path, default=Path("runs/scene_mix"), help="splits and runs (resumable)")
     parser.add_argument("--name", default="quick", help="name of the comparison (results file scene-mix-<name>)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
@@ -151,7 +184,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     if any(not 0.0 <= share < 1.0 for share in args.shares):
         parser.error("--shares must lie in [0, 1)")
     base = load_config(args.config, args.overrides)
-    rows = compare(base, args.shares, args.images, args.scenes, args.crop_updates, args.obj_ids, args.work, args.name)
+    splits = render_all(args.objects, args.obj_ids, args.images, args.scenes, args.work)
+    rows = compare(base, args.shares, splits, args.crop_updates, args.obj_ids, args.work, args.name)
     arguments = " ".join(sys.argv[1:] if argv is None else argv)
     payload = {"arguments": arguments, "config": str(args.config), "overrides": args.overrides, "rows": rows}
     write_results(args.out, f"scene-mix-{args.name}", payload, to_markdown(args.name, rows, arguments, machine()))
