@@ -150,7 +150,7 @@ def to_markdown(name: str, rows: Sequence[dict[str, Any]], arguments: str, descr
               f"{100 * r['cluttered_detector_boxes']['mssd']:.1f}",
               *(f"{100 * r['cluttered']['by_visibility'][b]['mssd']:.1f}" for b in bins),
               *(f"{100 * r['cluttered']['mssd_per_object'][o]:.1f}" for o in obj_ids)] for r in rows]
-    counts = ", ".join(f"{b}: {rows[0]['cluttered']['by_visibility'][b]['instances']}" for b in bins)
+    counts = ", ".join(f"{b}: {rows[0]['cluttered']['by_visibility'][b]['instances']:.0f}" for b in bins)
     return "\n".join([
         f"# Share of cluttered scenes in training: {name}", "",
         f"`python -m bench.scene_mix {arguments}`. MSSD (BOP19 recall, rotation only, ground-truth boxes and "
