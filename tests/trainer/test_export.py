@@ -229,6 +229,19 @@ def test_int8_is_static_on_every_conv_and_matmul(tmp_path: Path) -> None:
 
 
 
+def test_export_crops_come_from_every_object(tmp_path: Path) -> None:
+    """The parity and int8 calibration crops are spread over the held-out instances, which come ordered by
+    object: a model of two parts is calibrated on both, not on the first one's crops alone."""
+    split = render_builtin_split(tmp_path / "split", 3, obj_ids=[3, 6], random_position=True)
+    config = Config.from_dict({"data": {"splits": [str(split)], "models_dir": str(split / BUILTIN_MODELS_FOLDER),
+                                        "num_workers": 0, "val_fraction": 0.0}})
+    split_read = training_data.read_training_split(config)
+    assert [inst.obj_id for inst in split_read.instances] == [3, 3, 3, 6, 6, 6]
+    crops, obj_ids = training_data.validation_crops(config, count=2, split=split_read)
+    assert crops.shape == (2, 1, config.data.crop_size, config.data.crop_size) and obj_ids.tolist() == [3, 6]
+    assert training_data.validation_crops(config, count=100, split=split_read)[1].tolist() == [3, 3, 3, 6, 6, 6]
+
+
 def test_fp16_halves_the_file_and_runs_in_float(tmp_path: Path) -> None:
     """fp16 stores every weight in half precision: the file halves, onnxruntime folds the casts away (the graph it
     runs computes in float32, as the float model's), the outputs stay within half precision's rounding and the

@@ -123,11 +123,16 @@ def validation_crops(config: Config, count: int = 64,
     """Up to ``count`` un-augmented validation crops ``(N, 1, S, S)`` and their object ids ``(N,)`` (``split``:
     already read; every instance when none is held out).
 
-    The export's parity check input; the ids pick each crop's symmetries for
-    the pose agreement.
+    The export's parity check input and int8's calibration crops; the ids pick
+    each crop's symmetries for the pose agreement. They are spread evenly over
+    the held-out instances, which come ordered by split and object: the first
+    ``count`` would all be the first object's clean renders, and int8 would
+    be calibrated on no other part and no scene.
     """
     split = split or read_training_split(config)
-    chosen = (split.val or split.instances)[:count]
+    pool = split.val or split.instances
+    picks = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
+    chosen = [pool[i] for i in picks]
     crops = CropDataset(chosen, lambda batch: np.zeros((len(batch), 1), np.float32), augmentation=None,
                         crop_size=config.data.crop_size, seed=config.train.seed)
     images = np.stack([crops[i]["image"].numpy() for i in range(len(crops))])
