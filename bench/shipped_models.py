@@ -2,7 +2,7 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
-        [--compile auto|on|off]
+        [--compile auto|on|off] [--group OBJ_ID ...]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -11,10 +11,11 @@ goes to the population code's models, one per object group, each trained as the 
 seeds, code, mix of scene crops; first epochs timed, then all resumed to the fitted epochs). ``--copy-to``
 receives each model's ONNX files and training curve as soon as it is exported, so a run cut short keeps what
 it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, library versions), the GPU, the
-arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` shrink the data for a check of the
-script itself. Rerunning with the same ``--out`` resumes, as the demo does. ``--compile on`` compiles the step
-(on a GPU with CUDA graphs: the eager step of this network is bound by its kernel launches,
-``bench/results/cuda-step.md``).
+arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` change the data (shrink it for a
+check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
+budget to it; the renders stay those of every part). Rerunning with the same ``--out`` resumes, as the demo
+does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of this network is bound
+by its kernel launches, ``bench/results/cuda-step.md``).
 """
 
 from __future__ import annotations
@@ -74,6 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--copy-to", type=Path, help="copy each model's exports here once it is exported")
     parser.add_argument("--images", type=int, help="training images per part instead of the medium size's")
     parser.add_argument("--scenes", type=int, help="training scenes instead of the medium size's")
+    parser.add_argument("--group", nargs="+", type=int, metavar="OBJ_ID",
+                        help="train only the model of the object group holding these parts (default: every group)")
     parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
     args = parser.parse_args(argv)
     if not args.minutes > 0:
@@ -86,6 +89,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
                    train_scenes=args.scenes or demo.pipeline.train_scenes)
     parts, codes = prepare_parts(BUILTIN, size.config.code)
+    if args.group:
+        codes = [g for g in codes if set(args.group) & set(g.obj_ids)]
+        if not codes:
+            parser.error(f"--group {args.group}: no built-in part of that id")
     stages = training_plan(plan(size, [list(g.obj_ids) for g in codes], len(parts.obj_ids), fit_epochs=True))
     with stages.stage("render"):
         train_split, _ = render_splits(size, args.out, parts=parts)
