@@ -8,9 +8,8 @@ against the share of scene crops, at an equal number of crop-updates.
 Renders the built-in parts (or those of a BOP models folder, ``--objects``: e.g. the validation parts of
 ``bench.validation_parts``, to judge a recipe on parts no choice was tuned on) alone (seed 0, as the demo's
 training split) and in cluttered bin scenes (seed 3000, as the demo's training scenes), and two validation
-splits no recipe is reported on: clean
-single parts (seed 5000) and cluttered scenes (seed 4000). The demo's test splits (seeds 1000 and
-2000) are never read here. Each share trains one model from the config (``data.splits`` and
+splits no recipe is reported on: clean single parts (seed 5000) and cluttered scenes (seed 4000). The demo's
+test splits (seeds 1000 and 2000) are never read here. Each share trains one model from the config (``data.splits`` and
 ``data.split_weights`` replaced; share 0 trains on the single parts alone) for the epochs that give
 ``--crop-updates``, and scores its last checkpoint on both validation splits, the cluttered one per
 visible-fraction bin. ``--work`` keeps splits and runs, so an interrupted comparison resumes.

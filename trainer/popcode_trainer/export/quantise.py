@@ -90,8 +90,7 @@ def _half_weights(model: onnx.ModelProto) -> onnx.ModelProto:
                                f"({float(np.abs(values).max()):.3g}); keep this model in float32")
         name = init.name
         init.CopyFrom(numpy_helper.from_array(values.astype(np.float16), f"{name}.fp16"))
-        casts.append(helper.make_node("Cast", [init.name], [name], to=onnx.TensorProto.FLOAT,
-                                           name=f"{name}.to_float"))
+        casts.append(helper.make_node("Cast", [init.name], [name], to=onnx.TensorProto.FLOAT, name=f"{name}.to_float"))
     nodes = [*casts, *model.graph.node]
     del model.graph.node[:]
     model.graph.node.extend(nodes)
