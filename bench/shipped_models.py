@@ -2,7 +2,7 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
-        [--compile auto|on|off] [--group OBJ_ID ...]
+        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -13,9 +13,10 @@ receives each model's ONNX files and training curve as soon as it is exported, s
 it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, library versions), the GPU, the
 arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` change the data (shrink it for a
 check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
-budget to it; the renders stay those of every part). Rerunning with the same ``--out`` resumes, as the demo
-does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of this network is bound
-by its kernel launches, ``bench/results/cuda-step.md``).
+budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
+detector-like boxes. Rerunning with the same ``--out`` resumes, as the demo does. ``--compile on`` compiles
+the step (on a GPU with CUDA graphs: the eager step of this network is bound by its kernel launches,
+``bench/results/cuda-step.md``).
 """
 
 from __future__ import annotations
@@ -78,6 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--group", nargs="+", type=int, metavar="OBJ_ID",
                         help="train only the model of the object group holding these parts (default: every group)")
     parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
+    parser.add_argument("--box-noise-p", type=float, metavar="P",
+                        help="share of the crops cut from detector-like boxes instead of the medium size's")
     args = parser.parse_args(argv)
     if not args.minutes > 0:
         parser.error(f"--minutes must be positive, not {args.minutes}")
@@ -85,6 +88,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
     config = demo.pipeline.config
     config = replace(config, train=replace(config.train, compile=args.compile))
+    if args.box_noise_p is not None:
+        if not 0.0 < args.box_noise_p <= 1.0:  # NaN too
+            parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
+        config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
     size = replace(demo.pipeline, representations=(POPCODE,), config=config,
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
                    train_scenes=args.scenes or demo.pipeline.train_scenes)
