@@ -38,13 +38,14 @@ from popcode_trainer.demo.report import POPCODE
 from popcode_trainer.demo.run import (
     DEMO_SIZES,
     FIRST_EPOCHS,
+    DemoSize,
     StagePlan,
     fit_epochs,
     plan,
     prepare_parts,
     train_models,
 )
-from popcode_trainer.demo.steps import render_splits, run_dir
+from popcode_trainer.demo.steps import PipelineSize, render_splits, run_dir
 from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.run_files import METRICS_FILE
 
@@ -69,6 +70,20 @@ def copy_exports(folder: Path, destination: Path) -> None:
         shutil.copy2(path, target / path.name)
 
 
+def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
+    """The medium demo fitted to ``args.minutes``, and the run it makes: the population code alone, with the
+    data, compile and box-noise choices of ``args`` (``None``: the medium size's)."""
+    demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
+    config = demo.pipeline.config
+    config = replace(config, train=replace(config.train, compile=args.compile))
+    if args.box_noise_p is not None:
+        config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
+    size = replace(demo.pipeline, representations=(POPCODE,), config=config,
+                   train_images_per_object=args.images or demo.pipeline.train_images_per_object,
+                   train_scenes=args.scenes or demo.pipeline.train_scenes)
+    return demo, size
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--minutes", type=float, default=8.0, help="budget of the whole run (default 8)")
@@ -84,17 +99,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.minutes > 0:
         parser.error(f"--minutes must be positive, not {args.minutes}")
+    if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
+        parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
     started = time.perf_counter()
-    demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
-    config = demo.pipeline.config
-    config = replace(config, train=replace(config.train, compile=args.compile))
-    if args.box_noise_p is not None:
-        if not 0.0 < args.box_noise_p <= 1.0:  # NaN too
-            parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
-        config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
-    size = replace(demo.pipeline, representations=(POPCODE,), config=config,
-                   train_images_per_object=args.images or demo.pipeline.train_images_per_object,
-                   train_scenes=args.scenes or demo.pipeline.train_scenes)
+    demo, size = shipped_size(args)
     parts, codes = prepare_parts(BUILTIN, size.config.code)
     if args.group:
         codes = [g for g in codes if set(args.group) & set(g.obj_ids)]

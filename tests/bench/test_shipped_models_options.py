@@ -1,0 +1,45 @@
+"""bench/shipped_models.py's options: what a refresh changes of the medium recipe, and bad values refused before
+anything is rendered."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from bench.shipped_models import main, shipped_size
+from popcode_trainer.demo.run import DEMO_SIZES
+
+
+def _args(**changes: object) -> argparse.Namespace:
+    values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None}
+    return argparse.Namespace(**{**values, **changes})
+
+
+def test_defaults_are_the_medium_recipe_of_the_population_code_alone() -> None:
+    medium = DEMO_SIZES["medium"].pipeline
+    demo, size = shipped_size(_args())
+    assert demo.minutes == 30.0
+    assert size.representations == ("population_code",)
+    assert size.config.data == medium.config.data
+    assert (size.train_images_per_object, size.train_scenes) == (medium.train_images_per_object, medium.train_scenes)
+
+
+def test_box_noise_share_and_data_changes_reach_the_config() -> None:
+    medium = DEMO_SIZES["medium"].pipeline
+    _, size = shipped_size(_args(box_noise_p=0.75, scenes=2400, images=100))
+    assert size.config.data.box_noise_p == 0.75
+    assert size.config.data.box_noise == medium.config.data.box_noise  # the preset stays the recipe's
+    assert (size.train_images_per_object, size.train_scenes) == (100, 2400)
+
+
+@pytest.mark.parametrize("option", [["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
+                                    ["--minutes", "0"]])
+def test_bad_values_exit_2_before_any_file_is_written(option: list[str], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        main(["--out", str(tmp_path / "out"), *option])
+    assert stopped.value.code == 2
+    assert option[0] in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
