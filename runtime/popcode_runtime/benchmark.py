@@ -105,8 +105,10 @@ def benchmark_estimator(
     return results
 
 
-# CPU features that change how fast the convolutions and int8 kernels run.
-CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "amx_tile", "neon", "asimd")
+# CPU features that change how fast the convolutions and int8 kernels run (and, for training, whether torch
+# computes in bf16: avx512_bf16 / amx_bf16).
+CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "neon",
+             "asimd")
 
 
 def machine_description() -> dict:
