@@ -71,6 +71,7 @@ NETWORKS = {
 PATHS = {  # name -> (channels_last, precision, compiled)
     "eager-nchw-fp32": StepPath(False, "fp32", False, "bench"),  # what training did before fast_path
     "eager-cl-fp32": StepPath(True, "fp32", False, "bench"),
+    "eager-nchw-bf16": StepPath(False, "bf16", False, "bench"),  # chosen for narrow networks on a native-bf16 CPU
     "eager-cl-bf16": StepPath(True, "bf16", False, "bench"),
     "compiled-cl-fp32": StepPath(True, "fp32", True, "bench"),
     "compiled-cl-bf16": StepPath(True, "bf16", True, "bench"),

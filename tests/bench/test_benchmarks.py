@@ -16,7 +16,7 @@ from popcode_runtime.rotations import random_rotations
 from popcode_runtime.symmetries import symmetry_rotations
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
-from popcode_trainer.train import allocator
+from popcode_trainer.train import allocator, fast_path
 
 LATENCY_FIELDS = {"variant", "network", "batch", "threads", "stage", "median_ms", "p90_ms", "p99_ms", "floor_ms",
                   "compute_floor_ms"}
@@ -140,11 +140,15 @@ def test_agreement_counts_symmetric_swaps_as_the_same_pose_per_object(tmp_path: 
     assert (tmp_path / "agreement.md").read_text(encoding="utf-8").count("| swapped.onnx |") == 3
 
 
-def test_training_throughput_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("flags", "chosen"), [(frozenset(), "eager-nchw-fp32"),
+                                               (frozenset({"avx512_bf16"}), "eager-nchw-bf16")])
+def test_training_throughput_smoke(flags: frozenset[str], chosen: str, tmp_path: Path,
+                                   monkeypatch: pytest.MonkeyPatch) -> None:
     # 30 images a part leave 108 training crops of parts 3-6, the 96 that --quick's batches need; the bench's 80
     # would render 480 images, in two processes, for rows this test only checks the shape of.
     monkeypatch.setattr(training, "IMAGES_PER_OBJECT", 30)
     monkeypatch.setattr(allocator, "_outcome", [])  # as in a fresh process: the C library's defaults first
+    monkeypatch.setattr(fast_path, "cpu_flags", lambda: flags)  # the path chosen on a CPU without / with native bf16
     payload = training.main(["--quick", "--networks", "tiny", "--threads", "1", "--workers", "0", "1",
                              "--paths", "eager-nchw-fp32", "eager-cl-bf16", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "training.json").read_text(encoding="utf-8"))["rows"]
@@ -152,7 +156,7 @@ def test_training_throughput_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     parts = [(r["part"], r["workers"]) for r in rows]
     assert parts == [("data", 0), ("data", 1), ("forward_backward", None), ("optimizer", None),
                      ("path: eager-nchw-fp32", None), ("path: eager-cl-bf16", None),
-                     ("path: eager-nchw-fp32", None), ("step", 0), ("step", 1), ("loop", 0)]
+                     (f"path: {chosen}", None), ("step", 0), ("step", 1), ("loop", 0)]
     # the chosen path again once freed memory is kept, as training runs; the plain rows before it with the defaults
     assert [r["memory_kept"] for r in rows] == [False] * 6 + [True] * 4
     loop = rows[-1]  # the training loop itself; --quick: two epochs, the second beside a plain eager step
