@@ -2,7 +2,7 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
-        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P]
+        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--network NAME] [--render-only]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -14,9 +14,11 @@ it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, l
 arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` change the data (shrink it for a
 check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
 budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
-detector-like boxes. Rerunning with the same ``--out`` resumes, as the demo does. ``--compile on`` compiles
-the step (on a GPU with CUDA graphs: the eager step of this network is bound by its kernel launches,
-``bench/results/cuda-step.md``).
+detector-like boxes; ``--network`` trains another of :data:`bench.training.NETWORKS` (the trunk's width).
+``--render-only`` renders the data and stops: variants trained side by side on one GPU (its eager step leaves it
+mostly idle) then each get an ``--out`` holding links to these splits. Rerunning with the same ``--out``
+resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of
+this network is bound by its kernel launches, ``bench/results/cuda-step.md``).
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.run_files import METRICS_FILE
 
 from .report import machine
+from .training import NETWORKS
 
 SIZE = "medium"
 RUN_FILE = "run.json"  # beside the copied exports
@@ -76,6 +79,8 @@ def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
     demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
     config = demo.pipeline.config
     config = replace(config, train=replace(config.train, compile=args.compile))
+    if args.network is not None:
+        config = replace(config, network=NETWORKS[args.network])  # output_dim follows each model's code
     if args.box_noise_p is not None:
         config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
     size = replace(demo.pipeline, representations=(POPCODE,), config=config,
@@ -96,6 +101,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
     parser.add_argument("--box-noise-p", type=float, metavar="P",
                         help="share of the crops cut from detector-like boxes instead of the medium size's")
+    parser.add_argument("--network", choices=list(NETWORKS),
+                        help="the network to train instead of the medium size's (bench.training.NETWORKS)")
+    parser.add_argument("--render-only", action="store_true", help="render the data into --out and stop")
     args = parser.parse_args(argv)
     if not args.minutes > 0:
         parser.error(f"--minutes must be positive, not {args.minutes}")
@@ -111,6 +119,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     stages = training_plan(plan(size, [list(g.obj_ids) for g in codes], len(parts.obj_ids), fit_epochs=True))
     with stages.stage("render"):
         train_split, _ = render_splits(size, args.out, parts=parts)
+    if args.render_only:
+        print(f"rendered in {(time.perf_counter() - started) / 60:.1f} min", flush=True)
+        return 0
     with stages.stage(FIRST_EPOCHS):
         fit = fit_epochs(size, demo, codes, train_split, args.out, started, stages)
     print(f"{fit.epochs} epochs (first epochs {fit.first_epoch_seconds}; {fit.seconds_left:.0f} s left for "

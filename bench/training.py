@@ -66,6 +66,10 @@ NETWORKS = {
     "tiny": NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16)),  # smoke tests only
     "small": SMALL_NETWORK,  # the quick recipe's residual trunk
     "small-paper-trunk": replace(SMALL_NETWORK, trunk="paper", conv_channels=(16, 32, 32)),  # before the quick recipe
+    # The quick recipe's trunk 2x and 3x as wide (4x and 9x its weights; the head is the same): the capacity
+    # question of the bin (bench/results/shipped-models.md).
+    "small-x2": replace(SMALL_NETWORK, conv_channels=(32, 64, 128), squeeze_channels=16),
+    "small-x3": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24),
     "paper": NetworkConfig(),
 }
 PATHS = {  # name -> (channels_last, precision, compiled)

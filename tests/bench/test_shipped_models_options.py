@@ -9,11 +9,13 @@ from pathlib import Path
 import pytest
 
 from bench.shipped_models import main, shipped_size
+from bench.training import NETWORKS
 from popcode_trainer.demo.run import DEMO_SIZES
 
 
 def _args(**changes: object) -> argparse.Namespace:
-    values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None}
+    values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None,
+              "network": None}
     return argparse.Namespace(**{**values, **changes})
 
 
@@ -34,8 +36,16 @@ def test_box_noise_share_and_data_changes_reach_the_config() -> None:
     assert (size.train_images_per_object, size.train_scenes) == (100, 2400)
 
 
+def test_a_named_network_replaces_the_recipe_network_alone() -> None:
+    medium = DEMO_SIZES["medium"].pipeline
+    _, size = shipped_size(_args(network="small-x2"))
+    assert size.config.network == NETWORKS["small-x2"]
+    assert size.config.network != medium.config.network
+    assert (size.config.data, size.config.train) == (medium.config.data, medium.config.train)
+
+
 @pytest.mark.parametrize("option", [["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
-                                    ["--minutes", "0"]])
+                                    ["--minutes", "0"], ["--network", "huge"]])
 def test_bad_values_exit_2_before_any_file_is_written(option: list[str], tmp_path: Path,
                                                       capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as stopped:
