@@ -8,9 +8,9 @@ from __future__ import annotations
 import os
 import platform
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
-from functools import partial
+from functools import cache, partial
 
 import numpy as np
 import onnxruntime as ort
@@ -111,20 +111,33 @@ CPU_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16",
              "asimd")
 
 
+def parse_cpuinfo(lines: Iterable[str]) -> tuple[str | None, frozenset[str]]:
+    """The model name and the feature flags of the first processor in ``/proc/cpuinfo``'s lines (x86 lists
+    them as ``flags``, Arm as ``Features``)."""
+    model, flags = None, frozenset()
+    for line in lines:
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and model is None:
+            model = value.strip()
+        elif key.strip() in ("flags", "Features") and not flags:
+            flags = frozenset(value.split())
+    return model, flags
+
+
+@cache
+def cpu_info() -> tuple[str | None, frozenset[str]]:
+    """This CPU's model name and every feature flag (``None`` and none where Linux's list is missing)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as handle:
+            return parse_cpuinfo(handle)
+    except OSError:
+        return None, frozenset()
+
+
 def machine_description() -> dict:
     """What the numbers were measured on: CPU model and its relevant flags (Linux), cores, versions."""
-    cpu, flags = None, []
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as handle:
-            for line in handle:
-                key, _, value = line.partition(":")
-                if key.strip() == "model name" and cpu is None:
-                    cpu = value.strip()
-                elif key.strip() in ("flags", "Features") and not flags:
-                    present = set(value.split())
-                    flags = [flag for flag in CPU_FLAGS if flag in present]
-    except OSError:
-        pass
+    cpu, present = cpu_info()
+    flags = [flag for flag in CPU_FLAGS if flag in present]
     return {
         "cpu": cpu or platform.processor() or platform.machine(),
         "cpu_flags": flags,

@@ -34,13 +34,12 @@ import time
 import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
-from functools import cache
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
+from popcode_runtime.benchmark import cpu_info
 from popcode_runtime.errors import first_line
 
 from .deadline import deadline
@@ -50,7 +49,6 @@ COMPILE_CHOICES = ("auto", "on", "off")
 NATIVE_BF16_FLAGS = frozenset({"amx_bf16", "avx512_bf16"})
 CHANNELS_LAST_WIDTH_MULTIPLE = 8  # widths 8, 16, 24, 32, 64, ... ran; 4 and 6 hung or aborted in backward
 COMPILE_MIN_STEPS = 2000  # a compile costs 15-60 s on a 2-core VM; shorter runs do not win it back
-CPUINFO = Path("/proc/cpuinfo")
 COMPILE_DEADLINE_S = 300.0  # a first compile took 15-60 s on 2-core VMs; one 5x longer is taken for a hang
 CUDA_COMPILE_MODE = "reduce-overhead"  # replays CUDA graphs: a step's hundreds of launches become one
 
@@ -72,16 +70,9 @@ class StepPath:
         return asdict(self)
 
 
-@cache
 def cpu_flags() -> frozenset[str]:
     """The CPU's feature flags as Linux lists them (empty elsewhere: no native bf16 is assumed)."""
-    try:
-        for line in CPUINFO.read_text(errors="replace").splitlines():
-            if line.startswith("flags"):
-                return frozenset(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return frozenset()
+    return cpu_info()[1]
 
 
 def has_native_bf16(flags: frozenset[str]) -> bool:
