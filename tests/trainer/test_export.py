@@ -35,7 +35,7 @@ from popcode_trainer.export import onnx_export as export
 from popcode_trainer.export.agreement import compare
 from popcode_trainer.export.model_io import load_checkpoint_model, load_trained_model, read_onnx_metadata
 from popcode_trainer.export.onnx_export import export_checkpoint, export_onnx
-from popcode_trainer.export.quantise import quantise
+from popcode_trainer.export.quantise import quantise, quantised_path
 from popcode_trainer.train import training_data
 from popcode_trainer.train.config import Config
 from popcode_trainer.train.loop import network_config, train
@@ -270,6 +270,28 @@ def test_fp16_halves_the_file_and_runs_in_float(tmp_path: Path) -> None:
     with pytest.raises(PopcodeError, match="beyond float16"):
         quantise(tmp_path / "huge.onnx", "fp16", metadata)
     assert not (tmp_path / "huge.fp16.onnx").exists()
+
+
+def test_nbits8_fp16_is_the_smallest_near_float_copy(tmp_path: Path) -> None:
+    """nbits8-fp16: the output layer's MatMul in 8-bit blocks, every other weight in half precision: smaller than
+    either alone, run by onnxruntime (its casts folded away), outputs near float's, metadata kept."""
+    config = NetworkConfig(output_dim=162 * 12, conv_channels=(8, 8, 8), squeeze_channels=4, hidden=(32, 32, 64))
+    torch.manual_seed(0)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE,
+                             code=CodeLayout(n_axes=162, n_angles=12, sigma_deg=30.0), objects={1: {"diameter": 100.0}})
+    float_path = export_onnx(PopcodeNet(config).eval(), metadata, tmp_path / "model.onnx")
+    sizes = {kind: quantise(float_path, kind, metadata).stat().st_size for kind in ("fp16", "nbits8", "nbits8-fp16")}
+    assert sizes["nbits8-fp16"] < min(sizes["fp16"], sizes["nbits8"])
+    both = quantised_path(float_path, "nbits8-fp16")
+    stored = onnx.load(str(both)).graph
+    assert "MatMulNBits" in {node.op_type for node in stored.node}
+    assert onnx.TensorProto.FLOAT not in {init.data_type for init in stored.initializer}
+    assert "Cast" not in optimised_op_types(both, tmp_path / "optimised.onnx")
+    crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])
+    small, full = OnnxEngine(both)(crops), OnnxEngine(float_path)(crops)
+    np.testing.assert_allclose(small, full, atol=2e-2 * np.abs(full).max())
+    assert read_onnx_metadata(both) == read_onnx_metadata(float_path)
+    PoseEstimator(both)  # the runtime accepts it
 
 
 def test_residual_trunk_exports_and_quantises_statically(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from popcode_runtime.metadata import INPUT_NAME, ModelMetadata
 
 from .model_io import save_onnx
 
-QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16")
+QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16", "nbits8-fp16")
 NBITS_BLOCK_SIZE = 32
 INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
 
@@ -97,6 +97,20 @@ def _half_weights(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
+def _nbits_matmuls(model: onnx.ModelProto, bits: int) -> onnx.ModelProto:
+    """Every MatMul's constant weight as ``MatMulNBits`` of ``bits`` bits in blocks of :data:`NBITS_BLOCK_SIZE`."""
+    from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
+
+    quantiser = MatMulNBitsQuantizer(model, bits=bits, block_size=NBITS_BLOCK_SIZE, is_symmetric=True,
+                                     op_types_to_quantize=("MatMul",))
+    logging.disable(logging.INFO)  # a line for every node it leaves alone
+    try:
+        quantiser.process()
+    finally:
+        logging.disable(logging.NOTSET)
+    return quantiser.model.model
+
+
 def quantised_path(float_path: Path, kind: str) -> Path:
     """Where the ``kind`` copy of a float model is written: beside it, ``<stem>.<kind>.onnx``."""
     return float_path.with_name(f"{float_path.stem}.{kind}.onnx")
@@ -117,6 +131,9 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     (:func:`_half_weights`): half the file at float's speed and nearly its
     outputs, for a model too large to ship in float whose int8 copy loses
     accuracy (bench/results/shipped-models.md).
+    nbits8-fp16: the output layer as nbits8, every other weight as fp16: the
+    smallest file that keeps float's scores for a wider trunk whose fp16 copy
+    is over the repository's 8 MB (bench/results/network-width.md).
     """
     if kind not in QUANTISATIONS:
         raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
@@ -128,12 +145,9 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     elif kind == "fp16":
         quantised = _half_weights(onnx.load(str(float_path)))
     else:
-        from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
-
-        quantiser = MatMulNBitsQuantizer(onnx.load(str(float_path)), bits=int(kind[len("nbits"):]),
-                                         block_size=NBITS_BLOCK_SIZE, is_symmetric=True,
-                                         op_types_to_quantize=("MatMul",))
-        quantiser.process()
-        quantised = quantiser.model.model
+        bits, _, rest = kind[len("nbits"):].partition("-")
+        quantised = _nbits_matmuls(onnx.load(str(float_path)), int(bits))
+        if rest == "fp16":
+            quantised = _half_weights(quantised)
     save_onnx(quantised, metadata, out_path)
     return out_path
