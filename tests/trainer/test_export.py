@@ -35,7 +35,7 @@ from popcode_trainer.export import onnx_export as export
 from popcode_trainer.export.agreement import compare
 from popcode_trainer.export.model_io import load_checkpoint_model, load_trained_model, read_onnx_metadata
 from popcode_trainer.export.onnx_export import export_checkpoint, export_onnx
-from popcode_trainer.export.quantise import quantise, quantised_path
+from popcode_trainer.export.quantise import NBITS_INT8_COMPUTE, quantise, quantised_path
 from popcode_trainer.train import training_data
 from popcode_trainer.train.config import Config
 from popcode_trainer.train.loop import network_config, train
@@ -284,7 +284,10 @@ def test_nbits8_fp16_is_the_smallest_near_float_copy(tmp_path: Path) -> None:
     assert sizes["nbits8-fp16"] < min(sizes["fp16"], sizes["nbits8"])
     both = quantised_path(float_path, "nbits8-fp16")
     stored = onnx.load(str(both)).graph
-    assert "MatMulNBits" in {node.op_type for node in stored.node}
+    nbits = [node for node in stored.node if node.op_type == "MatMulNBits"]
+    assert nbits and all(onnx.helper.get_attribute_value(attr) == NBITS_INT8_COMPUTE
+                         for node in nbits for attr in node.attribute if attr.name == "accuracy_level")
+    assert all(any(attr.name == "accuracy_level" for attr in node.attribute) for node in nbits)
     assert onnx.TensorProto.FLOAT not in {init.data_type for init in stored.initializer}
     assert "Cast" not in optimised_op_types(both, tmp_path / "optimised.onnx")
     crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])

@@ -19,6 +19,9 @@ from .model_io import save_onnx
 
 QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16", "nbits8-fp16")
 NBITS_BLOCK_SIZE = 32
+# onnxruntime's MatMulNBits accuracy level 4: int8 activations in its integer kernels. At the default level the
+# 8-bit output layer ran 3.5x slower than float on an AVX-512 EPYC (bench/results/network-width.md).
+NBITS_INT8_COMPUTE = 4
 INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
 
 
@@ -97,12 +100,13 @@ def _half_weights(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-def _nbits_matmuls(model: onnx.ModelProto, bits: int) -> onnx.ModelProto:
-    """Every MatMul's constant weight as ``MatMulNBits`` of ``bits`` bits in blocks of :data:`NBITS_BLOCK_SIZE`."""
+def _nbits_matmuls(model: onnx.ModelProto, bits: int, accuracy_level: int | None = None) -> onnx.ModelProto:
+    """Every MatMul's constant weight as ``MatMulNBits`` of ``bits`` bits in blocks of :data:`NBITS_BLOCK_SIZE`;
+    ``accuracy_level`` as onnxruntime's (:data:`NBITS_INT8_COMPUTE`: the activations in int8 too)."""
     from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
 
     quantiser = MatMulNBitsQuantizer(model, bits=bits, block_size=NBITS_BLOCK_SIZE, is_symmetric=True,
-                                     op_types_to_quantize=("MatMul",))
+                                     accuracy_level=accuracy_level, op_types_to_quantize=("MatMul",))
     logging.disable(logging.INFO)  # a line for every node it leaves alone
     try:
         quantiser.process()
@@ -131,9 +135,10 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     (:func:`_half_weights`): half the file at float's speed and nearly its
     outputs, for a model too large to ship in float whose int8 copy loses
     accuracy (bench/results/shipped-models.md).
-    nbits8-fp16: the output layer as nbits8, every other weight as fp16: the
-    smallest file that keeps float's scores for a wider trunk whose fp16 copy
-    is over the repository's 8 MB (bench/results/network-width.md).
+    nbits8-fp16: the output layer as nbits8 computed on int8 activations
+    (:data:`NBITS_INT8_COMPUTE`), every other weight as fp16: for a wider
+    trunk whose fp16 copy is over the repository's 8 MB, near float's scores
+    and faster than float (bench/results/network-width.md).
     """
     if kind not in QUANTISATIONS:
         raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
@@ -146,8 +151,9 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
         quantised = _half_weights(onnx.load(str(float_path)))
     else:
         bits, _, rest = kind[len("nbits"):].partition("-")
-        quantised = _nbits_matmuls(onnx.load(str(float_path)), int(bits))
         if rest == "fp16":
-            quantised = _half_weights(quantised)
+            quantised = _half_weights(_nbits_matmuls(onnx.load(str(float_path)), int(bits), NBITS_INT8_COMPUTE))
+        else:
+            quantised = _nbits_matmuls(onnx.load(str(float_path)), int(bits))
     save_onnx(quantised, metadata, out_path)
     return out_path
