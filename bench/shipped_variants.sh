@@ -25,19 +25,29 @@ python3 -m bench.shipped_models --out "$work/data" $args --render-only >"$work/r
     { tail -5 "$work/render.log"; exit 1; }
 minutes=$(python3 -c "print(max(1.0, ($seconds - 60 - ($(date +%s) - $start))) / 60)")
 echo "rendered in $(($(date +%s) - start)) s; $minutes min for each network"
+pids=()
 for network in "$@"; do
     mkdir -p "$work/$network"
     for split in train train_scenes test; do ln -sfn "$work/data/$split" "$work/$network/$split"; done
     # shellcheck disable=SC2086
     OMP_NUM_THREADS=2 python3 -m bench.shipped_models --out "$work/$network" $args --network "$network" \
         --minutes "$minutes" --copy-to "$work/copy/$network" >"$work/$network.log" 2>&1 &
+    pids+=($!)
 done
 failed=0
-for job in $(jobs -p); do wait "$job" || failed=1; done
+index=0
 for network in "$@"; do
-    cp "$work/copy/$network"/population_code_*/model.onnx "$results/$network.onnx" || failed=1
-    grep -E "^[0-9]+ epochs|^done" "$work/$network.log" | sed "s/^/$network: /"
+    if wait "${pids[$index]}"; then
+        cp "$work/copy/$network"/population_code_*/model.onnx "$results/$network.onnx" || failed=1
+        grep -E "^[0-9]+ epochs|^done" "$work/$network.log" | sed "s/^/$network: /"
+    else
+        failed=1
+        echo "$network: failed; the end of $work/$network.log:"
+        tail -3 "$work/$network.log"
+    fi
+    index=$((index + 1))
 done
+mkdir -p "$work/copy"  # a run that failed before its first export copied nothing
 (cd "$work" && tar czf "$results/logs.tgz" --exclude='*.onnx' ./*.log copy) || failed=1
 echo "finished in $(($(date +%s) - start)) s"
 exit $failed
