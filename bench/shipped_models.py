@@ -33,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from popcode_runtime.errors import PopcodeError, first_line
 from popcode_runtime.files import write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
@@ -110,6 +111,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
         parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
     started = time.perf_counter()
+    try:
+        return _train(args, parser, started, list(sys.argv[1:] if argv is None else argv))
+    except PopcodeError as error:  # one line, as the product's commands say it; the renders stay for a rerun
+        parser.exit(2, f"bench.shipped_models: {first_line(error)}\n")
+
+
+def _train(args: argparse.Namespace, parser: argparse.ArgumentParser, started: float, arguments: list[str]) -> int:
+    """Render, time the first epochs, fit the epochs, train and export every model of ``args`` (``arguments``:
+    the command line, for ``run.json``)."""
     demo, size = shipped_size(args)
     parts, codes = prepare_parts(BUILTIN, size.config.code)
     if args.group:
@@ -138,7 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.copy_to:  # what a results file must name: the machine, the libraries, the command, the steps' seconds
         write_json_atomic(args.copy_to / RUN_FILE, {
             "machine": machine(), "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-            "arguments": list(sys.argv[1:] if argv is None else argv), "epochs": fit.epochs,
+            "arguments": arguments, "epochs": fit.epochs,
             "step_seconds": dict(stages.done)})
     return 0
 

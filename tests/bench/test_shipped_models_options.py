@@ -53,3 +53,15 @@ def test_bad_values_exit_2_before_any_file_is_written(option: list[str], tmp_pat
     assert stopped.value.code == 2
     assert option[0] in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_training_error_is_one_line_with_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Data too small for one batch: the trainer's error as one line, not a traceback; the renders stay."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["--out", str(tmp_path / "out"), "--images", "1", "--scenes", "1", "--group", "3", "--minutes", "1"])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1].split("\r")[-1]  # after the render's progress bar
+    assert last.startswith("bench.shipped_models: ") and "smaller than one batch" in last
+    assert "Traceback" not in err
+    assert (tmp_path / "out" / "train").is_dir()
