@@ -33,6 +33,7 @@ from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.export.agreement import compare
 
+from .command import run_command
 from .report import write_results
 
 
@@ -94,4 +95,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("agreement", main)

@@ -9,7 +9,6 @@ Results: ``bench/results/box-noise.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ from typing import Any
 from popcode_trainer.data.box_noise import BOX_NOISE_PRESETS, iou_statistics
 from popcode_trainer.eval.reporting.markdown import markdown_table
 
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 
@@ -42,4 +42,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    run_command("box_noise", lambda: 0 if main() else 1)

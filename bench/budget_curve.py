@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -37,6 +36,7 @@ from popcode_trainer.train.loop import train
 from popcode_trainer.train.run_files import LAST_CHECKPOINT, read_metrics
 from popcode_trainer.train.training_data import build_training_data
 
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 TRAIN_SEED, VALIDATION_SEED = 0, 2000  # pipeline.render_splits uses seed + 1000 for the test split
@@ -135,4 +135,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    run_command("budget_curve", lambda: 0 if main() else 1)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,8 @@ from onnx import numpy_helper
 from popcode_runtime.files import read_json
 from popcode_trainer.demo.report import SUMMARY_FILE
 from popcode_trainer.train.run_files import METRICS_FILE, read_metrics
+
+from .command import run_command
 
 # Keys of summary.json (at any depth) that measure time, name the machine or point at files: they differ between
 # any two runs.
@@ -117,4 +118,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command("compare_demos", main)

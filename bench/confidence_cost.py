@@ -20,6 +20,7 @@ import numpy as np
 
 from popcode_runtime import PoseEstimator
 
+from .command import run_command
 from .report import write_results
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
@@ -77,4 +78,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command("confidence_cost", main)

@@ -38,6 +38,7 @@ from popcode_trainer.train.loop import network_config
 from popcode_trainer.train.network import build_network
 from popcode_trainer.train.representations import build_representation
 
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 OBJECTS = (3, 4, 5, 6)
@@ -176,4 +177,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("cuda_step", main)

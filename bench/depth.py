@@ -45,6 +45,7 @@ from popcode_trainer.eval.pipeline.translation import translation_summary
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.confidence import rotation_errors_deg
 
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -286,4 +287,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command("depth", main)

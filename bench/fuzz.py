@@ -22,6 +22,8 @@ import numpy as np
 
 from popcode_runtime import PopcodeError, PoseEstimator
 
+from .command import run_command
+
 SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "builtin-parts-3-6.onnx"
 MAX_SIDE = 400  # random images stay small: the fuzz is about arguments, not about pixels
 
@@ -179,4 +181,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command("fuzz", main)

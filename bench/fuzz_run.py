@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 import popcode_runtime.image_loop as image_loop
+from bench.command import run_command
 from bench.fuzz import pick
 from bench.run_mutations import MUTATIONS, Call, apply, real, regular, write_inputs
 from popcode_runtime import PoseEstimator
@@ -533,4 +534,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command("fuzz_run", main)

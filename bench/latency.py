@@ -65,6 +65,7 @@ from popcode_trainer.train.config import Config
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 from popcode_trainer.train.training_data import validation_crops
 
+from .command import run_command
 from .report import machine, write_results
 
 QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
@@ -360,4 +361,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("latency", main)

@@ -17,6 +17,8 @@ import torch
 
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 
+from .command import run_command
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -59,4 +61,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("network_cost", main)

@@ -30,6 +30,7 @@ from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.config import load_config
 
 from .budget_curve import VALIDATION_SEED, curve
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 PRECISIONS = ("fp32", "bf16")
@@ -118,4 +119,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    run_command("precision", lambda: 0 if main() else 1)

@@ -48,6 +48,8 @@ from popcode_trainer.eval.reporting.tables import methods_markdown, to_json
 from popcode_trainer.metrics.recall import GROUPS
 from popcode_trainer.train.config import Config, DataConfig
 
+from .command import run_command
+
 REFINED = "population_code (refined)"
 PAPER_METHODS = {Representation.SINGLE_VARIABLE: "Single Variable", Representation.ONE_HOT: "One Hot Vector",
                  Representation.POPULATION_CODE: "Population Code"}
@@ -209,4 +211,4 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("representations", main)

@@ -44,6 +44,7 @@ from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from popcode_trainer.train.training_data import build_training_data
 
 from .budget_curve import _training_so_far
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 DETECTOR_BOXES = "detector"
@@ -192,4 +193,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    run_command("scene_mix", lambda: 0 if main() else 1)

@@ -24,6 +24,8 @@ import numpy as np
 from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.metrics.recall import VISIBILITY_BINS
 
+from .command import run_command
+
 
 def _instance_infos(split: Path) -> list[dict]:
     return [info for path in sorted(split.glob("0*/scene_gt_info.json"))
@@ -77,4 +79,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("scene_render", main)

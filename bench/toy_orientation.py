@@ -56,6 +56,7 @@ from popcode_runtime.refine import refine_angle
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.network import ToyNet, ToyNetworkConfig
 
+from .command import run_command
 from .report import write_results
 
 IMAGE_SIZE = 64
@@ -296,4 +297,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("toy_orientation", main)

@@ -60,6 +60,7 @@ from popcode_trainer.train.network import NetworkConfig, build_network
 from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from popcode_trainer.train.training_data import TrainingData, build_training_data
 
+from .command import run_command
 from .report import machine, machine_line, write_results
 
 NETWORKS = {
@@ -318,4 +319,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("training", main)

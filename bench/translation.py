@@ -42,6 +42,7 @@ from popcode_trainer.eval.pipeline.translation import (
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown
 
+from .command import run_command
 from .report import machine, write_results
 
 HULL = f"{HULL_POINTS} hull points"
@@ -133,4 +134,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_command("translation", main)

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from bench.command import run_command
 from bench.validation_parts import OwnPart, about_z, circle, flips, polar, slab, write_models_main
 from popcode_trainer.data.objects import rotation_4x4
 
@@ -87,4 +88,4 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("tuning_parts", main)

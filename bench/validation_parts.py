@@ -39,6 +39,8 @@ from scipy.spatial import ConvexHull, Delaunay
 from popcode_runtime.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.data.objects import Z_AXIS, model_info, revolve, rotation_4x4
 
+from .command import run_command
+
 _STEP_MM = 1.5  # longest outline edge: Delaunay then keeps the outline where features are >= 3 mm apart
 _CIRCLE_SECTIONS = 48  # vertices of a hole or boss circle; divisible by 3, 4 and 12, so the rotations keep it
 _RIM_SECTIONS = 96
@@ -249,4 +251,4 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("validation_parts", main)
