@@ -66,7 +66,7 @@ from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs,
 from popcode_trainer.train.training_data import validation_crops
 
 from .command import run_command
-from .report import machine, write_results
+from .report import machine, machine_line, write_results
 
 QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
 BATCHES = (1, 8, 32)
@@ -294,7 +294,7 @@ def summary_table(records: list[dict[str, Any]]) -> str:
 
 
 def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any]], bandwidth: dict[int, float],
-                    peaks: dict[tuple[int, bool], float], machine_line: str) -> str:
+                    peaks: dict[tuple[int, bool], float], machine_text: str) -> str:
     """Batch-1 summary, the full latency table, then per-network size and decoder tables."""
     rows = [[r["network"], r["variant"], r["threads"], r["batch"], r["stage"], _fmt(r["median_ms"]),
              _fmt(r["p90_ms"]), _fmt(r["p99_ms"]), _fmt(r["crops_per_s"], 0), _fmt(r["floor_ms"], 3),
@@ -318,7 +318,7 @@ def render_markdown(records: list[dict[str, Any]], summaries: list[dict[str, Any
                      for t in bandwidth)
     floors = ("Floors: memory = weight bytes / read bandwidth; compute = MACs per crop x batch / GEMM peak "
               "(int8 peak for int8-static, fp32 peak otherwise).")
-    return "\n\n".join([f"Machine: {machine_line}", f"Read bandwidth: {bandwidths}", f"GEMM peak: {gemm}", floors,
+    return "\n\n".join([machine_text, f"Read bandwidth: {bandwidths}", f"GEMM peak: {gemm}", floors,
                         "Batch 1, 1 thread, inference:", summary_table(records), "All runs:", latency, sizes])
 
 
@@ -338,9 +338,7 @@ def run(networks: Sequence[str], quick: bool, out_dir: Path, name: str = "latenc
     records = [record for result in results for record in result["records"]]
     summaries = [result["summary"] for result in results]
     description = machine()
-    markdown = render_markdown(records, summaries, bandwidth, peaks,
-                               f"{description['cpu']}, {description['cores']} cores, onnxruntime "
-                               f"{description['onnxruntime']}, torch {description['torch']}")
+    markdown = render_markdown(records, summaries, bandwidth, peaks, machine_line(description))
     payload = {"bandwidth_gb_s": {str(t): gb for t, gb in bandwidth.items()},
                "gemm_peak_gmac_s": {f"{t} {'int8' if int8 else 'fp32'}": gmac for (t, int8), gmac in peaks.items()},
                "networks": summaries,

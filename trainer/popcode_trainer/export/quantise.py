@@ -20,7 +20,8 @@ from .model_io import save_onnx
 QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16", "nbits8-fp16")
 NBITS_BLOCK_SIZE = 32
 # onnxruntime's MatMulNBits accuracy level 4: int8 activations in its integer kernels. At the default level the
-# 8-bit output layer ran 3.5x slower than float on an AVX-512 EPYC (bench/results/network-width.md).
+# 8-bit output layer ran 3.5-4.5x slower than float on an AVX-512 EPYC, at the same agreement with float
+# (bench/results/network-width.md).
 NBITS_INT8_COMPUTE = 4
 INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
 
@@ -100,13 +101,13 @@ def _half_weights(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-def _nbits_matmuls(model: onnx.ModelProto, bits: int, accuracy_level: int | None = None) -> onnx.ModelProto:
-    """Every MatMul's constant weight as ``MatMulNBits`` of ``bits`` bits in blocks of :data:`NBITS_BLOCK_SIZE`;
-    ``accuracy_level`` as onnxruntime's (:data:`NBITS_INT8_COMPUTE`: the activations in int8 too)."""
+def _nbits_matmuls(model: onnx.ModelProto, bits: int) -> onnx.ModelProto:
+    """Every MatMul's constant weight as ``MatMulNBits`` of ``bits`` bits in blocks of :data:`NBITS_BLOCK_SIZE`,
+    computed on int8 activations (:data:`NBITS_INT8_COMPUTE`)."""
     from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
 
     quantiser = MatMulNBitsQuantizer(model, bits=bits, block_size=NBITS_BLOCK_SIZE, is_symmetric=True,
-                                     accuracy_level=accuracy_level, op_types_to_quantize=("MatMul",))
+                                     accuracy_level=NBITS_INT8_COMPUTE, op_types_to_quantize=("MatMul",))
     logging.disable(logging.INFO)  # a line for every node it leaves alone
     try:
         quantiser.process()
@@ -129,14 +130,14 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     come from ``calibration`` crops (required). The contrast normalisation
     stays float. Chosen as the fastest variant that keeps the argmax of fp32
     (measured: bench/results/quantisation.md).
-    nbits4/nbits8: weight-only ``MatMulNBits`` (blocks of 32) on the MatMul
-    nodes, i.e. the large output layer; the rest stays float.
+    nbits4/nbits8: ``MatMulNBits`` (blocks of 32, computed on int8
+    activations: :data:`NBITS_INT8_COMPUTE`) on the MatMul nodes, i.e. the
+    large output layer; the rest stays float.
     fp16: every weight stored in half precision and computed in float32
     (:func:`_half_weights`): half the file at float's speed and nearly its
     outputs, for a model too large to ship in float whose int8 copy loses
     accuracy (bench/results/shipped-models.md).
-    nbits8-fp16: the output layer as nbits8 computed on int8 activations
-    (:data:`NBITS_INT8_COMPUTE`), every other weight as fp16: for a wider
+    nbits8-fp16: the output layer as nbits8, every other weight as fp16: for a wider
     trunk whose fp16 copy is over the repository's 8 MB, near float's scores
     and faster than float (bench/results/network-width.md).
     """
@@ -151,9 +152,8 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
         quantised = _half_weights(onnx.load(str(float_path)))
     else:
         bits, _, rest = kind[len("nbits"):].partition("-")
+        quantised = _nbits_matmuls(onnx.load(str(float_path)), int(bits))
         if rest == "fp16":
-            quantised = _half_weights(_nbits_matmuls(onnx.load(str(float_path)), int(bits), NBITS_INT8_COMPUTE))
-        else:
-            quantised = _nbits_matmuls(onnx.load(str(float_path)), int(bits))
+            quantised = _half_weights(quantised)
     save_onnx(quantised, metadata, out_path)
     return out_path
