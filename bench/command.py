@@ -3,18 +3,26 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import NoReturn
 
 from popcode_runtime.errors import PopcodeError, first_line
 
 
-def run_command(name: str, main: Callable[[], object]) -> NoReturn:
-    """Exit with ``main``'s status (an int; anything else is 0), or, for bad input (a ``PopcodeError``), with one
-    line and status 2 as the product's commands say it, instead of a traceback."""
+@contextmanager
+def bad_input_exits(name: str) -> Iterator[None]:
+    """Bad input (a ``PopcodeError``) becomes one line ``bench.<name>: why`` and status 2, as the product's
+    commands say it, instead of a traceback."""
     try:
-        status = main()
+        yield
     except PopcodeError as error:
         print(f"bench.{name}: {first_line(error)}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def run_command(name: str, main: Callable[[], object]) -> NoReturn:
+    """Exit with ``main``'s status (an int; anything else is 0), or as :func:`bad_input_exits` says."""
+    with bad_input_exits(name):
+        status = main()
     raise SystemExit(status if isinstance(status, int) else 0)

@@ -33,7 +33,6 @@ from pathlib import Path
 
 import torch
 
-from popcode_runtime.errors import PopcodeError, first_line
 from popcode_runtime.files import write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
@@ -52,6 +51,7 @@ from popcode_trainer.demo.steps import PipelineSize, render_splits, run_dir
 from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.run_files import METRICS_FILE
 
+from .command import bad_input_exits
 from .report import machine
 from .training import NETWORKS
 
@@ -111,10 +111,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
         parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
     started = time.perf_counter()
-    try:
+    with bad_input_exits("shipped_models"):  # the renders stay for a rerun
         return _train(args, parser, started, list(sys.argv[1:] if argv is None else argv))
-    except PopcodeError as error:  # one line, as the product's commands say it; the renders stay for a rerun
-        parser.exit(2, f"bench.shipped_models: {first_line(error)}\n")
 
 
 def _train(args: argparse.Namespace, parser: argparse.ArgumentParser, started: float, arguments: list[str]) -> int:
