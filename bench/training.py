@@ -71,6 +71,10 @@ NETWORKS = {
     # question of the bin (bench/results/shipped-models.md).
     "small-x2": replace(SMALL_NETWORK, conv_channels=(32, 64, 128), squeeze_channels=16),
     "small-x3": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24),
+    # 4x and 6x: where the width curve flattens (bench/results/network-width.md); 6x is the widest whose
+    # nbits8-fp16 export may still fit the repository's 8 MB a model (the head holds most weights).
+    "small-x4": replace(SMALL_NETWORK, conv_channels=(64, 128, 256), squeeze_channels=32),
+    "small-x6": replace(SMALL_NETWORK, conv_channels=(96, 192, 384), squeeze_channels=48),
     "paper": NetworkConfig(),
 }
 PATHS = {  # name -> (channels_last, precision, compiled)
