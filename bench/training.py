@@ -75,6 +75,9 @@ NETWORKS = {
     # nbits8-fp16 export may still fit the repository's 8 MB a model (the head holds most weights).
     "small-x4": replace(SMALL_NETWORK, conv_channels=(64, 128, 256), squeeze_channels=32),
     "small-x6": replace(SMALL_NETWORK, conv_channels=(96, 192, 384), squeeze_channels=48),
+    # 3x with a 512-wide first hidden layer (was 256): the head's entry, not the trunk, held the bin at 3x
+    # (bench/results/head-width.md).
+    "small-x3-h512": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=(512, 256, 128)),
     "paper": NetworkConfig(),
 }
 PATHS = {  # name -> (channels_last, precision, compiled)
