@@ -76,7 +76,7 @@ NETWORKS = {
     "small-x3": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=WIDTH_RUNS_HIDDEN),
     "small-x4": replace(SMALL_NETWORK, conv_channels=(64, 128, 256), squeeze_channels=32, hidden=WIDTH_RUNS_HIDDEN),
     "small-x6": replace(SMALL_NETWORK, conv_channels=(96, 192, 384), squeeze_channels=48, hidden=WIDTH_RUNS_HIDDEN),
-    # 3x with a 512-wide first hidden layer: the head's entry held the bin (bench/results/head-width.md); the last
+    # 3x with a 512-wide first hidden layer (scored as the shipped small-x3 at its budget: head-width.md); the last
     # layer stays 128 wide, so that the nbits8-fp16 export keeps under the repository's 8 MB a model.
     "small-x3-h512": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=(512, 256, 128)),
     "paper": NetworkConfig(),
