@@ -23,9 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop_split import GroundTruth, scene_folders, scene_ground_truth, split_images
+from popcode_runtime.bop_split import scene_folders, scene_ground_truth, split_images
 from popcode_runtime.crop import read_image
+from popcode_runtime.errors import PopcodeError
 from popcode_runtime.estimator import PoseEstimator
+from popcode_trainer.data.bop import gt_rotation
+from popcode_trainer.data.box_noise import box_intersection
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.confidence import rotation_errors_deg
 from popcode_trainer.metrics.recall import VISIBILITY_BINS
@@ -39,15 +42,9 @@ NEIGHBOUR_DEG = 20.0  # a wrong pose this close to an overlapping same-part inst
 NEIGHBOUR_OVERLAP = 0.05  # share of the target's box another instance's box must cover to count as a neighbour
 
 
-def _pose(gt: GroundTruth) -> np.ndarray:
-    return np.asarray(gt.gt_entry["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
-
-
 def _box_overlap(target: Sequence[float], other: Sequence[float]) -> float:
     """The share of ``target``'s box (x, y, w, h) that ``other`` covers."""
-    width = min(target[0] + target[2], other[0] + other[2]) - max(target[0], other[0])
-    height = min(target[1] + target[3], other[1] + other[3]) - max(target[1], other[1])
-    return max(0.0, width) * max(0.0, height) / (target[2] * target[3])
+    return box_intersection(target, other) / (target[2] * target[3])
 
 
 def instance_rows(estimator: PoseEstimator, split: Path, min_visib_fract: float) -> list[dict[str, Any]]:
@@ -67,12 +64,15 @@ def instance_rows(estimator: PoseEstimator, split: Path, min_visib_fract: float)
             for target, prediction in zip(targets, predictions, strict=True):
                 others = [o for o in everyone[im_id] if o.gt_index != target.gt_index and o.obj_id == target.obj_id
                           and _box_overlap(target.box, o.box) > NEIGHBOUR_OVERLAP]
-                poses = np.stack([_pose(target)] + [_pose(o) for o in others])
+                poses = np.stack([gt_rotation(target)] + [gt_rotation(o) for o in others])
                 errors = rotation_errors_deg(np.repeat(prediction.R_m2c[None], len(poses), axis=0), poses,
                                              np.full(len(poses), target.obj_id), models_info)
                 rows.append({"obj_id": target.obj_id, "visib_fract": target.visib_fract,
                              "box_px": max(target.box[2], target.box[3]), "error_deg": float(errors[0]),
                              "neighbour_deg": float(errors[1:].min()) if others else None})
+    if not rows:
+        raise PopcodeError(f"{split}: no instance of the model's parts {sorted(obj_ids)} is at least "
+                           f"{min_visib_fract} visible")
     return rows
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from popcode_runtime.bop_split import (
     BOX_KINDS,
+    GroundTruth,
     folder_index,
     image_folder,
     int_keys,
@@ -85,6 +86,11 @@ def _rotation(values: np.ndarray, path: Path, where: str) -> np.ndarray:
     return R
 
 
+def gt_rotation(gt: GroundTruth) -> np.ndarray:
+    """An annotated instance's ``cam_R_m2c`` (3x3), refused in one line where it is missing or not a rotation."""
+    return _rotation(json_field(gt.gt_entry, "cam_R_m2c", gt.gt_path, gt.where, size=9), gt.gt_path, gt.where)
+
+
 def check_image_matches(instance: Instance, width: int, height: int) -> None:
     """Refuse an image whose size contradicts its annotations: the box or K's principal point outside it.
 
@@ -145,8 +151,7 @@ def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float,
                 obj_id=gt.obj_id,
                 box=gt.box,
                 K=K,
-                R_m2c=_rotation(json_field(gt.gt_entry, "cam_R_m2c", gt.gt_path, gt.where, size=9), gt.gt_path,
-                                gt.where),
+                R_m2c=gt_rotation(gt),
                 t_m2c_mm=json_field(gt.gt_entry, "cam_t_m2c", gt.gt_path, gt.where, size=3),
                 scene_id=gt.scene_id,
                 im_id=im_id,

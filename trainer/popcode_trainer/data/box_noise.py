@@ -81,14 +81,17 @@ def _clip_box(box: Sequence[float], width: float, height: float) -> Box:
     return x0, y0, max(x1 - x0, 1.0), max(y1 - y0, 1.0)
 
 
-def box_iou(a: Sequence[float], b: Sequence[float]) -> float:
-    """Intersection over union of two ``x, y, w, h`` boxes."""
+def box_intersection(a: Sequence[float], b: Sequence[float]) -> float:
+    """Area shared by two ``x, y, w, h`` boxes."""
     ax, ay, aw, ah = (float(v) for v in a)
     bx, by, bw, bh = (float(v) for v in b)
-    inter_w = max(0.0, min(ax + aw, bx + bw) - max(ax, bx))
-    inter_h = max(0.0, min(ay + ah, by + bh) - max(ay, by))
-    inter = inter_w * inter_h
-    union = aw * ah + bw * bh - inter
+    return max(0.0, min(ax + aw, bx + bw) - max(ax, bx)) * max(0.0, min(ay + ah, by + bh) - max(ay, by))
+
+
+def box_iou(a: Sequence[float], b: Sequence[float]) -> float:
+    """Intersection over union of two ``x, y, w, h`` boxes."""
+    inter = box_intersection(a, b)
+    union = float(a[2]) * float(a[3]) + float(b[2]) * float(b[3]) - inter
     return inter / union if union > 0 else 0.0
 
 
