@@ -2,7 +2,8 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
-        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--network NAME] [--render-only]
+        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--scene-share S] [--network NAME]
+        [--render-only]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -14,7 +15,8 @@ it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, l
 arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` change the data (shrink it for a
 check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
 budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
-detector-like boxes; ``--network`` trains another of :data:`bench.training.NETWORKS` (the trunk's width).
+detector-like boxes; ``--scene-share`` the share of an epoch's crops cut from the training scenes;
+``--network`` trains another of :data:`bench.training.NETWORKS` (the trunk's width).
 ``--render-only`` renders the data and stops: variants trained side by side on one GPU (its eager step leaves it
 mostly idle) then each get an ``--out`` holding links to these splits. Rerunning with the same ``--out``
 resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of
@@ -76,7 +78,7 @@ def copy_exports(folder: Path, destination: Path) -> None:
 
 def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
     """The medium demo fitted to ``args.minutes``, and the run it makes: the population code alone, with the
-    data, compile and box-noise choices of ``args`` (``None``: the medium size's)."""
+    data, compile, box-noise and scene-share choices of ``args`` (``None``: the medium size's)."""
     demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
     config = demo.pipeline.config
     config = replace(config, train=replace(config.train, compile=args.compile))
@@ -86,7 +88,8 @@ def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
         config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
     size = replace(demo.pipeline, representations=(POPCODE,), config=config,
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
-                   train_scenes=args.scenes or demo.pipeline.train_scenes)
+                   train_scenes=args.scenes or demo.pipeline.train_scenes,
+                   scene_share=demo.pipeline.scene_share if args.scene_share is None else args.scene_share)
     return demo, size
 
 
@@ -102,6 +105,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
     parser.add_argument("--box-noise-p", type=float, metavar="P",
                         help="share of the crops cut from detector-like boxes instead of the medium size's")
+    parser.add_argument("--scene-share", type=float, metavar="S",
+                        help="share of an epoch's crops cut from the training scenes instead of the medium size's")
     parser.add_argument("--network", choices=list(NETWORKS),
                         help="the network to train instead of the medium size's (bench.training.NETWORKS)")
     parser.add_argument("--render-only", action="store_true", help="render the data into --out and stop")
@@ -110,6 +115,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--minutes must be positive, not {args.minutes}")
     if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
         parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
+    if args.scene_share is not None and not 0.0 < args.scene_share < 1.0:
+        parser.error(f"--scene-share must lie in (0, 1), not {args.scene_share}")
     started = time.perf_counter()
     with bad_input_exits("shipped_models"):  # the renders stay for a rerun
         return _train(args, parser, started, list(sys.argv[1:] if argv is None else argv))

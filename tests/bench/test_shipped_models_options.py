@@ -15,7 +15,7 @@ from popcode_trainer.demo.run import DEMO_SIZES
 
 def _args(**changes: object) -> argparse.Namespace:
     values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None,
-              "network": None}
+              "scene_share": None, "network": None}
     return argparse.Namespace(**{**values, **changes})
 
 
@@ -26,6 +26,7 @@ def test_defaults_are_the_medium_recipe_of_the_population_code_alone() -> None:
     assert size.representations == ("population_code",)
     assert size.config.data == medium.config.data
     assert (size.train_images_per_object, size.train_scenes) == (medium.train_images_per_object, medium.train_scenes)
+    assert size.scene_share == medium.scene_share
 
 
 def test_box_noise_share_and_data_changes_reach_the_config() -> None:
@@ -34,6 +35,13 @@ def test_box_noise_share_and_data_changes_reach_the_config() -> None:
     assert size.config.data.box_noise_p == 0.75
     assert size.config.data.box_noise == medium.config.data.box_noise  # the preset stays the recipe's
     assert (size.train_images_per_object, size.train_scenes) == (100, 2400)
+
+
+def test_a_scene_share_changes_the_mix_alone() -> None:
+    medium = DEMO_SIZES["medium"].pipeline
+    _, size = shipped_size(_args(scene_share=0.5))
+    assert size.scene_share == 0.5 != medium.scene_share
+    assert (size.config, size.train_scenes) == (medium.config, medium.train_scenes)
 
 
 def test_a_named_network_replaces_the_recipe_network_alone() -> None:
@@ -45,6 +53,7 @@ def test_a_named_network_replaces_the_recipe_network_alone() -> None:
 
 
 @pytest.mark.parametrize("option", [["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
+                                    ["--scene-share", "0"], ["--scene-share", "1"], ["--scene-share", "nan"],
                                     ["--minutes", "0"], ["--network", "huge"]])
 def test_bad_values_exit_2_before_any_file_is_written(option: list[str], tmp_path: Path,
                                                       capsys: pytest.CaptureFixture[str]) -> None:

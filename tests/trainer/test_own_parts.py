@@ -160,6 +160,8 @@ def test_step_by_step(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert first.image_path == image and first.obj_id == 1
     info = json.loads((image.parents[1] / "scene_gt_info.json").read_text())["0"][0]
     predict[predict.index("--box") + 1] = ",".join(str(v) for v in info["bbox_obj"])
+    K = json.loads((image.parents[1] / "scene_camera.json").read_text())["0"]["cam_K"]
+    assert predict[predict.index("--K") + 1] == f"{K[0]:g},{K[4]:g},{K[2]:g},{K[5]:g}", "README's K: not the render's"
     capsys.readouterr()
     assert runtime_main(predict[1:] + ["--json"]) == 0
     (prediction,) = json.loads(capsys.readouterr().out)["predictions"]

@@ -13,7 +13,7 @@ import numpy as np
 from popcode_runtime.benchmark import BENCH_IMAGE_SHAPE, machine_description
 from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.files import write_bytes_atomic
-from popcode_runtime.metadata import Representation
+from popcode_runtime.metadata import Representation, RotationFrame
 
 from ..eval.pipeline.evaluate import MethodResult
 from ..eval.pipeline.split import EvalSplit
@@ -186,6 +186,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
     example_objects = example_metadata.objects
     instance = next(inst for inst in run.split.instances if inst.obj_id in example_objects)
     box = ",".join(f"{v:g}" for v in instance.box)
+    camera = (f" --K {instance.K[0, 0]:g},{instance.K[1, 1]:g},{instance.K[0, 2]:g},{instance.K[1, 2]:g}"
+              if example_metadata.rotation_frame == RotationFrame.ALLOCENTRIC else "")
     eval_report = run.out_dir / "eval" / REPORT_MD
     return "\n\n".join(part for part in [
         f"# popcode demo (`--size {run.size_name}`)",
@@ -201,7 +203,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
         f"```bash\npopcode info {run.link(example)}\n"
         f"popcode predict {run.link(example)} {run.link(instance.image_path)} --box {box} "
-        f"--obj-id {instance.obj_id} --top-k 2\n```",
+        f"--obj-id {instance.obj_id}{camera} --top-k 2\n```",
         "## Accuracy (rotation from the model, translation from the ground truth: the paper's protocol)\n\n"
         f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
         + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import Representation
+from popcode_runtime.metadata import Representation, RotationFrame
 from popcode_runtime.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
 
@@ -96,13 +96,15 @@ def small_config(epochs: int, n_axes: int, n_angles: int, network: NetworkConfig
     run, no data-loader workers and the population code trained with MSE plus cross entropy (it learns parts
     without symmetry, which MSE alone does not at this budget, and keeps MSE's accuracy on symmetric ones:
     bench/results/recipe.md); sigma is narrowed where a part's symmetric peaks would merge
-    (:mod:`popcode_trainer.train.code_sigma`).
+    (:mod:`popcode_trainer.train.code_sigma`). Rotations are allocentric, as the crop shows them: a crop cannot
+    tell how far off the optical axis its part lay, which egocentric targets need (bench/results/rotation-frame.md).
 
     ``box_noise``: ``data.box_noise`` and ``data.box_noise_p`` (training crops from detector-like boxes).
     ``train`` overrides further :class:`~popcode_trainer.train.config.TrainConfig` fields.
     """
     train_config = TrainConfig(**{"epochs": epochs, "batch_size": 32, "lr": 1e-3, "schedule": "anneal",
-                                  "loss": "mse+cross_entropy", **train})
+                                  "loss": "mse+cross_entropy",
+                                  "rotation_frame": RotationFrame.ALLOCENTRIC, **train})
     code = CodeConfig(n_axes, n_angles, sigma_deg, sigma_from_symmetries=True)
     data = DataConfig(num_workers=0, box_noise=box_noise[0], box_noise_p=box_noise[1])
     return Config(data=data, code=code, network=network, train=train_config)
