@@ -87,16 +87,17 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     shipped = MODELS / "builtin-parts-3-6.onnx"
     sample = next(s for s in json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]
                   if s["obj_id"] == 3)
-    box = ",".join(f"{v:g}" for v in sample["box"])
+    box, K = (",".join(f"{v:g}" for v in sample[key]) for key in ("box", "K"))  # K: allocentric models need it
     picture = tmp_path / "estimate.png"
     result = subprocess.run([str(popcode), "predict", str(shipped), str(MODELS / "samples" / sample["image"]),
-                             "--box", box, "--obj-id", "3", "--top-k", "2", "--json", "--draw", str(picture)],
+                             "--box", box, "--K", K, "--obj-id", "3", "--top-k", "2", "--json", "--draw", str(picture)],
                             capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert cv2.imread(str(picture)).shape == (128, 128, 3)  # the picture of the estimate, drawn by the runtime alone
     R_venv = np.array(json.loads(result.stdout)["predictions"][0]["R_m2c"])
     assert 0.0 <= json.loads(result.stdout)["predictions"][0]["confidence"] <= 1.0  # the shipped calibrator
-    R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]])[0].R_m2c
+    R_here = PoseEstimator(shipped).predict(read_image(MODELS / "samples" / sample["image"]), [sample["box"]],
+                                              K=sample["K"])[0].R_m2c
     assert np.allclose(R_venv, R_here, atol=1e-5)
 
     # popcode run over a BOP split of the shipped samples and their boxes as detections, with the runtime alone.

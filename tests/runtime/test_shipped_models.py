@@ -77,5 +77,6 @@ def test_shipped_models_carry_a_calibrated_confidence() -> None:
     for sample in samples():
         estimator = PoseEstimator(owners[sample["obj_id"]])
         image = read_image(SAMPLES.parent / sample["image"])
-        confidences.append(estimator.predict(image, [sample["box"]], obj_ids=[sample["obj_id"]])[0].confidence)
+        prediction = estimator.predict(image, [sample["box"]], K=sample["K"], obj_ids=[sample["obj_id"]])[0]
+        confidences.append(prediction.confidence)
     assert all(0.0 <= c <= 1.0 for c in confidences) and len(set(confidences)) == len(confidences)
