@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from popcode_runtime.crop import read_image
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.image_loop import group_by_image
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.crop import read_image
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.inference.image_loop import group_by_image
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table

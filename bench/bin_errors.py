@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop_split import scene_folders, scene_ground_truth, split_images
-from popcode_runtime.crop import read_image
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.split import scene_folders, scene_ground_truth, split_images
+from popcode_runtime.geometry.crop import read_image
+from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_trainer.data.bop import gt_rotation
 from popcode_trainer.data.box_noise import box_intersection
 from popcode_trainer.eval.reporting.markdown import markdown_table

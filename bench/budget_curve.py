@@ -24,8 +24,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_json_atomic
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.eval.pipeline.evaluate import evaluate_models
 from popcode_trainer.eval.pipeline.models import methods_from_paths

@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import NoReturn
 
-from popcode_runtime.errors import PopcodeError, first_line
+from popcode_runtime.base.errors import PopcodeError, first_line
 
 
 @contextmanager

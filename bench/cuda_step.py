@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from popcode_runtime.errors import first_line
+from popcode_runtime.base.errors import first_line
 from popcode_trainer.demo.parts import builtin_parts
 from popcode_trainer.demo.steps import small_config
 from popcode_trainer.eval.reporting.markdown import markdown_table

@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.depth import TranslationSource, check_depth, object_surface, read_depth
-from popcode_runtime.depth_pose import pose_with_depth
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.depth.placement import pose_with_depth
+from popcode_runtime.depth.surface_fit import TranslationSource, check_depth, object_surface, read_depth
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.data.hull import with_hull_points
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split

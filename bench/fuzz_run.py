@@ -2,13 +2,13 @@
 rows its inputs ask for, or refuse in one line (exit 2). Anything else is counted as unhandled.
 
 Each call copies a small rendered split into a fresh folder, applies 1-3 random mutations
-(:mod:`bench.run_mutations`) to what ``popcode run`` reads — the detections JSON, the split's JSON files, images
-and folder names, the ``<out>.partial`` of an interrupted run, the options — and calls
-``popcode_runtime.cli.main`` in-process under a watchdog. A call either starts afresh, resumes the partial file of
-a killed run, or interrupts a run itself (``KeyboardInterrupt`` while reading an image: exit 130) and resumes it,
-maybe after one more mutation. Unhandled: an exception out of ``main``, a hang, another exit code, more than one
-error line, a warning or a library's own line on stderr, a temporary file left, and results that do not read
-back, hold rows of images or objects that do not exist or values popcode never writes, are not the rows the
+(:mod:`bench.run_mutations`) to what ``popcode run`` reads — the detections JSON, the split's JSON files, images and
+folder names, the ``<out>.partial`` of an interrupted run, the options — and calls
+``popcode_runtime.commands.cli.main`` in-process under a watchdog. A call either starts afresh, resumes the partial
+file of a killed run, or interrupts a run itself (``KeyboardInterrupt`` while reading an image: exit 130) and
+resumes it, maybe after one more mutation. Unhandled: an exception out of ``main``, a hang, another exit code, more
+than one error line, a warning or a library's own line on stderr, a temporary file left, and results that do not
+read back, hold rows of images or objects that do not exist or values popcode never writes, are not the rows the
 detections ask for, or (for a resumed run) differ from a fresh run's on the same inputs. The suite runs a short
 fixed-seed fuzz; this script runs a long one and records it:
 
@@ -41,15 +41,15 @@ from typing import Any
 
 import numpy as np
 
-import popcode_runtime.image_loop as image_loop
+import popcode_runtime.inference.image_loop as image_loop
 from bench.command import run_command
 from bench.fuzz import pick
 from bench.run_mutations import MUTATIONS, Call, apply, real, regular, write_inputs
 from popcode_runtime import PoseEstimator
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.cli import main as popcode
-from popcode_runtime.detections import ground_truth_boxes
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.bop.detections import ground_truth_boxes
+from popcode_runtime.commands.cli import main as popcode
 from popcode_trainer.train.deadline import deadline
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"

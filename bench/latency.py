@@ -47,12 +47,12 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from popcode_runtime.benchmark import benchmark_estimator, summarize, time_calls
-from popcode_runtime.decoding import DECODERS, decode_output
-from popcode_runtime.engine import OnnxEngine, onnx_session
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import INPUT_NAME, ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.inference.benchmark import benchmark_estimator, summarize, time_calls
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.decoding import DECODERS, decode_output
+from popcode_runtime.model.engine import OnnxEngine, onnx_session
+from popcode_runtime.model.metadata import INPUT_NAME, ModelMetadata, Representation
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo.steps import SMALL_NETWORK
 from popcode_trainer.eval.reporting.markdown import markdown_table

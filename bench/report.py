@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 
-from popcode_runtime.benchmark import machine_description
+from popcode_runtime.inference.benchmark import machine_description
 
 
 def machine() -> dict[str, Any]:

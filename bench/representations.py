@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from popcode_runtime.benchmark import machine_description
-from popcode_runtime.metadata import Representation
-from popcode_runtime.symmetries import SymmetryClass, symmetry_class
+from popcode_runtime.geometry.symmetries import SymmetryClass, symmetry_class
+from popcode_runtime.inference.benchmark import machine_description
+from popcode_runtime.model.metadata import Representation
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.demo.steps import (

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from popcode_runtime.files import write_json_atomic
+from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.data.scene_render import render_cluttered_test_split

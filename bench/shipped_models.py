@@ -35,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-from popcode_runtime.files import write_json_atomic
+from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
 from popcode_trainer.demo.report import POPCODE

@@ -51,8 +51,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
-from popcode_runtime.population_code import CodeLayout
-from popcode_runtime.refine import refine_angle
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.coding.refine import refine_angle
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.network import ToyNet, ToyNetworkConfig
 

@@ -4,7 +4,7 @@
 
 Renders the built-in parts at random positions and places every instance with
 its ground-truth rotation through the runtime's fit
-(``popcode_runtime.translation``, via ``popcode_trainer.eval.pipeline.translation``): the
+(``popcode_runtime.geometry.translation``, via ``popcode_trainer.eval.pipeline.translation``): the
 floor under any model's translation error. Rows compare the points the fit
 uses, the hull points the export writes against the 3-D box corners (what a
 model exported without meshes carries), on the rendered ``bbox_obj``; the hull
@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.camera import project_points
-from popcode_runtime.crop import box_from_edges
+from popcode_runtime.geometry.camera import project_points
+from popcode_runtime.geometry.crop import box_from_edges
 from popcode_trainer.data.bop import Instance
 from popcode_trainer.data.hull import HULL_POINTS, with_hull_points
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split

@@ -36,7 +36,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull, Delaunay
 
-from popcode_runtime.files import write_bytes_atomic, write_json_atomic
+from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.data.objects import Z_AXIS, model_info, revolve, rotation_4x4
 
 from .command import run_command

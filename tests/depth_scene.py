@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 
 K = np.array([[600.0, 0.0, 159.5], [0.0, 600.0, 119.5], [0.0, 0.0, 1.0]])
 SHAPE = (240, 320)  # (H, W)

@@ -20,10 +20,10 @@ import numpy as np
 from symmetry_cases import CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PoseEstimator, parse_camera_matrix, read_image
-from popcode_runtime.cli import main
-from popcode_runtime.confidence import FEATURES, Calibrator
-from popcode_runtime.crop import crop_square
-from popcode_runtime.depth import read_depth
+from popcode_runtime.coding.confidence import FEATURES, Calibrator
+from popcode_runtime.commands.cli import main
+from popcode_runtime.depth.surface_fit import read_depth
+from popcode_runtime.geometry.crop import crop_square
 
 LAYOUT = CodeLayout(n_axes=42, n_angles=12)
 OBJECT = {**CASES["two_fold"], "hull_points_mm": [[x, y, z] for x in (-40, 40) for y in (-40, 40) for z in (-30, 30)]}

@@ -18,8 +18,8 @@ from onnx import TensorProto, helper
 from onnx_models import ONNX_IR_VERSION, ONNX_OPSET, linear_model
 
 from popcode_runtime import ModelMetadata, PopulationCode, Representation, symmetry_rotations
-from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME
-from popcode_runtime.rotations import matrix_to_sixd, random_rotations
+from popcode_runtime.geometry.rotations import matrix_to_sixd, random_rotations
+from popcode_runtime.model.metadata import INPUT_NAME, OUTPUT_NAME
 
 _NON_UTF8_MARK = "Z" * 16
 

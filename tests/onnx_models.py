@@ -13,7 +13,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+from popcode_runtime.model.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
 ONNX_OPSET = 17

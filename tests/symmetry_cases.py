@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 
 
 def _flat(axis, angle_rad, t_mm=(0.0, 0.0, 0.0)) -> list[float]:

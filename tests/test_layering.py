@@ -3,8 +3,9 @@
 Every import statement of the two packages is read (function-level ones too,
 since a lazy import is still an arrow) and checked against the rooms' order:
 the runtime needs nothing of the trainer and nothing beyond numpy, onnxruntime
-and OpenCV; inside the trainer each room imports only the rooms below it, the
-metrics are a pure numpy leaf, and no module reaches itself through its imports.
+and OpenCV; inside each package every room imports only the rooms below it, the
+trainer's metrics are a pure numpy leaf, and no module reaches itself through
+its imports.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RUNTIME = ROOT / "runtime" / "popcode_runtime"
 TRAINER = ROOT / "trainer" / "popcode_trainer"
 
-# Lowest first: a room may import itself and the rooms before it (and the runtime), nothing after it.
+# Lowest first: a room may import itself and the rooms before it (the trainer's also the runtime), nothing after it.
+RUNTIME_ROOMS = ("base", "geometry", "coding", "depth", "bop", "model", "inference", "commands")
 TRAINER_ROOMS = ("metrics", "data", "train", "export", "eval", "demo", "commands")
 # Inside eval the same rule: the pipeline computes results, reporting only writes them.
 EVAL_PARTS = ("pipeline", "reporting")
@@ -70,24 +72,57 @@ TRAINER_IMPORTS = modules_of(TRAINER)
 TRAINER_MODULES = set(TRAINER_IMPORTS)
 
 
+RUNTIME_MODULES = set(RUNTIME_IMPORTS)
+
+
 def room_of(module: str) -> str:
-    """``popcode_trainer.<room>...``: the room, or '' for the package's own top-level modules (cli, __init__)."""
+    """``<package>.<room>...``: the room, or '' for a package's own top-level modules (cli, __init__)."""
     parts = module.split(".")
-    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in TRAINER_ROOMS) else ""
+    rooms = RUNTIME_ROOMS if parts[0] == "popcode_runtime" else TRAINER_ROOMS
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in rooms) else ""
+
+
+def arrows(imports: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(importer, imported module of the same package) for every import inside one package."""
+    modules = set(imports)
+    return [(source, target) for source, targets in imports.items() for target in sorted(targets)
+            if target in modules]
 
 
 def trainer_arrows() -> list[tuple[str, str]]:
-    """(importer, imported module of the trainer) for every import inside the trainer."""
-    return [(source, target) for source, targets in TRAINER_IMPORTS.items() for target in sorted(targets)
-            if target in TRAINER_MODULES]
+    return arrows(TRAINER_IMPORTS)
+
+
+def against_the_order(imports: dict[str, set[str]], rooms: tuple[str, ...]) -> list[str]:
+    """The arrows from a room to a room above it."""
+    return [f"{source} -> {target}" for source, target in arrows(imports)
+            if room_of(source) and room_of(target) and rooms.index(room_of(target)) > rooms.index(room_of(source))]
 
 
 def test_the_layering_reads_every_module():
     # A parser that found nothing would let every rule below pass.
-    assert {"popcode_runtime.estimator", "popcode_trainer.train.loop", "popcode_trainer.metrics.pose_errors"} \
-        <= set(RUNTIME_IMPORTS) | TRAINER_MODULES
+    assert {"popcode_runtime.inference.estimator", "popcode_trainer.train.loop",
+            "popcode_trainer.metrics.pose_errors"} <= RUNTIME_MODULES | TRAINER_MODULES
     assert ("popcode_trainer.demo.run", "popcode_trainer.eval.pipeline.evaluate") in trainer_arrows()
     assert {room_of(module) for module in TRAINER_MODULES} == {*TRAINER_ROOMS, ""}
+    assert ("popcode_runtime.inference.estimator", "popcode_runtime.model.engine") in arrows(RUNTIME_IMPORTS)
+    assert {room_of(module) for module in RUNTIME_MODULES} == {*RUNTIME_ROOMS, ""}
+
+
+def test_against_the_order_finds_an_upward_arrow():
+    upward = {"popcode_runtime.base.files": {"popcode_runtime.model.engine"}, "popcode_runtime.model.engine": set()}
+    assert against_the_order(upward, RUNTIME_ROOMS) == ["popcode_runtime.base.files -> popcode_runtime.model.engine"]
+
+
+def test_every_runtime_module_is_in_a_room():
+    # the package's own top level holds only what a user imports from it: the public API
+    loose = sorted(module for module in RUNTIME_MODULES if not room_of(module) and module != "popcode_runtime")
+    assert not loose, f"runtime modules outside the rooms {RUNTIME_ROOMS}: {loose}"
+
+
+def test_runtime_rooms_import_only_the_rooms_below_them():
+    wrong = against_the_order(RUNTIME_IMPORTS, RUNTIME_ROOMS)
+    assert not wrong, "arrows against docs/architecture.md's layering of the runtime:\n" + "\n".join(wrong)
 
 
 @pytest.mark.parametrize("module", sorted(RUNTIME_IMPORTS))
@@ -98,12 +133,9 @@ def test_runtime_needs_only_numpy_onnxruntime_and_opencv(module):
 
 
 def test_rooms_import_only_the_rooms_below_them():
-    wrong = []
+    wrong = against_the_order(TRAINER_IMPORTS, TRAINER_ROOMS)
     for source, target in trainer_arrows():
-        source_room, target_room = room_of(source), room_of(target)
-        if source_room and target_room and TRAINER_ROOMS.index(target_room) > TRAINER_ROOMS.index(source_room):
-            wrong.append(f"{source} -> {target}")
-        if source_room == target_room == "eval":
+        if room_of(source) == room_of(target) == "eval":
             source_part, target_part = source.split(".")[2], target.split(".")[2]
             if target_part in EVAL_PARTS and source_part in EVAL_PARTS and \
                     EVAL_PARTS.index(target_part) > EVAL_PARTS.index(source_part):

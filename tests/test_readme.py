@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from popcode_runtime.cli import build_parser as runtime_parser
-from popcode_runtime.cli import main as runtime_main
+from popcode_runtime.commands.cli import build_parser as runtime_parser
+from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.cli import build_parser as trainer_parser
 
 ROOT = Path(__file__).resolve().parents[1]

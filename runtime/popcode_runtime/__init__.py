@@ -8,13 +8,13 @@ from pathlib import Path
 
 __version__ = (Path(__file__).parent / "VERSION").read_text(encoding="utf-8").strip()  # the one place: VERSION
 
-from .camera import parse_camera_matrix
-from .crop import crop_batch, crop_square, read_image, to_grey
-from .errors import PopcodeError
-from .estimator import PoseEstimator, Prediction
-from .metadata import ModelMetadata, Representation, RotationFrame
-from .population_code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
-from .symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
+from .base.errors import PopcodeError
+from .coding.population_code import CodeLayout, DecodedRotations, PopulationCode, fibonacci_lattice
+from .geometry.camera import parse_camera_matrix
+from .geometry.crop import crop_batch, crop_square, read_image, to_grey
+from .geometry.symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
+from .inference.estimator import PoseEstimator, Prediction
+from .model.metadata import ModelMetadata, Representation, RotationFrame
 
 __all__ = [
     "CodeLayout",

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from bench.command import run_command
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -10,10 +10,10 @@ import pytest
 from onnx_models import linear_model, save
 
 from bench import agreement, budget_curve, latency, scene_render, toy_orientation, training, translation
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import random_rotations
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.rotations import random_rotations
+from popcode_runtime.geometry.symmetries import symmetry_rotations
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.train import allocator, fast_path

@@ -10,10 +10,10 @@ import pytest
 from onnx_models import linear_model, save
 
 from bench.bin_errors import FLIP_DEG, GROSS_DEG, NEIGHBOUR_DEG, _box_overlap, main, summary
-from popcode_runtime.bop_split import scene_folders, scene_ground_truth
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import geodesic_angle
+from popcode_runtime.bop.split import scene_folders, scene_ground_truth
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.rotations import geodesic_angle
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.data.scene_render import render_cluttered_test_split

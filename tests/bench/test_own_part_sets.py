@@ -15,7 +15,7 @@ import trimesh
 from bench import tuning_parts, validation_parts
 from bench.validation_parts import OwnPart
 from popcode_runtime import symmetry_transforms
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.near_symmetry import look_alike_symmetries

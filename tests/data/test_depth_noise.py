@@ -13,7 +13,7 @@ import pytest
 
 import popcode_trainer.data.scene_render as scene_module
 from popcode_runtime import PopcodeError
-from popcode_runtime.files import write_json_atomic
+from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.data.bop import RENDER_MARKER, is_scene_split, read_bop_split
 from popcode_trainer.data.depth_noise import (
     DEPTH_NOISE_PRESETS,

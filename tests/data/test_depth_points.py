@@ -7,8 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from popcode_runtime.depth import MAX_SURFACE_POINTS, check_depth, object_surface, read_depth, translation_from_depth
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.depth.surface_fit import (
+    MAX_SURFACE_POINTS,
+    check_depth,
+    object_surface,
+    read_depth,
+    translation_from_depth,
+)
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.hull import with_hull_points
 from popcode_trainer.data.objects import build_part, write_builtin_models

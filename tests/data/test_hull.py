@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from popcode_runtime.camera import project_points
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.geometry.camera import project_points
+from popcode_runtime.geometry.rotations import random_rotations
 from popcode_trainer.data.hull import HULL_POINTS, hull_points_mm, hull_vertices_mm, with_hull_points
 from popcode_trainer.data.objects import build_part, write_builtin_models
 from popcode_trainer.data.render import camera_matrix

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.data import symmetry_check
 from popcode_trainer.data.near_symmetry import LookAlike, look_alike_rotations, look_alike_symmetries
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info

@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 from popcode_runtime import symmetry_rotations, symmetry_transforms
-from popcode_runtime.rotations import axis_angle_to_matrix, geodesic_angle
-from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, geodesic_angle
+from popcode_runtime.geometry.symmetries import SymmetryClass, continuous_axis, symmetry_class
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, write_builtin_models
 

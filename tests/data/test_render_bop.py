@@ -12,7 +12,7 @@ import pytest
 
 import popcode_trainer.data.render as render_module
 from popcode_runtime import PopcodeError
-from popcode_runtime.camera import project_points
+from popcode_runtime.geometry.camera import project_points
 from popcode_trainer.data.bop import load_models_info, read_bop_split
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh

@@ -12,7 +12,7 @@ import trimesh
 
 import popcode_trainer.data.scene_render as scene_module
 from popcode_runtime import PopcodeError
-from popcode_runtime.files import write_bytes_atomic, write_json_atomic
+from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.gl import DepthRenderer

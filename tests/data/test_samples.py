@@ -13,7 +13,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from popcode_runtime import CodeLayout, PopcodeError, read_image
-from popcode_runtime.crop import crop_square
+from popcode_runtime.geometry.crop import crop_square
 from popcode_trainer.cli import main
 from popcode_trainer.data import samples
 from popcode_trainer.data.augment import Augmentation, Backgrounds, procedural_texture

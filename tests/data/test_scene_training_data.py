@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from popcode_runtime import PopcodeError
-from popcode_runtime.crop import crop_square, read_image
+from popcode_runtime.geometry.crop import crop_square, read_image
 from popcode_trainer.data import crop_cache
 from popcode_trainer.data.augment import Augmentation
 from popcode_trainer.data.bop import read_bop_split

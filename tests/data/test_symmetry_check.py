@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.data import symmetry_check
 from popcode_trainer.data.hull import with_hull_points
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info

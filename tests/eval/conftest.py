@@ -9,8 +9,8 @@ import pytest
 from onnx_models import linear_model, save
 from scene_fixtures import SCENE_OBJECTS, SCENE_SIZE, scene_objects
 
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.data.scene_render import render_cluttered_test_split
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import pdist
 
-from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
+from popcode_runtime.geometry.symmetries import SymmetryTransforms, symmetry_transforms
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.eval.pipeline.instance_errors import ObjectModel, compute_instance_errors

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.data.box_noise import (
     BOX_NOISE_PRESETS,
     IOU_BINS,

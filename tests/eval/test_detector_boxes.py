@@ -17,13 +17,13 @@ import pytest
 from onnx_models import linear_model, save
 from scene_fixtures import SCENE_SIZE, scene_objects
 
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.cli import main as popcode_main
-from popcode_runtime.detections import read_detections
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import matrix_to_sixd
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.bop.detections import read_detections
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.commands.cli import main as popcode_main
+from popcode_runtime.geometry.rotations import matrix_to_sixd
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.cli import main
 from popcode_trainer.data.box_noise import IOU_BINS, box_iou, box_noise_preset, iou_bin_label
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
+from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_trainer.cli import main
 from popcode_trainer.data.hull import HULL_POINTS
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split

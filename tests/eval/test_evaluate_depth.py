@@ -14,11 +14,11 @@ from onnx_models import linear_model, save
 from scene_fixtures import scene_objects
 
 from popcode_runtime import read_image
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.depth import read_depth
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.depth.surface_fit import read_depth
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.cli import main
 from popcode_trainer.data.hull import with_hull_points
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER

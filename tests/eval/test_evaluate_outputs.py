@@ -22,11 +22,11 @@ from scene_fixtures import SCENE_OBJECTS, scene_objects
 from bench.tuning_parts import TUNING_PARTS
 from bench.validation_parts import write_models
 from popcode_runtime import PoseEstimator, read_image
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout
-from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_sixd, random_rotations
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, matrix_to_sixd, random_rotations
+from popcode_runtime.geometry.symmetries import symmetry_rotations
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 from popcode_trainer.cli import main
 from popcode_trainer.data.objects import rotation_4x4
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, RenderSettings, render_split

@@ -6,9 +6,9 @@ import numpy as np
 from box_render import box_depth_renderer
 from symmetry_cases import CASES
 
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import axis_angle_to_matrix
-from popcode_runtime.symmetries import symmetry_transforms
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.symmetries import symmetry_transforms
 from popcode_trainer.eval.pipeline.sensitivity import sensitivity_curves
 from popcode_trainer.eval.reporting.figures import axis_activations, plot_code_comparison, plot_sensitivity
 

@@ -7,8 +7,8 @@ import pytest
 from box_render import box_depth_renderer
 from symmetry_cases import CASES
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, random_rotations
 from popcode_trainer.eval.pipeline.instance_errors import ObjectModel, compute_instance_errors
 from popcode_trainer.metrics.pose_errors import mspd
 from popcode_trainer.metrics.recall import metric_scores

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from symmetry_cases import CASES
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
-from popcode_runtime.symmetries import symmetry_transforms
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.geometry.symmetries import symmetry_transforms
 from popcode_trainer.metrics import pose_errors as pose_error
 from popcode_trainer.metrics.pose_errors import (
     add,

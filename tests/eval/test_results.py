@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from popcode_runtime.bop19_csv import HEADER, PoseEstimate, read_bop19_results, write_bop19_results
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.bop19_csv import HEADER, PoseEstimate, read_bop19_results, write_bop19_results
+from popcode_runtime.geometry.rotations import random_rotations
 
 
 def test_results_round_trip_exactly(tmp_path):

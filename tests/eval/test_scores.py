@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from symmetry_cases import CASES
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.eval.reporting.tables import (
     ambiguity_markdown,
     methods_markdown,

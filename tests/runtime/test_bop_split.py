@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from popcode_runtime import PopcodeError
-from popcode_runtime.bop_split import scene_ground_truth
-from popcode_runtime.detections import ground_truth_boxes
+from popcode_runtime.bop.detections import ground_truth_boxes
+from popcode_runtime.bop.split import scene_ground_truth
 
 R = [1, 0, 0, 0, 1, 0, 0, 0, 1]
 

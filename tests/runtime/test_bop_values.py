@@ -1,7 +1,7 @@
 """Values outside the BOP format's domain are refused in one line naming file and field, never coerced (issue 30).
 
-One bounded JSON reader (:func:`popcode_runtime.files.read_json`) and one reading of ids
-(:mod:`popcode_runtime.bop_split`) serve every reader, so these cases hold for ``popcode run``, evaluation and
+One bounded JSON reader (:func:`popcode_runtime.base.files.read_json`) and one reading of ids
+(:mod:`popcode_runtime.bop.split`) serve every reader, so these cases hold for ``popcode run``, evaluation and
 training alike.
 """
 
@@ -14,15 +14,15 @@ import cv2
 import numpy as np
 import pytest
 
-from popcode_runtime.bop_split import split_images
-from popcode_runtime.camera import parse_camera_matrix
-from popcode_runtime.checks import number
-from popcode_runtime.cli import main
-from popcode_runtime.confidence import FEATURES, Calibrator
-from popcode_runtime.detections import ground_truth_boxes, read_detections
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import read_json
-from popcode_runtime.translation import object_points_mm
+from popcode_runtime.base.checks import number
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import read_json
+from popcode_runtime.bop.detections import ground_truth_boxes, read_detections
+from popcode_runtime.bop.split import split_images
+from popcode_runtime.coding.confidence import FEATURES, Calibrator
+from popcode_runtime.commands.cli import main
+from popcode_runtime.geometry.camera import parse_camera_matrix
+from popcode_runtime.geometry.translation import object_points_mm
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 

@@ -3,8 +3,8 @@
 import cv2
 import numpy as np
 
-from popcode_runtime.camera import project_camera_points, project_points
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.geometry.camera import project_camera_points, project_points
+from popcode_runtime.geometry.rotations import random_rotations
 
 K = np.array([[612.3, 0.0, 319.7], [0.0, 608.9, 241.2], [0.0, 0.0, 1.0]])
 

@@ -8,8 +8,8 @@ from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
-from popcode_runtime.cli import main
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.commands.cli import main
+from popcode_runtime.geometry.rotations import random_rotations
 
 LAYOUT = CodeLayout(n_axes=162, n_angles=12)
 

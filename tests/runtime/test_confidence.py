@@ -10,9 +10,9 @@ from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PopulationCode, PoseEstimator, Representation
-from popcode_runtime.confidence import FEATURES, Calibrator, code_features, default_rival_radius_deg
-from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.coding.confidence import FEATURES, Calibrator, code_features, default_rival_radius_deg
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.geometry.symmetries import symmetry_rotations
 
 LAYOUT = CodeLayout(n_axes=162, n_angles=18)
 RADIUS_DEG = default_rival_radius_deg(LAYOUT)

@@ -32,12 +32,18 @@ from popcode_runtime import (
     Representation,
     batch,
 )
-from popcode_runtime.depth import TranslationSource, check_depth, depth_fit, object_surface, translation_from_depth
-from popcode_runtime.depth_pose import pose_with_depth
-from popcode_runtime.depth_refine import keep_symmetry_roll
-from popcode_runtime.rotations import axis_angle_to_matrix, geodesic_angle
-from popcode_runtime.symmetries import symmetry_transforms
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.depth.icp import keep_symmetry_roll
+from popcode_runtime.depth.placement import pose_with_depth
+from popcode_runtime.depth.surface_fit import (
+    TranslationSource,
+    check_depth,
+    depth_fit,
+    object_surface,
+    translation_from_depth,
+)
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, geodesic_angle
+from popcode_runtime.geometry.symmetries import symmetry_transforms
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
 
 INFO = bracket_info()
 SURFACE, HULL = object_surface(INFO), object_points_mm(INFO)
@@ -178,8 +184,8 @@ def test_the_runtime_needs_small_gicp_only_to_refine(exact_model, monkeypatch):
     with pytest.raises(PopcodeError, match=r"needs small_gicp: pip install \./runtime\[depth\]"):
         estimator.predict(image, [box], K=K, depth=depth, depth_scale=DEPTH_SCALE, refine_depth=True)
     assert estimator.predict(image, [box], K=K, depth=depth, depth_scale=DEPTH_SCALE)[0].t_source == "depth"
-    imports = subprocess.run([sys.executable, "-c", "import sys, popcode_runtime.cli, popcode_runtime.depth_refine; "
-                              "print('small_gicp' in sys.modules)"], capture_output=True, text=True, check=True)
+    script = "import sys, popcode_runtime.commands.cli, popcode_runtime.depth.icp; print('small_gicp' in sys.modules)"
+    imports = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert imports.stdout.strip() == "False"  # imported only when a refinement runs
 
 

@@ -13,8 +13,8 @@ import pytest
 from symmetry_cases import BASE, CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PoseEstimator, Representation, read_image
-from popcode_runtime.cli import main
-from popcode_runtime.drawing import (
+from popcode_runtime.commands.cli import main
+from popcode_runtime.commands.drawing import (
     AXIS_COLOURS_BGR,
     AXIS_LENGTH_OF_BOX,
     BOX_COLOUR_BGR,
@@ -23,9 +23,9 @@ from popcode_runtime.drawing import (
     draw_predictions,
     estimate_label,
 )
-from popcode_runtime.estimator import Prediction
-from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotvec_to_matrix
-from popcode_runtime.symmetries import continuous_axis, discrete_transforms
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotvec_to_matrix
+from popcode_runtime.geometry.symmetries import continuous_axis, discrete_transforms
+from popcode_runtime.inference.estimator import Prediction
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 SAMPLES = json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]

@@ -12,7 +12,7 @@ from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopcodeError, PoseEstimator, Representation, RotationFrame
-from popcode_runtime.engine import OnnxEngine, onnx_session
+from popcode_runtime.model.engine import OnnxEngine, onnx_session
 
 LAYOUT = CodeLayout(n_axes=162, n_angles=36)
 K = [1075.65, 1073.90, 360.0, 270.0]

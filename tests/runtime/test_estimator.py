@@ -14,8 +14,7 @@ from popcode_runtime import (
     RotationFrame,
     symmetry_rotations,
 )
-from popcode_runtime.decoding import quaternion_mean_shift
-from popcode_runtime.rotations import (
+from popcode_runtime.geometry.rotations import (
     geodesic_angle,
     matrix_to_quaternion,
     matrix_to_sixd,
@@ -25,6 +24,7 @@ from popcode_runtime.rotations import (
     rotation_between,
     rotvec_to_matrix,
 )
+from popcode_runtime.model.decoding import quaternion_mean_shift
 
 LAYOUT = CodeLayout(n_axes=642, n_angles=36)
 K = [1075.65, 1073.90, 360.0, 270.0]

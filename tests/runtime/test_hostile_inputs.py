@@ -15,8 +15,8 @@ from hostile_files import write_hostile_files
 
 from bench.fuzz import fuzz
 from popcode_runtime import PoseEstimator
-from popcode_runtime.cli import main
-from popcode_runtime.rotations import geodesic_angle
+from popcode_runtime.commands.cli import main
+from popcode_runtime.geometry.rotations import geodesic_angle
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,12 @@ import pytest
 from onnx_models import linear_model, save
 from symmetry_cases import CASES
 
-import popcode_runtime.image_loop as image_loop
+import popcode_runtime.inference.image_loop as image_loop
 from popcode_runtime import PopcodeError, PoseEstimator, read_image
-from popcode_runtime.image_loop import ImageBoxes, estimate_images, group_by_image
-from popcode_runtime.metadata import ModelMetadata, Representation
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.rotations import random_rotations
+from popcode_runtime.inference.image_loop import ImageBoxes, estimate_images, group_by_image
+from popcode_runtime.model.metadata import ModelMetadata, Representation
 
 LAYOUT = CodeLayout(n_axes=162, n_angles=12)
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])

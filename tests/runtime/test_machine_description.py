@@ -3,7 +3,7 @@ for the runtime's benchmark and the trainer's choice of a bf16 step."""
 
 from __future__ import annotations
 
-from popcode_runtime.benchmark import CPU_FLAGS, machine_description, parse_cpuinfo
+from popcode_runtime.inference.benchmark import CPU_FLAGS, machine_description, parse_cpuinfo
 
 X86 = """processor\t: 0
 vendor_id\t: AuthenticAMD

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-import popcode_runtime.batch as batch
-from popcode_runtime.cli import main
+import popcode_runtime.commands.run_batch as batch
+from popcode_runtime.commands.cli import main
 from popcode_trainer.data.render import render_builtin_split
 
 MODELS = Path(__file__).resolve().parents[2] / "models"

@@ -3,8 +3,8 @@ import pytest
 from symmetry_cases import AXIS_DIRECTIONS, CASES, DISCRETE_ORDER
 
 from popcode_runtime import CodeLayout, PopcodeError, PopulationCode, fibonacci_lattice, symmetry_rotations
-from popcode_runtime.rotations import geodesic_angle, matrix_to_axis_angle, random_rotations
-from popcode_runtime.symmetries import continuous_axis
+from popcode_runtime.geometry.rotations import geodesic_angle, matrix_to_axis_angle, random_rotations
+from popcode_runtime.geometry.symmetries import continuous_axis
 
 SMALL = {"n_axes": 642, "n_angles": 36, "sigma_deg": 20.0}
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from symmetry_cases import CASES
 
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.symmetries import symmetry_rotations
 
 N_AXES, N_ANGLES, SIGMA_DEG = 42, 12, 25.0
 

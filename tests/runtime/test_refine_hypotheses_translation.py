@@ -14,14 +14,14 @@ from popcode_runtime import (
     Representation,
     symmetry_rotations,
 )
-from popcode_runtime.camera import project_camera_points
-from popcode_runtime.crop import box_edges, box_from_edges
-from popcode_runtime.decoding import decode_output
-from popcode_runtime.hypotheses import argmax_tolerance_rad, find_hypotheses, same_pose
-from popcode_runtime.refine import decode_refined, lattice_neighbours
-from popcode_runtime.rotations import axis_angle_to_matrix, geodesic_angle, random_rotations
-from popcode_runtime.symmetries import continuous_axis
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.coding.hypotheses import argmax_tolerance_rad, find_hypotheses, same_pose
+from popcode_runtime.coding.refine import decode_refined, lattice_neighbours
+from popcode_runtime.geometry.camera import project_camera_points
+from popcode_runtime.geometry.crop import box_edges, box_from_edges
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, geodesic_angle, random_rotations
+from popcode_runtime.geometry.symmetries import continuous_axis
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
+from popcode_runtime.model.decoding import decode_output
 
 PAPER = CodeLayout()
 K = np.array([[1075.65, 0.0, 360.0], [0.0, 1073.9, 270.0], [0.0, 0.0, 1.0]])

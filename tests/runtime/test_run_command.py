@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import popcode_runtime.image_loop as image_loop
+import popcode_runtime.inference.image_loop as image_loop
 from popcode_runtime import PoseEstimator, read_image
-from popcode_runtime.bop19_csv import read_bop19_results
-from popcode_runtime.cli import main
-from popcode_runtime.detections import ground_truth_boxes
+from popcode_runtime.bop.bop19_csv import read_bop19_results
+from popcode_runtime.bop.detections import ground_truth_boxes
+from popcode_runtime.commands.cli import main
 from popcode_trainer.cli import main as trainer_main
 from popcode_trainer.data.render import render_builtin_split
 

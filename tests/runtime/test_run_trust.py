@@ -17,9 +17,9 @@ import numpy as np
 import onnx
 import pytest
 
-import popcode_runtime.image_loop as image_loop
+import popcode_runtime.inference.image_loop as image_loop
 from bench.fuzz_run import fuzz_run, prepare
-from popcode_runtime.cli import main
+from popcode_runtime.commands.cli import main
 from popcode_trainer.data.render import render_builtin_split
 
 MODELS = Path(__file__).resolve().parents[2] / "models"

@@ -22,7 +22,7 @@ from popcode_runtime import (
     read_image,
     symmetry_rotations,
 )
-from popcode_runtime.rotations import geodesic_angle, random_rotations
+from popcode_runtime.geometry.rotations import geodesic_angle, random_rotations
 
 RUNTIME_DIR = Path(__file__).resolve().parents[2] / "runtime"
 MODELS = RUNTIME_DIR.parent / "models"

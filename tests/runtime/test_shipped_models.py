@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from popcode_runtime import PoseEstimator, read_image
-from popcode_runtime.rotations import geodesic_angle
-from popcode_runtime.symmetries import symmetry_transforms
+from popcode_runtime.geometry.rotations import geodesic_angle
+from popcode_runtime.geometry.symmetries import symmetry_transforms
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 SAMPLES = MODELS / "samples" / "samples.json"

@@ -3,7 +3,7 @@ import pytest
 from symmetry_cases import CASES
 
 from popcode_runtime import PopcodeError, SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
-from popcode_runtime.symmetries import continuous_axis
+from popcode_runtime.geometry.symmetries import continuous_axis
 
 
 def test_classes():

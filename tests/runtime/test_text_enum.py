@@ -2,8 +2,8 @@
 
 import json
 
-from popcode_runtime.metadata import Representation, RotationFrame
-from popcode_runtime.symmetries import SymmetryClass
+from popcode_runtime.geometry.symmetries import SymmetryClass
+from popcode_runtime.model.metadata import Representation, RotationFrame
 
 
 def test_members_print_and_serialise_as_their_value() -> None:

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.geometry.rotations import random_rotations
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 # Three arms of different lengths from the origin: no rotation maps the shape onto itself.

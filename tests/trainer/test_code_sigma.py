@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from symmetry_cases import BASE, CASES, _flat
 
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.refine import decode_refined
-from popcode_runtime.rotations import random_rotations
-from popcode_runtime.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.coding.refine import decode_refined
+from popcode_runtime.geometry.rotations import random_rotations
+from popcode_runtime.geometry.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
 from popcode_trainer.train import code_sigma
 from popcode_trainer.train.code_sigma import exact_decoding_errors_deg, fit_sigma, merged_peaks, sigma_floor_deg
 from popcode_trainer.train.representations import build_representation

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from test_export import trained_checkpoint
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.cli import main
 from popcode_trainer.train.config import Config, load_config
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from popcode_runtime import PoseEstimator, read_image
-from popcode_runtime.confidence import FEATURES
+from popcode_runtime.coding.confidence import FEATURES
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.render import render_builtin_split

@@ -16,7 +16,7 @@ from test_export import calls_of
 
 from bench import compare_demos
 from popcode_runtime import PoseEstimator
-from popcode_runtime.cli import main as runtime_main
+from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.cli import main as cli_main
 from popcode_trainer.data import hull
 from popcode_trainer.data.render import render_builtin_split

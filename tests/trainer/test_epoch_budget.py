@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget, run
 from popcode_trainer.demo.group_codes import GroupCode

@@ -19,13 +19,13 @@ from symmetry_cases import CASES
 from synthetic import K, RotatedPoints, draw
 from tiny import tiny_config, tiny_data, tiny_representation
 
-from popcode_runtime.decoding import decode_output
-from popcode_runtime.engine import OnnxEngine
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.decoding import decode_output
+from popcode_runtime.model.engine import OnnxEngine
+from popcode_runtime.model.metadata import ModelMetadata, Representation, RotationFrame
 from popcode_trainer.cli import main
 from popcode_trainer.data import hull
 from popcode_trainer.data.bop import model_path

@@ -18,7 +18,7 @@ from hostile_files import write_hostile_files
 from onnx_models import linear_model, save
 
 from popcode_runtime import CodeLayout, ModelMetadata, PopulationCode, Representation, symmetry_rotations
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.cli import main
 from popcode_trainer.data.objects import model_info
 from popcode_trainer.train.checkpoint import TRAINED_KEYS

@@ -7,7 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.train.network import (
     ColumnBlockOutputLayer,
     NetworkConfig,

@@ -17,8 +17,8 @@ import trimesh
 from test_readme import README, bash_commands
 
 from popcode_runtime import PoseEstimator
-from popcode_runtime.cli import main as runtime_main
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.objects import BUILTIN_PARTS, model_info

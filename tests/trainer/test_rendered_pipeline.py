@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from popcode_runtime import PoseEstimator, read_image
-from popcode_runtime.rotations import geodesic_angle
+from popcode_runtime.geometry.rotations import geodesic_angle
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.render import render_builtin_split

@@ -9,9 +9,9 @@ import pytest
 import torch
 from symmetry_cases import CASES
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import Representation, RotationFrame
-from popcode_runtime.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import allocentric_to_egocentric, random_rotations, sixd_to_matrix
+from popcode_runtime.model.metadata import Representation, RotationFrame
 from popcode_trainer.train.config import Config
 from popcode_trainer.train.representations import (
     HYBRID_CE_WEIGHT,

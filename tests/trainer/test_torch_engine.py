@@ -9,8 +9,8 @@ import pytest
 from synthetic import K
 from test_export import pasted_frame, trained_checkpoint
 
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import RotationFrame
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.metadata import RotationFrame
 from popcode_trainer.eval.pipeline.models import load_model
 from popcode_trainer.export.onnx_export import export_checkpoint
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 from tiny import tiny_config, tiny_data, tiny_representation
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.model.metadata import Representation, RotationFrame
 from popcode_trainer.train import checkpoint
 from popcode_trainer.train.loop import train
 from popcode_trainer.train.run_files import BEST_CHECKPOINT, LAST_CHECKPOINT, METRICS_FILE, read_metrics

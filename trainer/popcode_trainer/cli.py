@@ -8,7 +8,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from popcode_runtime.cli import run_handler
+from popcode_runtime.commands.cli import run_handler
 
 from . import __version__
 

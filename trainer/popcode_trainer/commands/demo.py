@@ -7,7 +7,7 @@ import dataclasses
 import math
 from pathlib import Path
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 from ..demo.parts import BUILTIN
 from ..demo.report import REPORT_FILE

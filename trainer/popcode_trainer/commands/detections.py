@@ -10,9 +10,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT, BOX_KINDS
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import OVERWRITE_HELP, check_output_file, require_folder, write_json_atomic
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import OVERWRITE_HELP, check_output_file, require_folder, write_json_atomic
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.detector_boxes import detections_json, split_detections

@@ -6,12 +6,12 @@ import argparse
 import os
 from pathlib import Path
 
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.decoding import DECODERS
-from popcode_runtime.engine import check_threads
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import MAX_TOP_K
-from popcode_runtime.files import MAX_NAME_BYTES, OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import MAX_NAME_BYTES, OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
+from popcode_runtime.inference.estimator import MAX_TOP_K
+from popcode_runtime.model.decoding import DECODERS
+from popcode_runtime.model.engine import check_threads
 
 from ..data.box_noise import BOX_NOISE_PRESETS, box_noise_preset
 from ..eval.pipeline.depth_poses import depth_modes

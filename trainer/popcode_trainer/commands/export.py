@@ -8,9 +8,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from popcode_runtime.confidence import DEFAULT_THRESHOLD_DEG
-from popcode_runtime.errors import PopcodeError, first_line
-from popcode_runtime.files import OVERWRITE_HELP, check_output_file
+from popcode_runtime.base.errors import PopcodeError, first_line
+from popcode_runtime.base.files import OVERWRITE_HELP, check_output_file
+from popcode_runtime.coding.confidence import DEFAULT_THRESHOLD_DEG
 
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import trained_model

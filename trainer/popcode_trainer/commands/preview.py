@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import OVERWRITE_HELP, check_picture_path
-from popcode_runtime.population_code import CodeLayout
-from popcode_runtime.symmetries import symmetry_class
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import OVERWRITE_HELP, check_picture_path
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.geometry.symmetries import symmetry_class
 
 from ..data.augment import Augmentation
 from ..data.bop import read_bop_split

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 from ..data.bop import RENDER_MARKER
 from ..data.objects import BUILTIN_PARTS, write_builtin_models

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from popcode_runtime.crop import read_image
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.crop import read_image
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 

@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop_split import (
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import read_json, require_folder
+from popcode_runtime.bop.split import (
     BOX_KINDS,
     GroundTruth,
     folder_index,
@@ -26,10 +28,8 @@ from popcode_runtime.bop_split import (
     scene_folders,
     scene_ground_truth,
 )
-from popcode_runtime.crop import check_box
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import read_json, require_folder
-from popcode_runtime.symmetries import symmetry_transforms
+from popcode_runtime.geometry.crop import check_box
+from popcode_runtime.geometry.symmetries import symmetry_transforms
 
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
 

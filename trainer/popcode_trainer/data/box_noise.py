@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 Box = tuple[float, float, float, float]  # x, y, w, h px
 

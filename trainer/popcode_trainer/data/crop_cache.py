@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from popcode_runtime.crop import CROP_PADDING, crop_square, read_image
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.crop import CROP_PADDING, crop_square, read_image
 
 from .bop import Instance, check_image_matches
 

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 from .sensor import DISPLAY_GAMMA, sensor_preset
 

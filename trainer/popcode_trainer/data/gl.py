@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 PixelRegion = tuple[int, int, int, int]  # x0, y0, x1, y1 [px]: columns x0..x1-1, rows y0..y1-1
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera (y down, z forward) -> OpenGL (y up, z back)

@@ -2,7 +2,7 @@
 :func:`with_hull_points`, which gives a model's objects these and the surface points that depth needs.
 
 The runtime finds the translation whose projected points fill the detected box
-(:mod:`popcode_runtime.translation`); it has no mesh, only what the model's
+(:mod:`popcode_runtime.geometry.translation`); it has no mesh, only what the model's
 metadata carries. A box edge is set by the hull's support function ``h(d) =
 max_p d·p`` in the direction of the edge, so the points are chosen for it:
 greedily, each new point is the hull vertex extreme in the direction where the
@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.population_code import fibonacci_lattice
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import fibonacci_lattice
 
 from .bop import model_path
 from .meshes import load_mesh

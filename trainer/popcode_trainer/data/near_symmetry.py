@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.rotations import axis_angle_to_matrix
-from popcode_runtime.symmetries import discrete_transforms
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.symmetries import discrete_transforms
 
 from .closure import closure
 from .surface_sample import SurfaceSample, surface_distance

@@ -16,9 +16,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.distance import pdist
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import check_writable_file, json_bytes, write_bytes_atomic
-from popcode_runtime.rotations import axis_angle_to_matrix
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import check_writable_file, json_bytes, write_bytes_atomic
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 
 _SECTIONS = 96  # facets of revolved surfaces: deviates from a true circle by < 0.06 % of the radius
 

@@ -25,11 +25,11 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from popcode_runtime.camera import project_points
-from popcode_runtime.checks import shown
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import read_json, write_json_atomic, write_png_atomic
-from popcode_runtime.rotations import random_rotations, rotation_between
+from popcode_runtime.base.checks import shown
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import read_json, write_json_atomic, write_png_atomic
+from popcode_runtime.geometry.camera import project_points
+from popcode_runtime.geometry.rotations import random_rotations, rotation_between
 
 from .bop import RENDER_MARKER, load_models_info, model_path
 from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera

@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 from .augment import Augmentation, AugmentationDraw, Backgrounds, occluder_alpha
 from .bop import Instance

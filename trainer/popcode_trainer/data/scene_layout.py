@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import axis_angle_to_matrix, random_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, random_rotations
 
 SURFACE_POINTS = 3000  # per mesh: with its vertices, what the drop tests against the pile
 HEIGHT_FIELD_CELLS = 160  # per bin side

@@ -34,8 +34,8 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_json_atomic, write_png_atomic
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_json_atomic, write_png_atomic
 
 from ..metrics.visibility import depth_to_distance, visible_mask_gt
 from .augment import procedural_texture

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 DISPLAY_GAMMA = 2.2  # the rendered colours are taken as display values with this gamma
 

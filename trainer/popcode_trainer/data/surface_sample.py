@@ -22,8 +22,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from popcode_runtime.depth import MAX_SURFACE_POINTS, MIN_SURFACE_POINTS
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.depth.surface_fit import MAX_SURFACE_POINTS, MIN_SURFACE_POINTS
 
 PERCENTILE = 99.0  # of the moved samples; tolerates a stray sliver, not a misplaced feature
 _QUERY_POINTS = 1000

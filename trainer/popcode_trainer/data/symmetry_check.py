@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from popcode_runtime.symmetries import continuous_symmetries, discrete_transforms
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from popcode_runtime.geometry.symmetries import continuous_symmetries, discrete_transforms
 
 from .bop import model_path
 from .closure import closure

@@ -19,8 +19,8 @@ import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import read_json, write_json_atomic
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import read_json, write_json_atomic
 
 from ..train.run_files import read_metrics
 

@@ -18,8 +18,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from popcode_runtime.population_code import CodeLayout
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.geometry.symmetries import symmetry_rotations
 
 from ..train.code_sigma import fit_sigma, merged_peaks
 from ..train.config import CodeConfig

@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_bytes_atomic, write_json_atomic
-from popcode_runtime.rotations import random_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
+from popcode_runtime.geometry.rotations import random_rotations
 
 from ..data.bop import load_models_info
 from ..data.meshes import load_mesh

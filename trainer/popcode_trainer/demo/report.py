@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.benchmark import BENCH_IMAGE_SHAPE, machine_description
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.files import write_bytes_atomic
-from popcode_runtime.metadata import Representation, RotationFrame
+from popcode_runtime.base.files import write_bytes_atomic
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
+from popcode_runtime.inference.benchmark import BENCH_IMAGE_SHAPE, machine_description
+from popcode_runtime.model.metadata import Representation, RotationFrame
 
 from ..eval.pipeline.evaluate import MethodResult
 from ..eval.pipeline.split import EvalSplit

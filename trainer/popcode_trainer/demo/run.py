@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.benchmark import benchmark_estimator
-from popcode_runtime.depth_refine import INSTALL_HINT, require_small_gicp
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import Representation
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.depth.icp import INSTALL_HINT, require_small_gicp
+from popcode_runtime.inference.benchmark import benchmark_estimator
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.metadata import Representation
 
 from ..data.bop import model_path
 from ..data.box_noise import box_noise_preset

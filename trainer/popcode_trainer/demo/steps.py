@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import Representation, RotationFrame
-from popcode_runtime.population_code import PAPER_SIGMA_DEG
-from popcode_runtime.symmetries import SymmetryClass, continuous_axis, symmetry_class
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import PAPER_SIGMA_DEG
+from popcode_runtime.geometry.symmetries import SymmetryClass, continuous_axis, symmetry_class
+from popcode_runtime.model.metadata import Representation, RotationFrame
 
 from ..data.render import BUILTIN_MODELS_FOLDER
 from ..export.confidence_fit import calibrate_checkpoint

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from popcode_runtime.decoding import decode_output
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.hypotheses import argmax_tolerance_rad, same_pose
-from popcode_runtime.metadata import ModelMetadata
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.hypotheses import argmax_tolerance_rad, same_pose
+from popcode_runtime.geometry.symmetries import symmetry_rotations
+from popcode_runtime.model.decoding import decode_output
+from popcode_runtime.model.metadata import ModelMetadata
 
 
 @dataclass(frozen=True)
@@ -59,8 +59,8 @@ def pose_agreement(output: np.ndarray, reference: np.ndarray, metadata: ModelMet
     """Share of crops whose two outputs decode to the same pose up to the crop object's symmetries, in [0, 1].
 
     Both go through the runtime's argmax decoder (``decode_output``); the
-    rotations are the same pose when :func:`~popcode_runtime.hypotheses.same_pose`
-    holds within :func:`~popcode_runtime.hypotheses.argmax_tolerance_rad` of
+    rotations are the same pose when :func:`~popcode_runtime.coding.hypotheses.same_pose`
+    holds within :func:`~popcode_runtime.coding.hypotheses.argmax_tolerance_rad` of
     the model's code grid (one grid step per coordinate: what separates the
     argmax decodes of one pose's equivalent peaks). Axis-only codes compare
     the symmetry-axis direction. None when the crops' objects are needed but

@@ -4,7 +4,7 @@ The exported network runs through the runtime's one pipeline on each held-out
 instance (crop -> network -> decode -> camera frame), its rotation error up to
 symmetry is measured against the ground truth, and a logistic model with
 non-negative weights is fitted from the code's features
-(:func:`popcode_runtime.confidence.code_features`) to "error < threshold".
+(:func:`popcode_runtime.coding.confidence.code_features`) to "error < threshold".
 The weights are constrained, not just fitted, to be non-negative so that a
 taller, sharper, less contested peak can never lower the confidence.
 """
@@ -18,18 +18,18 @@ import numpy as np
 from scipy.optimize import minimize
 from tqdm import tqdm
 
-from popcode_runtime.confidence import (
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.confidence import (
     DEFAULT_THRESHOLD_DEG,
     FEATURES,
     Calibrator,
     code_features,
     default_rival_radius_deg,
 )
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.image_loop import estimate_images, group_by_image
-from popcode_runtime.metadata import GRID_REPRESENTATIONS, Representation
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.geometry.symmetries import symmetry_rotations
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.inference.image_loop import estimate_images, group_by_image
+from popcode_runtime.model.metadata import GRID_REPRESENTATIONS, Representation
 
 from ..data.bop import Instance
 from ..metrics.confidence import rotation_errors_deg

@@ -14,9 +14,9 @@ import torch
 from google.protobuf.message import DecodeError
 from onnx import helper
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_bytes_atomic
-from popcode_runtime.metadata import ModelMetadata
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_bytes_atomic
+from popcode_runtime.model.metadata import ModelMetadata
 
 from ..data.hull import with_hull_points
 from ..train import checkpoint

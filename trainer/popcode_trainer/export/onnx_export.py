@@ -19,10 +19,10 @@ import numpy as np
 import onnx
 import torch
 
-from popcode_runtime.confidence import Calibrator
-from popcode_runtime.engine import OnnxEngine
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.confidence import Calibrator
+from popcode_runtime.model.engine import OnnxEngine
+from popcode_runtime.model.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 from ..train.network import ColumnBlockOutputLayer
 from .agreement import Comparison, compare, crop_symmetries

@@ -12,8 +12,8 @@ import onnx
 from onnx import helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import INPUT_NAME, ModelMetadata
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.model.metadata import INPUT_NAME, ModelMetadata
 
 from .model_io import save_onnx
 

@@ -2,7 +2,7 @@
 
 ``PoseEstimator.from_engine(TorchEngine(network), metadata)`` crops, decodes
 and converts frames exactly as for the exported ONNX model; only the network
-call differs (see :mod:`popcode_runtime.engine`).
+call differs (see :mod:`popcode_runtime.model.engine`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from popcode_runtime.estimator import PoseEstimator
+from popcode_runtime.inference.estimator import PoseEstimator
 
 from .model_io import TrainedModel, load_trained_model
 

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.symmetries import (
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.symmetries import (
     SymmetryClass,
     continuous_axis,
     rotation_error_up_to_symmetry,

@@ -5,7 +5,7 @@ translations ``(..., 3)`` in mm; estimate and ground truth broadcast against eac
 other, and every vertex-based error returns an array of the broadcast batch shape
 (a 0-d array for a single pose). ``pts_mm`` are *all* vertices of the evaluation
 mesh ``(P, 3)`` [mm]: the toolkit uses every vertex, and subsampling changes MSSD.
-Symmetries are a :class:`popcode_runtime.symmetries.SymmetryTransforms` (identity
+Symmetries are a :class:`popcode_runtime.geometry.symmetries.SymmetryTransforms` (identity
 first); symmetric errors are the minimum over them.
 """
 
@@ -16,10 +16,10 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from popcode_runtime.camera import project_camera_points
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.rotations import geodesic_angle
-from popcode_runtime.symmetries import SymmetryTransforms
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.camera import project_camera_points
+from popcode_runtime.geometry.rotations import geodesic_angle
+from popcode_runtime.geometry.symmetries import SymmetryTransforms
 
 from .visibility import depth_to_distance, visible_mask_est, visible_mask_gt
 
@@ -108,7 +108,7 @@ def mspd(
     """Maximum Symmetry-aware Projection Distance [px] (BOP19).
 
     As :func:`mssd` but with the vertices projected with the 3x3 intrinsics ``K``
-    (:func:`popcode_runtime.camera.project_camera_points`). The BOP thresholds
+    (:func:`popcode_runtime.geometry.camera.project_camera_points`). The BOP thresholds
     scale with the image width / 640.
     Rotations ``(..., 3, 3)``, translations ``(..., 3)`` [mm], ``pts_mm (P, 3)`` [mm]; the result has the
     broadcast batch shape ``(...)`` [px].

@@ -17,8 +17,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.symmetries import SymmetryClass, symmetry_class
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.symmetries import SymmetryClass, symmetry_class
 
 
 def _bop19_steps(first: float, last: float) -> tuple[float, ...]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 
 def depth_to_distance(depth_mm: np.ndarray, K: np.ndarray) -> np.ndarray:

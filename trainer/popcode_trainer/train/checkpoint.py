@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from popcode_runtime.errors import PopcodeError, first_line
-from popcode_runtime.metadata import ModelMetadata
+from popcode_runtime.base.errors import PopcodeError, first_line
+from popcode_runtime.model.metadata import ModelMetadata
 
 from ..data.hull import with_hull_points
 

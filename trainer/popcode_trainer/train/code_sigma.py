@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.population_code import CodeLayout, PopulationCode
-from popcode_runtime.refine import decode_refined
-from popcode_runtime.rotations import random_rotations
-from popcode_runtime.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
+from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
+from popcode_runtime.coding.refine import decode_refined
+from popcode_runtime.geometry.rotations import random_rotations
+from popcode_runtime.geometry.symmetries import rotation_error_up_to_symmetry, symmetry_rotations
 
 CHECK_ROTATIONS = 100  # random rotations per check (seeded: the choice is deterministic)
 CHECK_PERCENTILE = 99.0

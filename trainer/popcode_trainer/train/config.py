@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from popcode_runtime.crop import CROP_SIZE
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import MAX_INPUT_SIZE, MIN_INPUT_SIZE, Representation, RotationFrame
-from popcode_runtime.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import PAPER_N_ANGLES, PAPER_N_AXES, PAPER_SIGMA_DEG
+from popcode_runtime.geometry.crop import CROP_SIZE
+from popcode_runtime.model.metadata import MAX_INPUT_SIZE, MIN_INPUT_SIZE, Representation, RotationFrame
 
 from ..data.box_noise import box_noise_preset
 from .fast_path import COMPILE_CHOICES, PRECISIONS

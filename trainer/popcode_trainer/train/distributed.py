@@ -15,7 +15,7 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 
 @dataclass(frozen=True)

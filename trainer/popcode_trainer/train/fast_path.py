@@ -39,8 +39,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from popcode_runtime.benchmark import cpu_info
-from popcode_runtime.errors import first_line
+from popcode_runtime.base.errors import first_line
+from popcode_runtime.inference.benchmark import cpu_info
 
 from .deadline import deadline
 

@@ -25,8 +25,8 @@ from torch.utils.data import DataLoader, Dataset
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import RotationFrame
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.model.metadata import RotationFrame
 
 from . import allocator, checkpoint, distributed, fast_path
 from .config import Config

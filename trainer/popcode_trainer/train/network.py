@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 CONTRAST_EPS = 1e-3  # a flat crop (std 0) stays finite after normalisation
 MAX_DENSE_PARAMETERS = 10**9  # 16 GB with Adam's two moments and the gradient; the paper's network has 35.2 M

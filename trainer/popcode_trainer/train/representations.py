@@ -3,7 +3,7 @@
 The population code is the paper's method; single variable, one-hot and
 multiple hypotheses are the baselines of section IV-C, trained with the same
 network and data. Targets are numpy (built in data-loader workers), losses are
-torch, and decoding is the runtime's :func:`popcode_runtime.decoding.decode_output`,
+torch, and decoding is the runtime's :func:`popcode_runtime.model.decoding.decode_output`,
 so a trained model decodes in training exactly as it will in the runtime.
 """
 
@@ -16,23 +16,23 @@ import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
-from popcode_runtime.crop import box_centre
-from popcode_runtime.decoding import decode_output
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.metadata import ModelMetadata, Representation, RotationFrame
-from popcode_runtime.population_code import CodeLayout, DecodedRotations, PopulationCode
-from popcode_runtime.rotations import (
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import CodeLayout, DecodedRotations, PopulationCode
+from popcode_runtime.geometry.crop import box_centre
+from popcode_runtime.geometry.rotations import (
     egocentric_to_allocentric,
     matrix_to_quaternion,
     matrix_to_sixd,
 )
-from popcode_runtime.symmetries import (
+from popcode_runtime.geometry.symmetries import (
     SymmetryClass,
     continuous_axis,
     rotation_error_up_to_symmetry,
     symmetry_class,
     symmetry_rotations,
 )
+from popcode_runtime.model.decoding import decode_output
+from popcode_runtime.model.metadata import ModelMetadata, Representation, RotationFrame
 
 from .code_sigma import checked_sigma
 

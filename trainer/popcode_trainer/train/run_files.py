@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 LAST_CHECKPOINT = "last.pt"  # written after every epoch; --resume continues from it
 BEST_CHECKPOINT = "best.pt"  # the epoch with the lowest validation error

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
 
 from ..data.augment import Augmentation
 from ..data.bop import Instance, read_bop_split

@@ -2,7 +2,7 @@
 
 A robot with a depth camera places each instance as
 ``PoseEstimator.predict(depth=..., refine_depth=...)`` does
-(:mod:`popcode_runtime.depth_pose`). The evaluation runs a method's models
+(:mod:`popcode_runtime.depth.placement`). The evaluation runs a method's models
 through the runtime's per-image loop with the split's depth images (``depth/``,
 ``scene_camera.json``'s ``depth_scale``), so what is scored is what ``popcode
 run --depth [--refine]`` writes: per mode (:data:`DEPTH`: the translation from
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from popcode_runtime.depth_refine import require_small_gicp
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.image_loop import estimate_images, group_by_image
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.depth.icp import require_small_gicp
+from popcode_runtime.inference.image_loop import estimate_images, group_by_image
 
 from ...data.bop import Instance
 from ...metrics.recall import InstanceErrors

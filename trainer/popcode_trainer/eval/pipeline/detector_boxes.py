@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT, scene_folders, scene_ground_truth, split_images
-from popcode_runtime.checks import integer
-from popcode_runtime.crop import read_image
-from popcode_runtime.detections import Detection
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.image_size import image_size
+from popcode_runtime.base.checks import integer
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.image_size import image_size
+from popcode_runtime.bop.detections import Detection
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT, scene_folders, scene_ground_truth, split_images
+from popcode_runtime.geometry.crop import read_image
 
 from ...data.box_noise import BOX_NOISE_PRESETS, Box, BoxNoise, box_iou, noisy_box
 from .split import DetectorBoxes, EvalSplit

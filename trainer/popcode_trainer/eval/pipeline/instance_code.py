@@ -7,11 +7,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from popcode_runtime.crop import read_image
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator
-from popcode_runtime.metadata import Representation
-from popcode_runtime.population_code import CodeLayout
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.coding.population_code import CodeLayout
+from popcode_runtime.geometry.crop import read_image
+from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.model.metadata import Representation
 
 from ...data.bop import Instance
 from ...train.representations import representation_from_metadata

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.symmetries import SymmetryTransforms, symmetry_transforms
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.symmetries import SymmetryTransforms, symmetry_transforms
 
 from ...metrics.pose_errors import (
     RenderDepth,

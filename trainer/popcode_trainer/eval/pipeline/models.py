@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from popcode_runtime.decoding import DECODERS, check_decoder
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.estimator import PoseEstimator, Prediction
-from popcode_runtime.image_loop import estimate_images, group_by_image, route_objects
-from popcode_runtime.metadata import Representation
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.inference.estimator import PoseEstimator, Prediction
+from popcode_runtime.inference.image_loop import estimate_images, group_by_image, route_objects
+from popcode_runtime.model.decoding import DECODERS, check_decoder
+from popcode_runtime.model.metadata import Representation
 
 from ...data.bop import Instance
 from ...export.torch_engine import checkpoint_estimator

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop19_csv import PoseEstimate, read_bop19_results
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.bop19_csv import PoseEstimate, read_bop19_results
 
 from ...data.bop import Instance
 from ...metrics.confidence import rotation_errors_deg

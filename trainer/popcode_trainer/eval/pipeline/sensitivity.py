@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from popcode_runtime.rotations import axis_angle_to_matrix
-from popcode_runtime.symmetries import SymmetryTransforms
+from popcode_runtime.geometry.rotations import axis_angle_to_matrix
+from popcode_runtime.geometry.symmetries import SymmetryTransforms
 
 from ...metrics.pose_errors import RenderDepth, add, adi, mspd, mssd, vsd_from_depths
 

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.errors import PopcodeError
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
 
 from ...data.bop import Instance, read_bop_split
 

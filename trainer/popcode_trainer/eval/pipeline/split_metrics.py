@@ -15,8 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.symmetries import symmetry_rotations
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.symmetries import symmetry_rotations
 
 from ...data.bop import Instance, model_path
 from ...data.box_noise import IOU_BINS, iou_bin_label

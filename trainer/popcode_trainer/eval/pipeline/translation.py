@@ -2,7 +2,7 @@
 
 The paper scores rotations with the ground-truth translation; a robot has only
 the box. Each instance is placed as the runtime places it
-(:func:`popcode_runtime.translation.translation_from_box` with the points the
+(:func:`popcode_runtime.geometry.translation.translation_from_box` with the points the
 model's metadata carries), so that full 6-D poses can be scored beside the
 paper's protocol (:func:`full_pose`) and the translation error be reported on
 its own, in mm and as a share of the distance.
@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.translation import object_points_mm, translation_from_box
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.translation import object_points_mm, translation_from_box
 
 from ...data.bop import Instance
 from ...metrics.pose_errors import translation_error_mm

@@ -14,9 +14,9 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_bytes_atomic
-from popcode_runtime.population_code import CodeLayout, check_code
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_bytes_atomic
+from popcode_runtime.coding.population_code import CodeLayout, check_code
 
 from ..pipeline.instance_code import InstanceCode
 from ..pipeline.sensitivity import SensitivityCurves

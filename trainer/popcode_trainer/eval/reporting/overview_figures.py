@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from popcode_runtime.crop import crop_square, read_image, to_grey
-from popcode_runtime.rotations import geodesic_angle
-from popcode_runtime.symmetries import symmetry_transforms
+from popcode_runtime.geometry.crop import crop_square, read_image, to_grey
+from popcode_runtime.geometry.rotations import geodesic_angle
+from popcode_runtime.geometry.symmetries import symmetry_transforms
 
 from ...train.run_files import METRICS_FILE, read_metrics
 from ..pipeline.evaluate import MethodResult

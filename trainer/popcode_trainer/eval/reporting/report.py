@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from popcode_runtime.bop19_csv import PoseEstimate, write_bop19_results
-from popcode_runtime.bop_split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.errors import PopcodeError
-from popcode_runtime.files import write_bytes_atomic
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_bytes_atomic
+from popcode_runtime.bop.bop19_csv import PoseEstimate, write_bop19_results
+from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
 
 from ...metrics.confidence import rotation_errors_deg
 from ...metrics.pose_errors import rotation_error_deg, translation_error_mm

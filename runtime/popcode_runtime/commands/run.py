@@ -1,0 +1,116 @@
+"""The ``popcode run`` command line: a BOP split and a detector's boxes (or its own) -> a BOP19 results file."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+from ..base.errors import PopcodeError
+from ..base.files import OVERWRITE_HELP, check_writable_file, refuse_inputs, require_folder
+from ..bop.detections import ground_truth_boxes, read_detections
+from ..bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, SplitImage, split_images
+from ..inference.estimator import PoseEstimator
+from ..model.decoding import DECODERS
+from .run_batch import ImageKey, companion_paths, file_digest, model_digest, run_detections, sources_path, split_digest
+
+DEFAULT_OUT = "results.csv"
+
+
+def register(commands: argparse._SubParsersAction, add_runtime_options: Callable[[argparse.ArgumentParser], None],
+             ) -> None:
+    run = commands.add_parser(
+        "run", help="poses for every detection of a BOP split -> BOP19 results CSV",
+        description="Read a BOP split's images and a detector's boxes (the BOP challenge's default-detections "
+                    "JSON) or the split's own boxes, estimate the rotation of each box in one batch per image, fit "
+                    "the translation to the box with the image's cam_K (or read it from the depth with --depth), and "
+                    "write a BOP19 results CSV "
+                    "(scene_id,im_id,obj_id,score,R,t,time). Detections of objects no model knows are skipped and "
+                    "counted. An interrupted run resumes where it stopped when given the same command.")
+    run.add_argument("models", nargs="+", type=Path, metavar="MODEL",
+                     help="popcode ONNX model(s); each detection goes to the model that knows its object")
+    run.add_argument("--split", type=Path, required=True, metavar="DIR",
+                     help="BOP split folder (scene folders with rgb/ or gray/ images and scene_camera.json)")
+    source = run.add_mutually_exclusive_group(required=True)
+    source.add_argument("--detections", type=Path, metavar="JSON",
+                        help="detections in the BOP challenge's format: a list of {scene_id, image_id, category_id, "
+                             "bbox, score, time}")
+    source.add_argument("--gt-boxes", action="store_true",
+                        help="use the split's own boxes (scene_gt_info.json): the paper's protocol")
+    run.add_argument("--box-kind", choices=BOX_KINDS, default="bbox_obj",
+                     help="with --gt-boxes: which box of scene_gt_info.json (default bbox_obj)")
+    run.add_argument("--min-visib-fract", type=float, default=BOP19_MIN_VISIB_FRACT, metavar="F",
+                     help=f"with --gt-boxes: leave out instances less visible (default, as BOP19: "
+                          f"{BOP19_MIN_VISIB_FRACT})")
+    run.add_argument("--out", default=DEFAULT_OUT, metavar="CSV",  # text: a Path would drop the / of "results/"
+                     help=f"results file to write (default {DEFAULT_OUT}; <CSV>.partial while running)")
+    run.add_argument("--max-images", type=int, metavar="N", help="only the first N images with detections")
+    run.add_argument("--decoder", choices=DECODERS, default="argmax",
+                     help="argmax: the paper's winning neuron (default); refined: sub-neuron estimate")
+    run.add_argument("--draw", type=Path, metavar="DIR",
+                     help="also write a picture of each image's estimates into DIR (<scene_id>_<im_id>.png)")
+    run.add_argument("--depth", action="store_true",
+                     help="the translation from each image's depth image (depth/ and scene_camera.json's "
+                          "depth_scale) instead of the box; where an instance's depth is unusable it keeps the box's. "
+                          "Each estimate's source is written to <CSV stem>.translation<CSV suffix> "
+                          "(results.translation.csv)")
+    run.add_argument("--refine", action="store_true",
+                     help="with --depth: also refine rotation and translation against the observed points (ICP; "
+                          "needs pip install ./runtime[depth])")
+    run.add_argument("--overwrite", action="store_true",
+                     help=f"{OVERWRITE_HELP}: a finished --out, pictures in --draw")
+    run.add_argument("--quiet", action="store_true", help="no progress line")
+    add_runtime_options(run)
+    run.set_defaults(handler=handle)
+
+
+def _fingerprint(args: argparse.Namespace, images: Mapping[ImageKey, SplitImage]) -> str:
+    """What the results depend on: the models' bytes (external weights too), the detections' bytes, the split's
+    images and annotations, and the options that change a line or what is drawn. A resume with any of them changed
+    is refused."""
+    parts = {"models": [model_digest(path) for path in args.models], "decoder": args.decoder,
+             "providers": args.provider, "max_images": args.max_images, "split": split_digest(images, args.depth),
+             "depth": args.depth, "refine": args.refine,
+             "draw": None if args.draw is None else os.path.realpath(args.draw),
+             "detections": file_digest(args.detections) if args.detections else
+             {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def handle(args: argparse.Namespace) -> int:
+    if args.max_images is not None and args.max_images < 1:
+        raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
+    if not 0.0 <= args.min_visib_fract <= 1.0:
+        raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
+    if args.refine and not args.depth:
+        raise PopcodeError("--refine refines the pose against each image's depth: add --depth")
+    inputs = [args.split, *args.models, *filter(None, [args.detections])]
+    args.out = check_writable_file(args.out, "--out", inputs)
+    for companion in companion_paths(args.out):
+        check_writable_file(companion, "--out", inputs)
+    if args.draw is not None:
+        require_folder(args.draw, "--draw folder")
+        refuse_inputs(args.draw, "--draw folder", inputs)
+    require_folder(args.split, "split folder")
+    estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
+                  for path in args.models]
+    detections = read_detections(args.detections) if args.detections else \
+        ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
+    images = split_images(args.split)
+    summary = run_detections(estimators, [str(path) for path in args.models], images, detections,
+                             args.out, _fingerprint(args, images), args.max_images, not args.quiet, args.draw,
+                             args.depth, args.refine, args.overwrite, inputs)
+    skipped = sum(summary.skipped.values())
+    resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
+    print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "
+          f"{summary.seconds:.1f} s")
+    if args.depth:
+        print(f"translation sources ({sources_path(args.out)}): "
+              + ", ".join(f"{source} {count}" for source, count in summary.sources.items()))
+    if skipped:
+        print(f"skipped {skipped} detections of objects no model knows: "
+              + ", ".join(f"object {obj_id} x{count}" for obj_id, count in summary.skipped.items()))
+    return 0

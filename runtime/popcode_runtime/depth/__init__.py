@@ -1,0 +1,1 @@
+"""Depth: translation from a depth image, refinement against it (ICP), one instance's placement."""
