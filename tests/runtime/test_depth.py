@@ -30,8 +30,8 @@ from popcode_runtime import (
     PopulationCode,
     PoseEstimator,
     Representation,
-    batch,
 )
+from popcode_runtime.commands import run_loop
 from popcode_runtime.depth.icp import keep_symmetry_roll
 from popcode_runtime.depth.placement import pose_with_depth
 from popcode_runtime.depth.surface_fit import (
@@ -244,7 +244,7 @@ def test_popcode_run_reads_each_images_depth(exact_model, tmp_path, monkeypatch)
     def stop(self):  # a run stopped after its first image, resumed by the same command
         raise KeyboardInterrupt
     with monkeypatch.context() as patch:
-        patch.setattr(batch.Progress, "step", stop)
+        patch.setattr(run_loop.Progress, "step", stop)
         assert run_cli(argv)[0] == 130 and not out.exists()
     code, stdout, err = run_cli(argv)
     assert code == 0, err

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import popcode_runtime.commands.run_batch as batch
+import popcode_runtime.commands.run_results as run_results
 from popcode_runtime.commands.cli import main
 from popcode_trainer.data.render import render_builtin_split
 
@@ -39,7 +39,7 @@ def test_a_full_disk_mid_run_is_one_line_and_keeps_the_finished_images(split: Pa
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(partial))
         real_fsync(fd)
 
-    monkeypatch.setattr(batch.os, "fsync", disk_full_at_the_third_image)
+    monkeypatch.setattr(run_results.os, "fsync", disk_full_at_the_third_image)
     assert _run(split, out) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(partial) in err and os.strerror(errno.ENOSPC) in err

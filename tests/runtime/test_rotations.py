@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from popcode_runtime import rotations as rot
+from popcode_runtime.geometry import rotations as rot
 
 N = 500
 

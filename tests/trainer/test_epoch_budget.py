@@ -15,7 +15,9 @@ from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget, run
 from popcode_trainer.demo.group_codes import GroupCode
-from popcode_trainer.demo.run import DEMO_SIZES, SECONDS_PER_EXPORT, StagePlan, fit_epochs
+from popcode_trainer.demo.plan import SECONDS_PER_EXPORT, StagePlan
+from popcode_trainer.demo.run import fit_epochs
+from popcode_trainer.demo.sizes import DEMO_SIZES
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
 from popcode_trainer.train import fast_path
 from popcode_trainer.train.checkpoint import load

@@ -25,7 +25,7 @@ from popcode_trainer.data.objects import BUILTIN_PARTS, model_info
 from popcode_trainer.demo.group_codes import choose_group_code, choose_group_codes, finer_grids
 from popcode_trainer.demo.parts import check_models_folder
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
-from popcode_trainer.demo.run import DEMO_SIZES
+from popcode_trainer.demo.sizes import DEMO_SIZES
 from popcode_trainer.demo.steps import small_config
 from popcode_trainer.train.config import load_config
 

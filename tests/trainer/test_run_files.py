@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from popcode_runtime import PopcodeError
-from popcode_trainer.train import loop
+from popcode_trainer.train import epoch_record
 from popcode_trainer.train.run_files import METRICS_FILE, EpochMetrics, read_metrics
 
 ROWS = [EpochMetrics(1, 0.9, 1.1, 40.0, 35.5, 120.0, 12.25), EpochMetrics(2, 0.5, 0.7, 20.0, 18.0, 130.0, 11.5)]
@@ -17,7 +17,7 @@ ROWS = [EpochMetrics(1, 0.9, 1.1, 40.0, 35.5, 120.0, 12.25), EpochMetrics(2, 0.5
 
 def test_reads_back_what_the_loop_writes(tmp_path: Path) -> None:
     for row in ROWS:
-        loop._append_metrics(tmp_path / METRICS_FILE, row)
+        epoch_record.append_metrics(tmp_path / METRICS_FILE, row)
     by_folder = read_metrics(tmp_path, ("seconds", "val_error_median_deg"))
     by_file = read_metrics(tmp_path / METRICS_FILE)
     assert list(by_folder) == [field.name for field in dataclasses.fields(EpochMetrics)]

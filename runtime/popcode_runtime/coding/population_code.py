@@ -1,4 +1,4 @@
-"""The neural population code of a rotation (DESIGN.md section 2; paper section III-A).
+"""The neural population code of a rotation (docs/design.md#population-code; paper section III-A).
 
 Neurons sit on the direct product of a Fibonacci sphere of ``n`` preferred
 axes and a circle of ``m`` preferred angles; neuron ``k = i * m + j`` prefers

@@ -7,7 +7,7 @@ import json
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -20,11 +20,12 @@ from ..geometry.camera import parse_camera_matrix
 from ..geometry.crop import MAX_IMAGE_PIXELS, read_image
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.symmetries import symmetry_class
-from ..inference.benchmark import MAX_BENCH_BATCH, benchmark_estimator, machine_description
-from ..inference.estimator import MAX_BOXES_PER_CALL, PoseEstimator, Prediction
+from ..inference.benchmark import benchmark_estimator, machine_description
+from ..inference.estimator import PoseEstimator, Prediction
 from ..model.decoding import DECODERS
 from . import run as run_command
 from .drawing import draw_predictions
+from .options import DEFAULT_BENCH_BATCHES, check_options
 
 INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
 NUMBER_OPTIONS = ("--box", "--K")  # their values may start with a minus sign
@@ -203,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
                                             "inference-only calls at each batch size.")
     bench.add_argument("model", help="popcode ONNX model")
     bench.add_argument("--batch", type=int, action="append", metavar="N",
-                       help="batch size; repeat for several (default: 1, 8 and 32)")
+                       help=f"batch size; repeat for several (default: {', '.join(map(str, DEFAULT_BENCH_BATCHES))})")
     bench.add_argument("--warmup", type=int, default=10, help="untimed calls first (default 10)")
     bench.add_argument("--iterations", type=int, default=100, help="timed calls per row (default 100)")
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -215,23 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; bad input ends with one line on stderr and exit code 2."""
-    parser = build_parser()
-    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
-    if args.command == "predict" and len(args.box) > MAX_BOXES_PER_CALL:
-        parser.error(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
-    if args.command == "predict" and args.code and not args.json:
-        parser.error("--code prints the raw network output in the JSON; add --json")
-    if args.command == "predict" and not args.depth and (args.refine or args.depth_scale is not None):
-        parser.error(f"{'--refine' if args.refine else '--depth-scale'} is about the depth image: add --depth PNG")
-    if args.command == "predict" and args.max_pixels < 1:
-        parser.error(f"--max-pixels must be positive, got {args.max_pixels}")
-    if getattr(args, "batch", None) is None and args.command == "bench":
-        args.batch = [1, 8, 32]
-    if args.command == "bench" and (min(args.batch) < 1 or args.iterations < 1 or args.warmup < 0):
-        parser.error("batch sizes and iterations must be positive, warmup non-negative")
-    if args.command == "bench" and max(args.batch) > MAX_BENCH_BATCH:
-        parser.error(f"--batch {max(args.batch)} is more than the limit of {MAX_BENCH_BATCH}")
-    return run_handler(args, "popcode")
+    args = build_parser().parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    return run_handler(args, "popcode", check_options)
 
 
 def _attach_negative_values(argv: list[str]) -> list[str]:
@@ -249,9 +235,10 @@ def _attach_negative_values(argv: list[str]) -> list[str]:
     return result
 
 
-def run_handler(args: argparse.Namespace, prog: str) -> int:
-    """Run ``args.handler``; a ``PopcodeError`` or a failing system call (``OSError``) becomes one line on stderr
-    and exit code 2.
+def run_handler(args: argparse.Namespace, prog: str,
+                check: Callable[[argparse.Namespace], None] | None = None) -> int:
+    """Run ``check`` (the command's option rules), then ``args.handler``; a ``PopcodeError`` or a failing system
+    call (``OSError``) becomes one line on stderr and exit code 2.
 
     A reader that stops early (``| head``) is not an error: the rest of the
     output is dropped quietly and the exit code is the shell's for SIGPIPE.
@@ -261,6 +248,8 @@ def run_handler(args: argparse.Namespace, prog: str) -> int:
     opencv_log_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
+        if check is not None:
+            check(args)
         return int(args.handler(args) or 0)
     except PopcodeError as error:
         print(f"{prog}: error: {' '.join(str(error).split())}", file=sys.stderr)

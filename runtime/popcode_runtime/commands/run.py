@@ -3,19 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
-import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 
-from ..base.errors import PopcodeError
 from ..base.files import OVERWRITE_HELP, check_writable_file, refuse_inputs, require_folder
 from ..bop.detections import ground_truth_boxes, read_detections
-from ..bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, SplitImage, split_images
+from ..bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, split_images
 from ..inference.estimator import PoseEstimator
 from ..model.decoding import DECODERS
-from .run_batch import ImageKey, companion_paths, file_digest, model_digest, run_detections, sources_path, split_digest
+from .run_fingerprint import run_fingerprint
+from .run_loop import run_detections
+from .run_results import companion_paths, sources_path
 
 DEFAULT_OUT = "results.csv"
 
@@ -67,26 +65,7 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     run.set_defaults(handler=handle)
 
 
-def _fingerprint(args: argparse.Namespace, images: Mapping[ImageKey, SplitImage]) -> str:
-    """What the results depend on: the models' bytes (external weights too), the detections' bytes, the split's
-    images and annotations, and the options that change a line or what is drawn. A resume with any of them changed
-    is refused."""
-    parts = {"models": [model_digest(path) for path in args.models], "decoder": args.decoder,
-             "providers": args.provider, "max_images": args.max_images, "split": split_digest(images, args.depth),
-             "depth": args.depth, "refine": args.refine,
-             "draw": None if args.draw is None else os.path.realpath(args.draw),
-             "detections": file_digest(args.detections) if args.detections else
-             {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
-    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
-
-
 def handle(args: argparse.Namespace) -> int:
-    if args.max_images is not None and args.max_images < 1:
-        raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
-    if not 0.0 <= args.min_visib_fract <= 1.0:
-        raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
-    if args.refine and not args.depth:
-        raise PopcodeError("--refine refines the pose against each image's depth: add --depth")
     inputs = [args.split, *args.models, *filter(None, [args.detections])]
     args.out = check_writable_file(args.out, "--out", inputs)
     for companion in companion_paths(args.out):
@@ -100,9 +79,10 @@ def handle(args: argparse.Namespace) -> int:
     detections = read_detections(args.detections) if args.detections else \
         ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
     images = split_images(args.split)
-    summary = run_detections(estimators, [str(path) for path in args.models], images, detections,
-                             args.out, _fingerprint(args, images), args.max_images, not args.quiet, args.draw,
-                             args.depth, args.refine, args.overwrite, inputs)
+    summary = run_detections(estimators, [str(path) for path in args.models], images, detections, out=args.out,
+                             fingerprint=run_fingerprint(args, images), max_images=args.max_images,
+                             progress=not args.quiet, draw_dir=args.draw, depth=args.depth, refine=args.refine,
+                             overwrite=args.overwrite, inputs=inputs)
     skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "

@@ -1,4 +1,4 @@
-"""Images in, network crops out (DESIGN.md section 3) -- used for training and inference alike.
+"""Images in, network crops out (docs/design.md#crop) -- used for training and inference alike.
 
 A box ``(x, y, w, h)`` in pixels becomes a square of side ``padding * max(w, h)``
 centred on the box centre; what falls outside the image is 0. The square is

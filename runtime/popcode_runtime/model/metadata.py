@@ -1,4 +1,4 @@
-"""What a popcode ONNX model says about itself (DESIGN.md section 3).
+"""What a popcode ONNX model says about itself (docs/design.md#model-contract).
 
 Everything the runtime needs to decode travels inside the model as
 ``metadata_props``: one key per field, each value JSON. The trainer writes it

@@ -11,7 +11,8 @@ from popcode_runtime.base.errors import PopcodeError
 
 from ..demo.parts import BUILTIN
 from ..demo.report import REPORT_FILE
-from ..demo.run import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS, describe_parts, prepare_parts, run_demo
+from ..demo.run import describe_parts, prepare_parts, run_demo
+from ..demo.sizes import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

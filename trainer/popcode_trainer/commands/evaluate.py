@@ -9,7 +9,7 @@ from pathlib import Path
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import MAX_NAME_BYTES, OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
 from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
-from popcode_runtime.inference.estimator import MAX_TOP_K
+from popcode_runtime.inference.request import MAX_TOP_K
 from popcode_runtime.model.decoding import DECODERS
 from popcode_runtime.model.engine import check_threads
 

@@ -1,4 +1,4 @@
-"""Reader for BOP-format splits: the one way data enters training (DESIGN.md section 4).
+"""Reader for BOP-format splits: the one way data enters training (docs/design.md#bop-files).
 
 Only the JSON files are read when a split is indexed; images are opened by whoever uses an
 :class:`Instance`. Works on T-LESS as published (``gray/`` or ``rgb/``, png/jpg/tif) and on what

@@ -1,7 +1,7 @@
 """Built-in, T-LESS-like industrial parts, made procedurally so tests and demos need no download.
 
 Each part is built in millimetres, centred on its bounding box, and covers one symmetry class
-(DESIGN.md section 4). The declared symmetries are written in BOP ``models_info.json`` form; the
+(docs/design.md#models-info). The declared symmetries are written in BOP ``models_info.json`` form; the
 tests check that each one really maps the mesh onto itself.
 """
 

@@ -1,4 +1,4 @@
-"""Headless pyrender renderer that writes BOP-format splits (DESIGN.md section 4).
+"""Headless pyrender renderer that writes BOP-format splits (docs/design.md#bop-files).
 
 Each object gets one scene folder (``scene_id = obj_id``, as T-LESS ``train_primesense``); image
 ``im_id`` of object ``obj_ids[o]`` has global index ``k = o * images_per_object + im_id`` and belongs

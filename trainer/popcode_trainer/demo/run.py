@@ -12,9 +12,8 @@ interrupted demo with the same folder continues where it stopped.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +23,6 @@ from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.depth.icp import INSTALL_HINT, require_small_gicp
 from popcode_runtime.inference.benchmark import benchmark_estimator
 from popcode_runtime.inference.estimator import PoseEstimator
-from popcode_runtime.model.metadata import Representation
 
 from ..data.bop import model_path
 from ..data.box_noise import box_noise_preset
@@ -39,153 +37,92 @@ from ..eval.reporting.figures import plot_instance_code, plot_sensitivity
 from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, plot_training_curves
 from ..eval.reporting.report import write_report
 from ..export.model_io import read_onnx_metadata
-from ..train.config import CodeConfig, Config, DataConfig
-from ..train.network import NetworkConfig
+from ..train.config import CodeConfig
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
 from .group_codes import GroupCode, choose_group_codes
 from .parts import BUILTIN, Parts, load_parts
+from .plan import FIRST_EPOCHS, SECONDS_PER_EXPORT, StagePlan, minutes_text, plan, train_stage
 from .report import POPCODE, QUANTISATION, ClutteredResults, DemoRun, TrainedModels, write_outputs
-from .steps import (
-    SMALL_NETWORK,
-    PipelineSize,
-    object_groups,
-    render_splits,
-    run_dir,
-    small_config,
-    train_and_export,
-    train_first_epoch,
-)
+from .sizes import BASELINE, DEMO_SIZES, HIDDEN_SIZES, DemoSize
+from .steps import PipelineSize, object_groups, render_splits, run_dir, train_and_export, train_first_epoch
 
-BASELINE = Representation.SINGLE_VARIABLE
-SCENE_SHARE = 0.25  # of every epoch's crops from the training scenes (bench/results/scene-mix-quick.md)
-# Crops from detector-like boxes from the medium budget on: at about its crop-updates half of them halve what a
-# detector's boxes cost in the bin (-6 points against -12) and keep the clean score; three quarters cost less
-# again and lose nothing at 600 and at 2400 training scenes; at the quick budget they cost 5 points on the clean
-# split (bench/results/box-noise-training.md).
-MEDIUM_BOX_NOISE = ("detector", 0.75)
 CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
 LATENCY_BATCHES = (1, 8)
-
-
-@dataclass(frozen=True)
-class DemoSize:
-    """A demo budget and what it is for."""
-
-    pipeline: PipelineSize
-    purpose: str
-    minutes: float | None = None  # fit the epochs so the whole demo takes about this long (epoch_budget)
-    epoch_bounds: tuple[int, int] = (2, 1000)  # the fitted epochs stay within these (2: an anneal needs them)
-
-
-DEMO_SIZES = {
-    # quick's minutes leave the 15 of `make demo` room for creating .venv (about two minutes on a slow VM) and the
-    # estimate's error: 13.5 took 15.8 minutes in all on an AVX2-only VM (README, Results).
-    # 2000 images a part rather than 1000 and half the epochs: +3 to +5 MSSD at equal crop-updates on a
-    # validation split, 4000 only 1 to 1.5 more at twice the rendering (bench/results/recipe.md, fourth round).
-    # A quarter of the crops from cluttered scenes: +5 MSSD on a cluttered validation split for -2 on the clean
-    # one (within its noise) at equal crop-updates; half or three quarters gain less (bench/results/scene-mix-quick.md).
-    # Crops of detector-like boxes cost the clean split more than they gain at this budget
-    # (bench/results/box-noise-training.md).
-    "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE),
-                      "about 15 minutes on a 2-core CPU", minutes=12.0, epoch_bounds=(4, 40)),
-    "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36,
-                                                            box_noise=MEDIUM_BOX_NOISE), (POPCODE, BASELINE),
-                                    cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE),
-                       "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
-    # The paper's defaults (Config()), with data-loader workers for a GPU.
-    "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=200, train_scenes=4000, scene_share=SCENE_SHARE),
-                      "the paper's code, network and schedule; for a GPU"),
-}
-
-# Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
-# plan rescales its estimate by how long the finished steps really took, so other machines converge.
-SECONDS_PER_RENDERED_IMAGE = 0.008
-SECONDS_PER_TRAINING_SCENE = 0.45  # 720 x 540, about seven parts (bench/results/scene-render-speed.md)
-SECONDS_PER_TRAINING_SAMPLE = 0.0035
-SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
-SECONDS_PER_EVALUATED_INSTANCE = 0.05
-# The population code's rows with depth on the clean test split (depth, depth + ICP): on a quick run's models they
-# added 31 + 24 s to the 151 s that scoring its 240 instances took (a busy 2-core VM), whose estimate is 48 s.
-SECONDS_PER_DEPTH_INSTANCE = 0.07
-SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
 CLUTTERED_TOP_K = 3  # the population code's best of its top-k hypotheses in clutter
 DETECTOR_BOXES = "detector"  # the box-noise preset the cluttered split is scored with once more (IoU about 0.75)
-SECONDS_LATENCY = 10.0
-SECONDS_FIGURES = 10.0
 
 
-class StagePlan:
-    """Named steps with estimated seconds; announces each with the time left overall.
+def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
+             latency_iterations: int = 50, minutes: float | None = None,
+             objects: str | Path = BUILTIN) -> dict[str, Any]:
+    """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``).
 
-    The estimate of what is left is scaled by (time taken / time estimated) of
-    the finished steps, so a faster or slower machine corrects it as it goes.
+    Without ``size`` the named size is used with its time budget; ``minutes`` sets a budget for any size
+    (the epochs are then fitted to it, within the named size's bounds). ``objects``: ``"builtin"`` or a BOP
+    models folder, checked before anything is written.
     """
-
-    def __init__(self, stages: Sequence[tuple[str, float]]) -> None:
-        self.estimates = dict(stages)
-        self.done: dict[str, float] = {}
-
-    @property
-    def scale(self) -> float:
-        """Seconds taken per second estimated over the finished steps (1 before any)."""
-        estimated_done = sum(self.estimates[name] for name in self.done)
-        return sum(self.done.values()) / estimated_done if estimated_done > 0 else 1.0
-
-    def remaining_s(self, after: Sequence[str] = ()) -> float:
-        left = [name for name in self.estimates if name not in self.done and name not in after]
-        return self.scale * sum(self.estimates[name] for name in left)
-
-    def revise(self, estimates: Mapping[str, float]) -> None:
-        """New estimates for steps not yet done (the finished ones keep theirs, which set the scale)."""
-        self.estimates.update({name: s for name, s in estimates.items() if name not in self.done})
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        index = list(self.estimates).index(name) + 1
-        this_step = self.remaining_s() - self.remaining_s([name])
-        print(f"\n[{index}/{len(self.estimates)}] {name}: about {_minutes(this_step)}; "
-              f"about {_minutes(self.remaining_s())} left overall", flush=True)
-        started = time.perf_counter()
-        yield
-        self.done[name] = time.perf_counter() - started
-
-
-def _minutes(seconds: float) -> str:
-    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
-
-
-def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_epochs: bool = False) -> StagePlan:
-    """The demo's steps with their estimated seconds on the reference CPU; with ``fit_epochs`` a step trains the
-    first epoch of every model and the training steps the rest."""
-    images = objects * (size.train_images_per_object + size.test_images_per_object)
-    width = np.prod(size.config.network.conv_channels) / np.prod(SMALL_NETWORK.conv_channels)
-    per_epoch = {(representation, tuple(obj_ids)): len(obj_ids) * size.train_images_per_object
-                 * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
-                 for representation in size.representations for obj_ids in groups}
-    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE)]
-    if fit_epochs:
-        stages.append((FIRST_EPOCHS, sum(per_epoch.values())))
-    for (representation, obj_ids), seconds in per_epoch.items():
-        stages.append((_train_stage(representation, obj_ids),
-                       seconds * (size.config.train.epochs - fit_epochs) + SECONDS_PER_EXPORT))
-    methods = len(size.representations) + 2  # + refined decoder + quantised model
-    stages += [("evaluate", objects * size.test_images_per_object
-                * (methods * SECONDS_PER_EVALUATED_INSTANCE + SECONDS_PER_DEPTH_INSTANCE))]
+    sizes = {**DEMO_SIZES, **HIDDEN_SIZES}
+    if size_name not in sizes and size is None:
+        raise PopcodeError(f"unknown demo size {size_name!r}; choose from {list(DEMO_SIZES)}")
+    demo = sizes.get(size_name, DemoSize(size, "a custom size"))
+    if minutes is None and size is None:
+        minutes = demo.minutes
+    demo = replace(demo, minutes=minutes)
+    size = size or demo.pipeline
+    if POPCODE not in size.representations:
+        raise PopcodeError("the demo needs the population code among its representations")
+    started = time.perf_counter()
+    if str(objects) != BUILTIN:
+        print(f"checking the parts of {objects} and choosing each group's code", flush=True)
+    parts, codes = prepare_parts(objects, size.config.code)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    groups = [list(group.obj_ids) for group in codes]
+    objects_count = len(parts.obj_ids)
+    stages = plan(size, groups, objects_count, fit_epochs=minutes is not None)
+    duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
+                else f"{size.config.train.epochs} epochs, about {minutes_text(stages.remaining_s())} on a 2-core CPU "
+                     "(the estimate corrects itself as steps finish)")
+    print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
+          flush=True)
+    if not parts.builtin:
+        print(f"Checked {describe_parts(parts, codes)}", flush=True)
+    with stages.stage("render"):
+        train_split, test_split = render_splits(size, out_dir, parts=parts)
+    epoch_fit = None
+    if minutes is not None:
+        with stages.stage(FIRST_EPOCHS):
+            epoch_fit = fit_epochs(size, demo, codes, train_split, out_dir, started, stages)
+        size = size.with_epochs(epoch_fit.epochs)
+        # What is left of each model's training is now measured, not estimated: stated in reference seconds.
+        stages.revise({train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
+            run_dir(out_dir, r, g).name] / stages.scale + SECONDS_PER_EXPORT for r in size.representations
+            for g in groups})
+        print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
+              f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
+              f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
+              flush=True)
+    models = train_models(size, codes, train_split, out_dir, stages)
+    with stages.stage("evaluate"):
+        split, results = evaluate_clean(demo_methods(models), test_split)
+        write_report(results, out_dir / "eval")
+    cluttered = None
     if size.cluttered_test_scenes:
-        stages.append(("cluttered test split", size.cluttered_test_scenes * SECONDS_PER_CLUTTERED_SCENE))
-    stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
-    return StagePlan(stages)
-
-
-def _train_stage(representation: str, obj_ids: Sequence[int]) -> str:
-    return f"train {representation} for objects {', '.join(map(str, obj_ids))}"
-
-
-FIRST_EPOCHS = "time the first epoch of every model"
+        with stages.stage("cluttered test split"):
+            cluttered = evaluate_cluttered(size, models, out_dir, parts)
+    with stages.stage("latency"):
+        latency = measure_latency(models, latency_iterations)
+    with stages.stage("figures"):
+        run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
+        figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
+    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
+                  cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
+                  parts.fill_range()[1])
+    summary = write_outputs(run)
+    print(f"\ndone in {minutes_text(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
+    return summary
 
 
 def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], train_split: Path,
@@ -208,7 +145,7 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], t
             seconds = train_first_epoch(size, representation, group.obj_ids, train_split, out_dir, group.code)
             first[run_dir(out_dir, representation, group.obj_ids).name] = seconds
     elapsed_s = time.perf_counter() - started
-    training = [_train_stage(r, g.obj_ids) for r in size.representations for g in codes]
+    training = [train_stage(r, g.obj_ids) for r in size.representations for g in codes]
     exports = stages.scale * SECONDS_PER_EXPORT * len(training)
     other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports
     result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps,
@@ -224,7 +161,7 @@ def train_models(size: PipelineSize, codes: Sequence[GroupCode], train_split: Pa
     for representation in size.representations:
         for group in codes:
             kinds = (QUANTISATION,) if representation == POPCODE else ()
-            with stages.stage(_train_stage(representation, group.obj_ids)):
+            with stages.stage(train_stage(representation, group.obj_ids)):
                 path, _ = train_and_export(size, representation, group.obj_ids, train_split, out_dir, kinds,
                                            group.code)
             by_representation.setdefault(representation, []).append(path)
@@ -331,18 +268,6 @@ def draw_figures(results: Sequence[MethodResult], split: EvalSplit, models: Trai
     return figures
 
 
-# A size no help text offers: the README's own-parts test runs the one command at it, every step in seconds
-# (its scores mean nothing).
-SMOKE_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
-HIDDEN_SIZES = {
-    "smoke": DemoSize(PipelineSize(8, 2, small_config(epochs=2, n_axes=42, n_angles=12, network=SMOKE_NETWORK,
-                                                      sigma_deg=30.0, batch_size=4), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=2, train_scenes=2, scene_share=0.5),
-                      "every step in seconds, for tests; its scores mean nothing"),
-}
-SMOKE_LATENCY_ITERATIONS = 3
-
-
 def prepare_parts(objects: str | Path, code: CodeConfig) -> tuple[Parts, list[GroupCode]]:
     """The parts checked (:mod:`~popcode_trainer.demo.parts`), grouped, and each group's code chosen: every check
     that comes before the long work. A user's parts may get a finer grid than ``code``'s (and a group of their own
@@ -358,74 +283,3 @@ def describe_parts(parts: Parts, codes: Sequence[GroupCode]) -> str:
     render_note = parts.fill_range()[1]
     return "\n".join([f"{parts.describe()}; one model per object group:", *(f"- {g.note}" for g in codes),
                       *([render_note] if render_note else [])])
-
-
-def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
-             latency_iterations: int = 50, minutes: float | None = None,
-             objects: str | Path = BUILTIN) -> dict[str, Any]:
-    """Run every step into ``out_dir``; returns the summary (also written as ``summary.json``).
-
-    Without ``size`` the named size is used with its time budget; ``minutes`` sets a budget for any size
-    (the epochs are then fitted to it, within the named size's bounds). ``objects``: ``"builtin"`` or a BOP
-    models folder, checked before anything is written.
-    """
-    sizes = {**DEMO_SIZES, **HIDDEN_SIZES}
-    if size_name not in sizes and size is None:
-        raise PopcodeError(f"unknown demo size {size_name!r}; choose from {list(DEMO_SIZES)}")
-    demo = sizes.get(size_name, DemoSize(size, "a custom size"))
-    if minutes is None and size is None:
-        minutes = demo.minutes
-    demo = replace(demo, minutes=minutes)
-    size = size or demo.pipeline
-    if POPCODE not in size.representations:
-        raise PopcodeError("the demo needs the population code among its representations")
-    started = time.perf_counter()
-    if str(objects) != BUILTIN:
-        print(f"checking the parts of {objects} and choosing each group's code", flush=True)
-    parts, codes = prepare_parts(objects, size.config.code)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    groups = [list(group.obj_ids) for group in codes]
-    objects_count = len(parts.obj_ids)
-    stages = plan(size, groups, objects_count, fit_epochs=minutes is not None)
-    duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
-                else f"{size.config.train.epochs} epochs, about {_minutes(stages.remaining_s())} on a 2-core CPU "
-                     "(the estimate corrects itself as steps finish)")
-    print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
-          flush=True)
-    if not parts.builtin:
-        print(f"Checked {describe_parts(parts, codes)}", flush=True)
-    with stages.stage("render"):
-        train_split, test_split = render_splits(size, out_dir, parts=parts)
-    epoch_fit = None
-    if minutes is not None:
-        with stages.stage(FIRST_EPOCHS):
-            epoch_fit = fit_epochs(size, demo, codes, train_split, out_dir, started, stages)
-        size = size.with_epochs(epoch_fit.epochs)
-        # What is left of each model's training is now measured, not estimated: stated in reference seconds.
-        stages.revise({_train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
-            run_dir(out_dir, r, g).name] / stages.scale + SECONDS_PER_EXPORT for r in size.representations
-            for g in groups})
-        print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
-              f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
-              f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
-              flush=True)
-    models = train_models(size, codes, train_split, out_dir, stages)
-    with stages.stage("evaluate"):
-        split, results = evaluate_clean(demo_methods(models), test_split)
-        write_report(results, out_dir / "eval")
-    cluttered = None
-    if size.cluttered_test_scenes:
-        with stages.stage("cluttered test split"):
-            cluttered = evaluate_cluttered(size, models, out_dir, parts)
-    with stages.stage("latency"):
-        latency = measure_latency(models, latency_iterations)
-    with stages.stage("figures"):
-        run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
-        figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
-    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
-                  cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
-                  parts.fill_range()[1])
-    summary = write_outputs(run)
-    print(f"\ndone in {_minutes(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
-    return summary

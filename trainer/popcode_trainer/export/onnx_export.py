@@ -1,4 +1,4 @@
-"""Checkpoint -> ONNX model meeting DESIGN section 3, checked, optionally quantised.
+"""Checkpoint -> ONNX model meeting docs/design.md#model-contract, checked, optionally quantised.
 
 The float model is checked twice: ``onnx.checker`` on the graph and a parity
 run (onnxruntime vs torch on the same crops: max absolute difference, argmax

@@ -25,7 +25,7 @@ import numpy as np
 from popcode_runtime.base.checks import integer
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.coding.confidence import DEFAULT_THRESHOLD_DEG
-from popcode_runtime.inference.estimator import MAX_TOP_K
+from popcode_runtime.inference.request import MAX_TOP_K
 
 from ...metrics.confidence import ConfidenceEvaluation, evaluate_confidence, rotation_errors_deg
 from ...metrics.recall import InstanceErrors, Thresholds, metric_scores

@@ -1,0 +1,77 @@
+"""Which options of a ``popcode`` command need which, and the bounds of its counts: checked in one place.
+
+Each command's parsed options are checked here before anything is read or
+run, so that a typo costs one line, not a loaded model. The Python API checks
+its own arguments (``PoseEstimator.predict``); this is the command line's word
+for the same rules, naming the options a user typed.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+from ..base.errors import PopcodeError
+from ..inference.benchmark import MAX_BENCH_BATCH
+from ..inference.request import MAX_BOXES_PER_CALL
+
+
+@dataclass(frozen=True)
+class Needs:
+    """``option`` (an argparse destination) is given only with ``needed``; ``why`` is the refusal's line."""
+
+    option: str
+    needed: str
+    why: str
+
+
+NEEDS: dict[str, tuple[Needs, ...]] = {
+    "predict": (
+        Needs("code", "json", "--code prints the raw network output in the JSON; add --json"),
+        Needs("refine", "depth", "--refine is about the depth image: add --depth PNG"),
+        Needs("depth_scale", "depth", "--depth-scale is about the depth image: add --depth PNG"),
+    ),
+    "run": (
+        Needs("refine", "depth", "--refine refines the pose against each image's depth: add --depth"),
+    ),
+}
+DEFAULT_BENCH_BATCHES = (1, 8, 32)
+
+
+def given(args: argparse.Namespace, option: str) -> bool:
+    """Whether the command line set ``option`` (a flag that is on, or a value that is not left out)."""
+    return getattr(args, option, None) not in (None, False)
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Refuse, in one line, options without the option they need and counts out of bounds."""
+    for rule in NEEDS.get(args.command, ()):
+        if given(args, rule.option) and not given(args, rule.needed):
+            raise PopcodeError(rule.why)
+    CHECKS.get(args.command, lambda _args: None)(args)
+
+
+def _check_predict(args: argparse.Namespace) -> None:
+    if len(args.box) > MAX_BOXES_PER_CALL:
+        raise PopcodeError(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
+    if args.max_pixels < 1:
+        raise PopcodeError(f"--max-pixels must be positive, got {args.max_pixels}")
+
+
+def _check_bench(args: argparse.Namespace) -> None:
+    if args.batch is None:
+        args.batch = list(DEFAULT_BENCH_BATCHES)
+    if min(args.batch) < 1 or args.iterations < 1 or args.warmup < 0:
+        raise PopcodeError("batch sizes and iterations must be positive, warmup non-negative")
+    if max(args.batch) > MAX_BENCH_BATCH:
+        raise PopcodeError(f"--batch {max(args.batch)} is more than the limit of {MAX_BENCH_BATCH}")
+
+
+def _check_run(args: argparse.Namespace) -> None:
+    if args.max_images is not None and args.max_images < 1:
+        raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
+    if not 0.0 <= args.min_visib_fract <= 1.0:
+        raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
+
+
+CHECKS = {"predict": _check_predict, "bench": _check_bench, "run": _check_run}

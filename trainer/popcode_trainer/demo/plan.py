@@ -1,0 +1,98 @@
+"""The demo's plan: its steps with estimated seconds, announced one by one with the time left overall.
+
+The estimates are in seconds of the 2-core CPU the project is developed on;
+the plan rescales what is left by how long the finished steps really took.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+
+import numpy as np
+
+from .steps import SMALL_NETWORK, PipelineSize
+
+FIRST_EPOCHS = "time the first epoch of every model"
+# Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
+# plan rescales its estimate by how long the finished steps really took, so other machines converge.
+SECONDS_PER_RENDERED_IMAGE = 0.008
+SECONDS_PER_TRAINING_SCENE = 0.45  # 720 x 540, about seven parts (bench/results/scene-render-speed.md)
+SECONDS_PER_TRAINING_SAMPLE = 0.0035
+SECONDS_PER_EXPORT = 10.0  # ONNX, quantisation and the confidence fit of one model
+SECONDS_PER_EVALUATED_INSTANCE = 0.05
+# The population code's rows with depth on the clean test split (depth, depth + ICP): on a quick run's models they
+# added 31 + 24 s to the 151 s that scoring its 240 instances took (a busy 2-core VM), whose estimate is 48 s.
+SECONDS_PER_DEPTH_INSTANCE = 0.07
+SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
+SECONDS_LATENCY = 10.0
+SECONDS_FIGURES = 10.0
+
+
+class StagePlan:
+    """Named steps with estimated seconds; announces each with the time left overall.
+
+    The estimate of what is left is scaled by (time taken / time estimated) of
+    the finished steps, so a faster or slower machine corrects it as it goes.
+    """
+
+    def __init__(self, stages: Sequence[tuple[str, float]]) -> None:
+        self.estimates = dict(stages)
+        self.done: dict[str, float] = {}
+
+    @property
+    def scale(self) -> float:
+        """Seconds taken per second estimated over the finished steps (1 before any)."""
+        estimated_done = sum(self.estimates[name] for name in self.done)
+        return sum(self.done.values()) / estimated_done if estimated_done > 0 else 1.0
+
+    def remaining_s(self, after: Sequence[str] = ()) -> float:
+        left = [name for name in self.estimates if name not in self.done and name not in after]
+        return self.scale * sum(self.estimates[name] for name in left)
+
+    def revise(self, estimates: Mapping[str, float]) -> None:
+        """New estimates for steps not yet done (the finished ones keep theirs, which set the scale)."""
+        self.estimates.update({name: s for name, s in estimates.items() if name not in self.done})
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        index = list(self.estimates).index(name) + 1
+        this_step = self.remaining_s() - self.remaining_s([name])
+        print(f"\n[{index}/{len(self.estimates)}] {name}: about {minutes_text(this_step)}; "
+              f"about {minutes_text(self.remaining_s())} left overall", flush=True)
+        started = time.perf_counter()
+        yield
+        self.done[name] = time.perf_counter() - started
+
+
+def minutes_text(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
+def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_epochs: bool = False) -> StagePlan:
+    """The demo's steps with their estimated seconds on the reference CPU; with ``fit_epochs`` a step trains the
+    first epoch of every model and the training steps the rest."""
+    images = objects * (size.train_images_per_object + size.test_images_per_object)
+    width = np.prod(size.config.network.conv_channels) / np.prod(SMALL_NETWORK.conv_channels)
+    per_epoch = {(representation, tuple(obj_ids)): len(obj_ids) * size.train_images_per_object
+                 * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
+                 for representation in size.representations for obj_ids in groups}
+    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE)]
+    if fit_epochs:
+        stages.append((FIRST_EPOCHS, sum(per_epoch.values())))
+    for (representation, obj_ids), seconds in per_epoch.items():
+        stages.append((train_stage(representation, obj_ids),
+                       seconds * (size.config.train.epochs - fit_epochs) + SECONDS_PER_EXPORT))
+    methods = len(size.representations) + 2  # + refined decoder + quantised model
+    stages += [("evaluate", objects * size.test_images_per_object
+                * (methods * SECONDS_PER_EVALUATED_INSTANCE + SECONDS_PER_DEPTH_INSTANCE))]
+    if size.cluttered_test_scenes:
+        stages.append(("cluttered test split", size.cluttered_test_scenes * SECONDS_PER_CLUTTERED_SCENE))
+    stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
+    return StagePlan(stages)
+
+
+def train_stage(representation: str, obj_ids: Sequence[int]) -> str:
+    """The name of the step that trains and exports one model."""
+    return f"train {representation} for objects {', '.join(map(str, obj_ids))}"
