@@ -23,7 +23,8 @@ from popcode_trainer.data.depth_noise import (
     incidence_angle_deg,
 )
 from popcode_trainer.data.objects import write_builtin_models
-from popcode_trainer.data.scene_render import SceneSettings, render_scene_split
+from popcode_trainer.data.scene_content import SceneSettings
+from popcode_trainer.data.scene_render import render_scene_split
 from popcode_trainer.data.sensor import SENSOR_PRESETS
 
 SIDE = 128

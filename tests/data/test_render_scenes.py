@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import trimesh
 
-import popcode_trainer.data.scene_render as scene_module
 from popcode_runtime import PopcodeError
 from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.cli import main
@@ -18,8 +17,10 @@ from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.objects import model_info
+from popcode_trainer.data.scene_annotation import instance_gt_info
+from popcode_trainer.data.scene_content import Layouts, SceneContent, SceneSettings
 from popcode_trainer.data.scene_layout import PlacedObject
-from popcode_trainer.data.scene_render import SceneSettings, instance_gt_info, render_scene_split
+from popcode_trainer.data.scene_render import render_scene_split
 from popcode_trainer.metrics.visibility import depth_to_distance
 
 TINY = SceneSettings(scenes=4, width=96, height=72, seed=3, parts=(3, 5), distractors=(1, 2), bin_size_mm=90.0)
@@ -130,12 +131,12 @@ def test_a_fully_hidden_part_gets_visib_fract_0_and_is_skipped(tiny_models: Path
     settings = SceneSettings(scenes=1, width=64, height=48, seed=0, parts=(2, 2), distractors=(0, 0), bin=False,
                              sensor="none")
     down = np.diag([1.0, -1.0, -1.0])  # camera axes in the world: looking down the world's -z
-    content = scene_module._SceneContent(
+    content = SceneContent(
         targets=[PlacedObject(2, np.eye(3), np.array([0.0, 0.0, 12.0])),
                  PlacedObject(1, np.eye(3), np.array([0.0, 0.0, 59.0]))],
         distractors=[], distractor_meshes={}, walls=[], ground_side_mm=400.0,
         R_w2c=down, t_w2c_mm=-down @ np.array([0.0, 0.0, 300.0]))
-    monkeypatch.setattr(scene_module._Layouts, "draw", lambda self, rng, K: content)
+    monkeypatch.setattr(Layouts, "draw", lambda self, rng, K: content)
     render_scene_split(tiny_models, tmp_path, settings, progress=False)
     info = json.loads((tmp_path / "000000" / "scene_gt_info.json").read_text())["0"]
     assert info[0]["visib_fract"] == 0 and info[0]["px_count_visib"] == 0 and info[0]["px_count_all"] > 0

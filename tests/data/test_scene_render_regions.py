@@ -13,7 +13,8 @@ import popcode_trainer.data.scene_render as scene_module
 from popcode_trainer.data.gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
 from popcode_trainer.data.objects import write_builtin_models
 from popcode_trainer.data.render import camera_matrix
-from popcode_trainer.data.scene_render import SceneSettings, render_scene_split
+from popcode_trainer.data.scene_content import SceneSettings
+from popcode_trainer.data.scene_render import render_scene_split
 
 
 def test_a_region_is_the_crop_of_the_whole_image_bit_for_bit() -> None:

@@ -25,7 +25,7 @@ from popcode_runtime.commands.drawing import (
 )
 from popcode_runtime.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle, rotvec_to_matrix
 from popcode_runtime.geometry.symmetries import continuous_axis, discrete_transforms
-from popcode_runtime.inference.estimator import Prediction
+from popcode_runtime.inference.prediction import Prediction
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 SAMPLES = json.loads((MODELS / "samples" / "samples.json").read_text())["samples"]

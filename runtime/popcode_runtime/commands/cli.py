@@ -21,7 +21,8 @@ from ..geometry.crop import MAX_IMAGE_PIXELS, read_image
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.symmetries import symmetry_class
 from ..inference.benchmark import benchmark_estimator, machine_description
-from ..inference.estimator import PoseEstimator, Prediction
+from ..inference.estimator import PoseEstimator
+from ..inference.prediction import Prediction
 from ..model.decoding import DECODERS
 from . import run as run_command
 from .drawing import draw_predictions

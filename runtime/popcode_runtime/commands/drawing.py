@@ -49,7 +49,7 @@ from ..geometry.symmetries import (
     symmetry_rotations,
 )
 from ..geometry.translation import object_points_mm
-from ..inference.estimator import Prediction
+from ..inference.prediction import Prediction
 from ..model.metadata import ModelMetadata
 
 AXIS_COLOURS_BGR = np.array([[0, 0, 255], [0, 255, 0], [255, 0, 0]], dtype=np.float64)  # model x, y, z

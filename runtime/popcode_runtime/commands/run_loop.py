@@ -33,8 +33,9 @@ from ..bop.detections import Detection
 from ..bop.split import SplitImage
 from ..depth.icp import require_small_gicp
 from ..geometry.crop import check_box
-from ..inference.estimator import PoseEstimator, Prediction
+from ..inference.estimator import PoseEstimator
 from ..inference.image_loop import ImageBoxes, estimate_images, route_objects
+from ..inference.prediction import Prediction
 from .drawing import draw_predictions
 from .run_results import ImageKey, PartialResults, companion_paths
 

@@ -22,7 +22,8 @@ import numpy as np
 from ..base.errors import PopcodeError
 from ..depth.surface_fit import read_depth
 from ..geometry.crop import read_image
-from .estimator import PoseEstimator, Prediction
+from .estimator import PoseEstimator
+from .prediction import Prediction
 
 Key = TypeVar("Key")
 

@@ -19,7 +19,8 @@ from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import ARGMAX, methods_from_paths
 from ..eval.pipeline.split import read_eval_split
-from ..eval.reporting.report import report_files, report_markdown, write_report
+from ..eval.reporting.report import report_files, write_report
+from ..eval.reporting.sections import report_markdown
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -10,7 +10,8 @@ from popcode_runtime.base.errors import PopcodeError
 from ..data.bop import RENDER_MARKER
 from ..data.objects import BUILTIN_PARTS, write_builtin_models
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, parse_shard, render_split
-from ..data.scene_render import SceneSettings, render_scene_split
+from ..data.scene_content import SceneSettings
+from ..data.scene_render import render_scene_split
 from ..data.sensor import SENSOR_PRESETS
 
 SINGLE_OBJECT_SIZE = (128, 128)

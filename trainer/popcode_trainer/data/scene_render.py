@@ -5,11 +5,8 @@ Image ``k`` of a render is scene folder ``k // 1000``, image ``k % 1000`` (as Bl
 bin, textures, lights, camera, sensor) from a generator seeded by ``(seed, k)``: any shard split
 renders the same images. Records, atomic writes and resume work as in :mod:`.render`.
 
-Annotations are computed as the BOP toolkit's ``calc_gt_masks`` and ``calc_gt_info`` compute
-them (:func:`instance_gt_info`): ``mask`` is the part rendered alone, ``mask_visib`` the pixels of
-that mask where the part is not more than ``visib_delta_mm`` behind the scene's depth,
-``px_count_all`` counts the whole silhouette including what the image border cuts off, and the
-boxes of an instance with no visible pixel are ``[-1, -1, -1, -1]``. A draw in which no target is
+What an image holds is drawn by :mod:`.scene_content`; annotations are computed as the BOP toolkit's
+``calc_gt_masks`` and ``calc_gt_info`` compute them (:mod:`.scene_annotation`). A draw in which no target is
 visible (rare: the camera aims at the bin) is drawn again, up to :data:`MAX_CAMERA_TRIES` times;
 after that it is written as it is, every instance with ``visib_fract`` 0, which readers skip.
 
@@ -37,7 +34,6 @@ from tqdm import tqdm
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import write_json_atomic, write_png_atomic
 
-from ..metrics.visibility import depth_to_distance, visible_mask_gt
 from .augment import procedural_texture
 from .bop import load_models_info, model_path
 from .depth_noise import apply_depth_noise, depth_noise_preset
@@ -50,113 +46,19 @@ from .render import (
     RECORDS_FOLDER,
     add_random_lights,
     camera_matrix,
-    check_count_and_seed,
     check_settings,
     finalize_scene,
-    mask_box,
     models_digest,
 )
-from .scene_layout import PlacedObject, drop_objects, look_at_camera, model_to_camera, surface_points_mm
+from .scene_annotation import instance_gt_info, moved_box
+from .scene_content import Layouts, SceneContent, SceneSettings
+from .scene_layout import model_to_camera
 from .sensor import apply_sensor_effects, sensor_preset
 
 IMAGES_PER_SCENE_FOLDER = 1000
-BOP_VISIB_DELTA_MM = 15.0  # the BOP toolkit's calc_gt_info / calc_gt_masks tolerance
-DISTRACTOR_KEY_BASE = -1  # distractors get keys -1, -2, ...: never an obj_id
 MAX_CAMERA_TRIES = 10
 MARGIN_PX = 2  # around the projected mesh: far more than OpenGL's rounding of vertex positions
-MAX_BIN_MM = 100_000.0  # a 100 m bin: beyond it a part is a speck in the image
-MAX_SIDE_PX = 4096  # the border-cut silhouettes are rendered 3x larger: within OpenGL's usual 16384 limit
 SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
-
-
-@dataclass(frozen=True)
-class SceneSettings:
-    """What a scene split is rendered with; stored in the split so a rerun cannot mix settings."""
-
-    scenes: int
-    width: int = 720
-    height: int = 540
-    seed: int = 0
-    gray: bool = True
-    parts: tuple[int, int] = (4, 10)  # targets per image, drawn uniformly, repeats allowed
-    distractors: tuple[int, int] = (0, 3)  # primitives that are not targets
-    bin: bool = True  # walls around the pile; False: parts lie on an open table
-    bin_size_mm: float = 0.0  # side of the bin; 0: from the largest part and the most parts per image
-    fill_range: tuple[float, float] = (0.7, 1.2)  # bin side / min(width, height) in px; above 1 the border cuts
-    max_tilt_deg: float = 35.0  # camera axis from the vertical
-    visib_delta_mm: float = BOP_VISIB_DELTA_MM
-    sensor: str = "none"  # a name in sensor.SENSOR_PRESETS
-
-    def __post_init__(self) -> None:
-        check_count_and_seed(self.scenes, "scenes", self.seed)
-        if not 8 <= self.width <= MAX_SIDE_PX or not 8 <= self.height <= MAX_SIDE_PX:
-            raise PopcodeError(f"need 8 to {MAX_SIDE_PX} pixels a side, got {self.width}x{self.height}")
-        if not 1 <= self.parts[0] <= self.parts[1] or not 0 <= self.distractors[0] <= self.distractors[1]:
-            raise PopcodeError(f"parts need 1 <= min <= max and distractors 0 <= min <= max, got parts "
-                               f"{self.parts}, distractors {self.distractors}")
-        if self.parts[1] + self.distractors[1] > 200:
-            raise PopcodeError(f"at most 200 objects per image, got up to {self.parts[1] + self.distractors[1]}")
-        if not 0.1 <= self.fill_range[0] <= self.fill_range[1] <= 3.0:
-            raise PopcodeError(f"fill_range must satisfy 0.1 <= low <= high <= 3, got {self.fill_range}")
-        if not 0.0 <= self.max_tilt_deg <= 70.0 or not 0 <= self.bin_size_mm <= MAX_BIN_MM or \
-                not 0 < self.visib_delta_mm <= MAX_BIN_MM:  # NaN fails these tests too
-            raise PopcodeError(f"need 0 <= max_tilt_deg <= 70, 0 <= bin_size_mm <= {MAX_BIN_MM:g} and "
-                               f"0 < visib_delta_mm <= {MAX_BIN_MM:g}, got {self.max_tilt_deg}, {self.bin_size_mm} "
-                               f"and {self.visib_delta_mm}")
-        sensor_preset(self.sensor)
-
-
-def instance_gt_info(depth_alone_mm: np.ndarray, depth_scene_mm: np.ndarray, K: np.ndarray, delta_mm: float,
-                     px_count_all: int | None = None, bbox_obj: list[int] | None = None,
-                     region: PixelRegion | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """``mask``, ``mask_visib`` ``(H, W)`` bool and the ``scene_gt_info`` entry of one instance.
-
-    ``depth_alone_mm``: the instance rendered alone; ``depth_scene_mm``: the whole scene (0 where
-    nothing is). ``px_count_all`` and ``bbox_obj`` of the whole silhouette, when the border cuts it,
-    come from a larger rendering; by default they are the in-image mask's. With ``region``
-    ``(x0, y0, x1, y1)``, ``depth_alone_mm`` is only that part of the image, nothing outside it.
-    """
-    height, width = depth_scene_mm.shape
-    x0, y0, x1, y1 = (0, 0, width, height) if region is None else region
-    K_region = np.array(K, dtype=np.float64)
-    K_region[:2, 2] -= [x0, y0]  # same distances as over the whole image: camera_matrix's cx, cy are multiples of 0.5
-    scene_mm = depth_scene_mm[y0:y1, x0:x1]
-    mask_in = depth_alone_mm > 0
-    visib_in = visible_mask_gt(depth_to_distance(scene_mm, K_region), depth_to_distance(depth_alone_mm, K_region),
-                               delta_mm)
-    mask, mask_visib = np.zeros((height, width), bool), np.zeros((height, width), bool)
-    mask[y0:y1, x0:x1], mask_visib[y0:y1, x0:x1] = mask_in, visib_in
-    px_count_all = int(mask_in.sum()) if px_count_all is None else int(px_count_all)
-    px_count_visib = int(visib_in.sum())
-    info = {
-        "bbox_obj": (_moved_box(mask_in, x0, y0) if bbox_obj is None else list(bbox_obj)) if px_count_visib
-        else [-1] * 4,
-        "bbox_visib": _moved_box(visib_in, x0, y0),
-        "px_count_all": px_count_all,
-        "px_count_valid": int((scene_mm[mask_in] > 0).sum()),
-        "px_count_visib": px_count_visib,
-        "visib_fract": px_count_visib / px_count_all if px_count_all else 0.0,
-    }
-    return mask, mask_visib, info
-
-
-def _moved_box(mask: np.ndarray, dx: int, dy: int) -> list[int]:
-    """:func:`.render.mask_box` of ``mask`` with its first pixel moved by ``(dx, dy)``; no box stays ``[-1] * 4``."""
-    x, y, w, h = mask_box(mask)
-    return [x + dx, y + dy, w, h] if w >= 0 else [-1] * 4
-
-
-def _distractor_mesh(rng: np.random.Generator, size_mm: float) -> trimesh.Trimesh:
-    """A random box, cylinder, capsule or sphere of about ``size_mm``: clutter that is no target."""
-    kind = int(rng.integers(4))
-    scale = size_mm * rng.uniform(0.25, 0.7, size=3)
-    if kind == 0:
-        return trimesh.creation.box(extents=scale)
-    if kind == 1:
-        return trimesh.creation.cylinder(radius=scale[0] / 2, height=scale[2], sections=24)
-    if kind == 2:
-        return trimesh.creation.capsule(radius=scale[0] / 3, height=scale[2], count=[12, 12])
-    return trimesh.creation.icosphere(subdivisions=2, radius=scale[0] / 2)
 
 
 def _textured_quad(pyrender: Any, side_mm: float, texture_rgb: np.ndarray, repeats: float) -> Any:
@@ -186,70 +88,6 @@ def _random_material(pyrender: Any, rng: np.random.Generator) -> Any:
                                               roughnessFactor=rng.uniform(0.3, 0.9))
 
 
-def _bin_walls(side_mm: float, height_mm: float) -> list[trimesh.Trimesh]:
-    thickness = 0.03 * side_mm
-    offset = (side_mm + thickness) / 2.0
-    walls = []
-    for axis in (0, 1):
-        for sign in (-1.0, 1.0):
-            extents = [side_mm + 2 * thickness, side_mm + 2 * thickness, height_mm]
-            extents[axis] = thickness
-            centre = [0.0, 0.0, height_mm / 2.0]
-            centre[axis] = sign * offset
-            walls.append(trimesh.creation.box(extents=extents,
-                                              transform=trimesh.transformations.translation_matrix(centre)))
-    return walls
-
-
-@dataclass
-class _SceneContent:
-    """One image's world: targets and distractors at rest, bin walls and ground, camera and appearance."""
-
-    targets: list[PlacedObject]
-    distractors: list[PlacedObject]
-    distractor_meshes: dict[int, trimesh.Trimesh]
-    walls: list[trimesh.Trimesh]
-    ground_side_mm: float
-    R_w2c: np.ndarray
-    t_w2c_mm: np.ndarray
-
-
-class _Layouts:
-    """Draws the world of image ``k`` from its generator: which parts, where they rest, where the camera is."""
-
-    def __init__(self, meshes: dict[int, trimesh.Trimesh], settings: SceneSettings) -> None:
-        self.settings = settings
-        self.obj_ids = sorted(meshes)
-        self.points_mm = {obj_id: surface_points_mm(mesh) for obj_id, mesh in meshes.items()}
-        self.diameters_mm = {obj_id: float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-                             for obj_id, mesh in meshes.items()}
-        largest_mm = max(self.diameters_mm.values())
-        crowd = settings.parts[1] + settings.distractors[1]
-        self.side_mm = settings.bin_size_mm or largest_mm * max(2.0, 0.7 * np.sqrt(crowd))
-        self.wall_mm = 0.5 * largest_mm
-        self.max_height_mm = self.wall_mm + 2.0 * largest_mm
-
-    def draw(self, rng: np.random.Generator, K: np.ndarray) -> _SceneContent:
-        settings = self.settings
-        targets = [int(obj_id) for obj_id in rng.choice(self.obj_ids, size=int(rng.integers(*settings.parts,
-                                                                                            endpoint=True)))]
-        distractor_meshes = {DISTRACTOR_KEY_BASE - i: _distractor_mesh(rng, np.median(list(self.diameters_mm.values())))
-                             for i in range(int(rng.integers(*settings.distractors, endpoint=True)))}
-        points = {**self.points_mm, **{key: surface_points_mm(mesh, seed=int(rng.integers(2**31)))
-                                       for key, mesh in distractor_meshes.items()}}
-        keys = [*targets, *distractor_meshes]
-        order = rng.permutation(len(keys))  # distractors may lie under or over the parts
-        placed = drop_objects(rng, [keys[i] for i in order], points, self.side_mm, self.max_height_mm)
-        fill = rng.uniform(*settings.fill_range)
-        distance_mm = K[0, 0] * self.side_mm / (fill * min(settings.width, settings.height))
-        target_w_mm = np.array([*rng.uniform(-0.15, 0.15, size=2) * self.side_mm, 0.0])
-        R_w2c, t_w2c_mm = look_at_camera(rng, target_w_mm, distance_mm, np.deg2rad(settings.max_tilt_deg))
-        return _SceneContent(
-            targets=[p for p in placed if p.key >= 0], distractors=[p for p in placed if p.key < 0],
-            distractor_meshes=distractor_meshes, walls=_bin_walls(self.side_mm, self.wall_mm) if settings.bin else [],
-            ground_side_mm=6.0 * self.side_mm, R_w2c=R_w2c, t_w2c_mm=t_w2c_mm)
-
-
 def _depth_mesh(pyrender: Any, mesh: trimesh.Trimesh) -> Any:
     """Positions and triangles only: what a depth pass needs, cheap to make per image."""
     return pyrender.Mesh([pyrender.Primitive(positions=np.asarray(mesh.vertices, np.float32),
@@ -271,7 +109,7 @@ class _SceneRenderer:
         self._wide_depth = CentreSampledDepth(self._offscreen, 3 * width, 3 * height)
         self._near_far_mm = (1.0, 2.0)  # of the current image
 
-    def render(self, content: _SceneContent, meshes: dict[int, trimesh.Trimesh], K: np.ndarray,
+    def render(self, content: SceneContent, meshes: dict[int, trimesh.Trimesh], K: np.ndarray,
                rng: np.random.Generator
                ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, PixelRegion]], list[tuple[int, list]]]:
         """Colour ``(H, W, 3)`` uint8, scene depth [mm], each target's depth alone [mm] in the region of
@@ -338,7 +176,7 @@ class _SceneRenderer:
         x0, y0, x1, y1 = region
         if mask.any() and not ((x0 == 0 and mask[:, 0].any()) or (y0 == 0 and mask[0].any())
                                or (x1 == self.width and mask[:, -1].any()) or (y1 == self.height and mask[-1].any())):
-            return int(mask.sum()), _moved_box(mask, x0, y0)
+            return int(mask.sum()), moved_box(mask, x0, y0)
         wide_K = K.copy()
         wide_K[:2, 2] += [self.width, self.height]
         camera = self._camera(wide_K)
@@ -349,7 +187,7 @@ class _SceneRenderer:
         wide_region = _covered_region(mesh, pose_gl, wide_K, camera.znear, (3 * self.width, 3 * self.height))
         wide_mask = self._wide_depth.render(wide_region) > 0
         x0, y0, _, _ = wide_region or (0, 0, 0, 0)
-        return int(wide_mask.sum()), _moved_box(wide_mask, x0 - self.width, y0 - self.height)
+        return int(wide_mask.sum()), moved_box(wide_mask, x0 - self.width, y0 - self.height)
 
     def close(self) -> None:
         self._wide_depth.delete()
@@ -379,7 +217,7 @@ def _covered_region(mesh: trimesh.Trimesh, pose_gl: np.ndarray, K: np.ndarray, z
     return x0, y0, x1, y1
 
 
-def _corners_in_camera(content: _SceneContent, meshes: dict[int, trimesh.Trimesh],
+def _corners_in_camera(content: SceneContent, meshes: dict[int, trimesh.Trimesh],
                        poses_c: list[tuple[trimesh.Trimesh, np.ndarray]]) -> np.ndarray:
     """Camera z [mm] of every object's bounding box corners and of the ground's: the near and far planes."""
     half = content.ground_side_mm / 2.0
@@ -400,7 +238,7 @@ def _location(k: int) -> tuple[int, int]:
     return k // IMAGES_PER_SCENE_FOLDER, k % IMAGES_PER_SCENE_FOLDER
 
 
-def _render_image(renderer: _SceneRenderer, layouts: _Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
+def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
                   k: int, settings: SceneSettings) -> int:
     """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
     rng = np.random.default_rng([settings.seed, k])
@@ -492,7 +330,7 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
     start, instances = time.perf_counter(), 0
     if todo:
         meshes = load_scene_meshes(models_dir, obj_ids)  # every mesh read and checked before GL starts
-        layouts = _Layouts(meshes, settings)
+        layouts = Layouts(meshes, settings)
         for scene_id in sorted({_location(k)[0] for k in todo}):
             for folder in _folders(settings.gray):
                 (out_dir / f"{scene_id:06d}" / folder).mkdir(parents=True, exist_ok=True)

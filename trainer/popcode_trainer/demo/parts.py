@@ -34,7 +34,8 @@ from ..data.bop import load_models_info
 from ..data.meshes import load_mesh
 from ..data.objects import BUILTIN_PARTS
 from ..data.render import BUILTIN_MODELS_FOLDER, RenderSettings, camera_matrix, render_builtin_split, render_split
-from ..data.scene_render import SceneSettings, render_cluttered_test_split, render_scene_split
+from ..data.scene_content import SceneSettings
+from ..data.scene_render import render_cluttered_test_split, render_scene_split
 from ..data.symmetry_check import check_object_symmetries
 
 BUILTIN = "builtin"

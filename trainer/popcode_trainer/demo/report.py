@@ -19,7 +19,8 @@ from ..eval.pipeline.evaluate import MethodResult
 from ..eval.pipeline.split import EvalSplit
 from ..eval.reporting.confidence import RELIABILITY_PNG, confidence_markdown
 from ..eval.reporting.markdown import markdown_table
-from ..eval.reporting.report import REPORT_MD, full_pose_markdown
+from ..eval.reporting.report import REPORT_MD
+from ..eval.reporting.sections import full_pose_markdown
 from ..eval.reporting.tables import ambiguity_markdown, methods_markdown, to_json
 from ..export.model_io import read_onnx_metadata
 from ..train.config import DataConfig

@@ -20,8 +20,9 @@ import numpy as np
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.inference.estimator import PoseEstimator, Prediction
+from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.inference.image_loop import estimate_images, group_by_image, route_objects
+from popcode_runtime.inference.prediction import Prediction
 from popcode_runtime.model.decoding import DECODERS, check_decoder
 from popcode_runtime.model.metadata import Representation
 
