@@ -27,4 +27,4 @@ test: $(BIN)/.installed
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope
 
 lint: $(BIN)/.installed
-	$(BIN)/ruff check runtime trainer tests bench
+	$(BIN)/ruff check runtime trainer tests bench experiments tools

@@ -32,9 +32,8 @@ from popcode_trainer.data.bop import Instance
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.export.agreement import compare
-
-from .command import run_command
-from .report import write_results
+from tools.command import run_command
+from tools.report import write_results
 
 
 def split_crops(estimator: PoseEstimator, instances: Sequence[Instance]) -> tuple[np.ndarray, np.ndarray]:
@@ -95,4 +94,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_command("agreement", main)
+    run_command("bench.agreement", main)

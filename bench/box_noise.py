@@ -15,9 +15,8 @@ from typing import Any
 
 from popcode_trainer.data.box_noise import BOX_NOISE_PRESETS, iou_statistics
 from popcode_trainer.eval.reporting.markdown import markdown_table
-
-from .command import run_command
-from .report import machine, machine_line, write_results
+from tools.command import run_command
+from tools.report import machine, machine_line, write_results
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -42,4 +41,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_command("box_noise", lambda: 0 if main() else 1)
+    run_command("bench.box_noise", lambda: 0 if main() else 1)

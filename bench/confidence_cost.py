@@ -12,32 +12,27 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from popcode_runtime import PoseEstimator
+from popcode_runtime.inference.benchmark import time_calls
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from tools.command import run_command
+from tools.paths import RESULTS, SHIPPED_1_2, SHIPPED_3_6
+from tools.report import write_results
 
-from .command import run_command
-from .report import write_results
-
-MODELS = Path(__file__).resolve().parents[1] / "models"
-DEFAULT_CASES = ((MODELS / "builtin-parts-1-2.onnx", 1), (MODELS / "builtin-parts-3-6.onnx", 4))
+DEFAULT_CASES = ((SHIPPED_1_2, 1), (SHIPPED_3_6, 4))
 BATCHES = (1, 8)
 
 
 def median_ms(estimator: PoseEstimator, image: np.ndarray, obj_id: int, batch: int, iterations: int) -> float:
     boxes = [[100.0 + 60.0 * i, 120.0, 90.0, 80.0] for i in range(batch)]
-    for _ in range(max(5, iterations // 10)):
-        estimator.predict(image, boxes, obj_ids=[obj_id] * batch)
-    times = []
-    for _ in range(iterations):
-        started = time.perf_counter()
-        estimator.predict(image, boxes, obj_ids=[obj_id] * batch)
-        times.append(time.perf_counter() - started)
-    return 1000.0 * float(np.median(times))
+    times_ms = time_calls(lambda: estimator.predict(image, boxes, obj_ids=[obj_id] * batch),
+                          warmup=max(5, iterations // 10), iterations=iterations)
+    return float(np.median(times_ms))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -46,7 +41,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--obj-id", type=int, action="append", help="the object of each --model")
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     cases = list(zip(args.model, args.obj_id, strict=True)) if args.model else list(DEFAULT_CASES)
     image = np.random.default_rng(0).random((540, 720)).astype(np.float32)
@@ -67,10 +62,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines = ["# Cost of the calibrated confidence in `PoseEstimator.predict`", "",
              f"Median of {args.iterations} calls, {args.threads} thread(s), 720 x 540 frame; `python -m "
              "bench.confidence_cost`.", "",
-             "| model | object | batch | with confidence ms | without ms | added ms per crop |",
-             "|---|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['model']} | {r['obj_id']} | {r['batch']} | {r['with_ms']:.2f} | {r['without_ms']:.2f} | "
-              f"{r['per_crop_ms']:.2f} |" for r in rows]
+             markdown_table(["model", "object", "batch", "with confidence ms", "without ms", "added ms per crop"],
+                            [[r["model"], r["obj_id"], r["batch"], f"{r['with_ms']:.2f}", f"{r['without_ms']:.2f}",
+                              f"{r['per_crop_ms']:.2f}"] for r in rows])]
     json_path, _ = write_results(args.out, "confidence-cost", {"rows": rows}, "\n".join(lines))
     print("\n".join(lines))
     print(f"wrote {json_path}")
@@ -78,4 +72,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("confidence_cost", main)
+    run_command("bench.confidence_cost", main)

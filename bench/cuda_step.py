@@ -37,9 +37,8 @@ from popcode_trainer.train.fast_path import GuardedForward, StepPath, adam, chan
 from popcode_trainer.train.loop import network_config
 from popcode_trainer.train.network import build_network
 from popcode_trainer.train.representations import build_representation
-
-from .command import run_command
-from .report import machine, machine_line, write_results
+from tools.command import run_command
+from tools.report import machine, machine_line, write_results
 
 OBJECTS = (3, 4, 5, 6)
 WARM_UP_STEPS = 20
@@ -177,4 +176,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_command("cuda_step", main)
+    run_command("bench.cuda_step", main)

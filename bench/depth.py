@@ -44,12 +44,10 @@ from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split
 from popcode_trainer.eval.pipeline.translation import translation_summary
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.confidence import rotation_errors_deg
+from tools.command import run_command
+from tools.paths import RESULTS, ROOT, SHIPPED_MODELS
+from tools.report import machine, machine_line, write_results
 
-from .command import run_command
-from .report import machine, machine_line, write_results
-
-ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = (ROOT / "models" / "builtin-parts-1-2.onnx", ROOT / "models" / "builtin-parts-3-6.onnx")
 METHOD = "shipped models"
 BOX = "box"
 MODES = (BOX, DEPTH.label, REFINED.label)
@@ -245,8 +243,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--size", type=int, nargs=2, default=(720, 540), metavar=("W", "H"),
                         help="cluttered split's image size (default 720 540)")
     parser.add_argument("--sensor", default="industrial", help="cluttered split's sensor preset (default industrial)")
-    parser.add_argument("--models", type=Path, nargs="+", default=list(SHIPPED))
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--models", type=Path, nargs="+", default=list(SHIPPED_MODELS))
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     images, scenes, size = (2, 3, (360, 270)) if args.quick else (args.images, args.scenes, tuple(args.size))
     work = args.out / ("depth-work-quick" if args.quick else "depth-work")
@@ -287,4 +285,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("depth", main)
+    run_command("bench.depth", main)

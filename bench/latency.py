@@ -64,9 +64,8 @@ from popcode_trainer.export.torch_engine import TorchEngine
 from popcode_trainer.train.config import Config
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
 from popcode_trainer.train.training_data import validation_crops
-
-from .command import run_command
-from .report import machine, machine_line, write_results
+from tools.command import run_command
+from tools.report import machine, machine_line, write_results
 
 QUANTISED = {"int8-static": "int8", "nbits4": "nbits4", "nbits8": "nbits8"}  # variant -> quantise.quantise kind
 BATCHES = (1, 8, 32)
@@ -359,4 +358,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_command("latency", main)
+    run_command("bench.latency", main)

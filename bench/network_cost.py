@@ -16,8 +16,7 @@ import time
 import torch
 
 from popcode_trainer.train.network import NetworkConfig, PopcodeNet, count_macs, count_parameters
-
-from .command import run_command
+from tools.command import run_command
 
 
 def main() -> None:
@@ -61,4 +60,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    run_command("network_cost", main)
+    run_command("bench.network_cost", main)

@@ -2,6 +2,7 @@
 
     python -m bench.representations --quick [--out DIR]
     python -m bench.representations --full  [--out DIR]
+    python -m bench.representations --smoke [--out DIR]
 
 Renders a training split and a separate test split (random positions, other
 seed), trains every representation with the same network, data, augmentation
@@ -11,6 +12,8 @@ Objects are pooled as the paper pooled T-LESS objects: one model for the
 objects with a continuous symmetry about the same axis (axis-only code), one
 for the others (full code). Interrupted runs resume: rendering skips finished
 images, training resumes from its last checkpoint, finished exports are kept.
+``--smoke`` runs it all with a tiny network on a few images: a check of the
+script, not a measurement.
 """
 
 from __future__ import annotations
@@ -47,8 +50,9 @@ from popcode_trainer.eval.reporting.report import report_dict, write_report
 from popcode_trainer.eval.reporting.tables import methods_markdown, to_json
 from popcode_trainer.metrics.recall import GROUPS
 from popcode_trainer.train.config import Config, DataConfig
-
-from .command import run_command
+from tools.command import run_command
+from tools.paths import RESULTS
+from tools.recipes import NETWORKS
 
 REFINED = "population_code (refined)"
 PAPER_METHODS = {Representation.SINGLE_VARIABLE: "Single Variable", Representation.ONE_HOT: "One Hot Vector",
@@ -84,6 +88,9 @@ SIZES = {
     "quick": PipelineSize(400, 50, small_config(epochs=12, n_axes=642, n_angles=36)),
     # The paper's code, network and schedule (Config()'s defaults); for a GPU.
     "full": PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8))),
+    # A tiny network and code on a few images: every file and table of a run, in seconds; the numbers mean nothing.
+    "smoke": PipelineSize(4, 1, small_config(epochs=1, n_axes=42, n_angles=12, network=NETWORKS["tiny"], sigma_deg=30.0,
+                                             batch_size=4, num_hypotheses=4)),
 }
 
 
@@ -201,14 +208,16 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="small code and network; under 30 minutes on 2 CPU cores")
     chosen.add_argument("--full", action="store_const", const="full", dest="size",
                         help="the paper's code and network (for a GPU)")
+    chosen.add_argument("--smoke", action="store_const", const="smoke", dest="size",
+                        help="a tiny network on a few images: a check of the script, not a measurement")
     parser.add_argument("--epochs", type=int, default=None, help="train this many epochs instead of the size's")
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default: bench/results/representations-SIZE)")
     args = parser.parse_args(argv)
-    out_dir = args.out or Path(__file__).parent / "results" / f"representations-{args.size}"
+    out_dir = args.out or RESULTS / f"representations-{args.size}"
     size = SIZES[args.size] if args.epochs is None else SIZES[args.size].with_epochs(args.epochs)
     run_benchmark(size, out_dir, args.size)
 
 
 if __name__ == "__main__":
-    run_command("representations", main)
+    run_command("bench.representations", main)

@@ -23,8 +23,7 @@ import numpy as np
 
 from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.metrics.recall import VISIBILITY_BINS
-
-from .command import run_command
+from tools.command import run_command
 
 
 def _instance_infos(split: Path) -> list[dict]:
@@ -79,4 +78,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    run_command("scene_render", main)
+    run_command("bench.scene_render", main)

@@ -1,7 +1,7 @@
 """Training throughput per trunk: where a step's time goes (data preparation, forward + backward, optimizer).
 
     python -m bench.training [--quick] [--out DIR] [--networks small paper] [--threads 1 2] [--workers 0 2]
-                             [--paths eager-nchw-fp32 eager-cl-fp32 ...]
+                             [--paths eager-nchw-fp32 eager-cl-fp32 ...] [--loop-epochs 3] [--images 2000]
 
 Renders a small split of the built-in parts into a temporary folder and builds
 the population-code training data exactly as ``popcode-train train`` does
@@ -50,7 +50,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize, render_splits, small_config, training_config
+from popcode_trainer.demo.steps import PipelineSize, render_splits, small_config, training_config
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train import allocator, checkpoint
 from popcode_trainer.train.config import Config
@@ -59,28 +59,10 @@ from popcode_trainer.train.loop import network_config, train
 from popcode_trainer.train.network import NetworkConfig, build_network
 from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from popcode_trainer.train.training_data import TrainingData, build_training_data
+from tools.command import run_command
+from tools.recipes import NETWORKS
+from tools.report import machine, machine_line, write_results
 
-from .command import run_command
-from .report import machine, machine_line, write_results
-
-# The MLP of the width runs below (network-width.md), measured before the quick recipe's became 512 / 256 / 256.
-WIDTH_RUNS_HIDDEN = (256, 128, 128)
-NETWORKS = {
-    "tiny": NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16)),  # smoke tests only
-    "small": SMALL_NETWORK,  # the quick recipe's network
-    "small-paper-trunk": replace(SMALL_NETWORK, trunk="paper", conv_channels=(16, 32, 32),  # before the quick recipe
-                                 hidden=WIDTH_RUNS_HIDDEN),
-    # The quick recipe's trunk 2x to 6x as wide, with the MLP they were measured with: the capacity question of
-    # the bin (bench/results/network-width.md). Past 3x the curve flattens.
-    "small-x2": replace(SMALL_NETWORK, conv_channels=(32, 64, 128), squeeze_channels=16, hidden=WIDTH_RUNS_HIDDEN),
-    "small-x3": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=WIDTH_RUNS_HIDDEN),
-    "small-x4": replace(SMALL_NETWORK, conv_channels=(64, 128, 256), squeeze_channels=32, hidden=WIDTH_RUNS_HIDDEN),
-    "small-x6": replace(SMALL_NETWORK, conv_channels=(96, 192, 384), squeeze_channels=48, hidden=WIDTH_RUNS_HIDDEN),
-    # 3x with a 512-wide first hidden layer (scored as the shipped small-x3 at its budget: head-width.md); the last
-    # layer stays 128 wide, so that the nbits8-fp16 export keeps under the repository's 8 MB a model.
-    "small-x3-h512": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=(512, 256, 128)),
-    "paper": NetworkConfig(),
-}
 PATHS = {  # name -> (channels_last, precision, compiled)
     "eager-nchw-fp32": StepPath(False, "fp32", False, "bench"),  # what training did before fast_path
     "eager-cl-fp32": StepPath(True, "fp32", False, "bench"),
@@ -167,10 +149,11 @@ def loop_beside_plain(config: Config, data: TrainingData, epochs: int, out_dir: 
 
 
 def measure(network_name: str, threads: int, workers: Sequence[int], batches: int, split: Path,
-            out_dir: Path, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3) -> list[dict[str, Any]]:
+            out_dir: Path, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3,
+            images_per_object: int = IMAGES_PER_OBJECT) -> list[dict[str, Any]]:
     """One network at one torch thread count: the rows of every part and worker count."""
     torch.set_num_threads(threads)
-    size = PipelineSize(IMAGES_PER_OBJECT, 0, small_config(epochs=1, n_axes=642, n_angles=36,
+    size = PipelineSize(images_per_object, 0, small_config(epochs=1, n_axes=642, n_angles=36,
                                                            network=NETWORKS[network_name]))
     config = training_config(size, "population_code", [3, 4, 5, 6], split, out_dir)
     data = build_training_data(config)
@@ -292,12 +275,14 @@ def to_markdown(payload: dict[str, Any]) -> str:
 
 
 def run(networks: Sequence[str], threads: Sequence[int], workers: Sequence[int], batches: int, out_dir: Path,
-        arguments: str, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3) -> dict[str, Any]:
+        arguments: str, paths: Sequence[str] = tuple(PATHS), loop_epochs: int = 3,
+        images_per_object: int = IMAGES_PER_OBJECT) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as folder:
-        size = PipelineSize(IMAGES_PER_OBJECT, 1, small_config(epochs=1, n_axes=642, n_angles=36))
+        size = PipelineSize(images_per_object, 1, small_config(epochs=1, n_axes=642, n_angles=36))
         split, _ = render_splits(size, Path(folder), progress=False)
         rows = [row for name in networks for count in threads
-                for row in measure(name, count, workers, batches, split, Path(folder) / "run", paths, loop_epochs)]
+                for row in measure(name, count, workers, batches, split, Path(folder) / "run", paths, loop_epochs,
+                                   images_per_object)]
     payload = {"arguments": arguments, "batch": BATCH, "rows": rows}
     payload["machine"] = machine()
     write_results(out_dir, "training", payload, to_markdown(payload))
@@ -317,14 +302,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         help="step paths to time on a fixed batch (compiled ones compile first: 15-60 s each)")
     parser.add_argument("--loop-epochs", type=int, default=3,
                         help="epochs of the training loop itself to time (the first is not counted; 0 or 1: none)")
+    parser.add_argument("--images", type=int, default=IMAGES_PER_OBJECT,
+                        help=f"images rendered per part (default {IMAGES_PER_OBJECT}; fewer make shorter loop epochs)")
     args = parser.parse_args(argv)
-    if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1 or args.loop_epochs < 0:
-        parser.error("--threads and --batches must be at least 1, --workers and --loop-epochs at least 0")
+    if min(args.threads) < 1 or min(args.workers) < 0 or args.batches < 1 or args.loop_epochs < 0 or args.images < 1:
+        parser.error("--threads, --batches and --images must be at least 1, --workers and --loop-epochs at least 0")
     batches = 2 if args.quick else args.batches
     loop_epochs = min(args.loop_epochs, 2) if args.quick else args.loop_epochs
     arguments = " ".join(sys.argv[1:] if argv is None else argv)
-    return run(args.networks, args.threads, args.workers, batches, args.out, arguments, args.paths, loop_epochs)
+    return run(args.networks, args.threads, args.workers, batches, args.out, arguments, args.paths, loop_epochs,
+               args.images)
 
 
 if __name__ == "__main__":
-    run_command("training", main)
+    run_command("bench.training", main)

@@ -41,9 +41,9 @@ from popcode_trainer.eval.pipeline.translation import (
 )
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.eval.reporting.tables import ambiguity_markdown, translation_markdown
-
-from .command import run_command
-from .report import machine, write_results
+from tools.command import run_command
+from tools.paths import RESULTS
+from tools.report import machine, write_results
 
 HULL = f"{HULL_POINTS} hull points"
 CORNERS = "3-D box corners"
@@ -119,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--images", type=int, default=50, help="images per object (default 50)")
     parser.add_argument("--size", type=int, default=256, help="square image size in px (default 256)")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     images, size = (3, 128) if args.quick else (args.images, args.size)
     work = args.out / f"translation-work-{images}x{size}"
@@ -134,4 +134,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("translation", main)
+    run_command("bench.translation", main)

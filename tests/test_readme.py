@@ -1,8 +1,17 @@
-"""The README's commands are real: every command line parses with the CLI it names, every file and
-link it points to exists, and the shipped-model commands run as written."""
+"""The README's commands are real: every command line parses with the CLI it names, every file and link it points
+to exists, and every runtime example and Python snippet runs as written against the shipped models.
+
+The same holds for the runtime's own readme (runtime/README.md) and the pages of docs/: their command lines
+parse, and their runtime examples run. Only examples that need the reader's own data (paths under ``runs/`` or
+``data/``) are parsed without running.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import io
+import json
+import os
 import re
 import shlex
 import subprocess
@@ -12,33 +21,38 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from readme_text import README, bash_commands
 
+from popcode_runtime import Prediction
 from popcode_runtime.commands.cli import build_parser as runtime_parser
 from popcode_runtime.commands.cli import main as runtime_main
+from popcode_runtime.geometry.rotations import is_rotation
 from popcode_trainer.cli import build_parser as trainer_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-README = (ROOT / "README.md").read_text()
-REPO_PATH = re.compile(r"^(models|trainer|bench|docs|runtime|tests)/[\w./-]+$")
+RUNTIME_README = (ROOT / "runtime" / "README.md").read_text()
+DOC_PAGES = {str(page.relative_to(ROOT)): page.read_text() for page in sorted((ROOT / "docs").glob("*.md"))}
+REPO_PATH = re.compile(r"^(models|trainer|bench|docs|runtime|tests|experiments|tools)/[\w./-]+$")
+OWN_DATA = ("runs/", "data/")  # the reader's own splits and runs: parsed, not run
+MODULE_COMMAND = r"python -m ((?:bench|experiments|tools)\.\w+)"
 
 
-def bash_commands(markdown: str) -> list[list[str]]:
-    """Every command of the ```bash blocks, continuation lines joined, comments dropped, split like a shell."""
-    commands = []
-    for block in re.findall(r"```bash\n(.*?)```", markdown, flags=re.DOTALL):
-        for line in block.replace("\\\n", " ").splitlines():
-            words = shlex.split(line, comments=True)
-            if words:
-                commands.append(words)
-    return commands
+def python_snippets(markdown: str) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", markdown, flags=re.DOTALL)
 
 
 COMMANDS = bash_commands(README)
-INLINE_BENCH = re.findall(r"`python -m (bench\.\w+)([^`]*)`", README)
+INLINE_BENCH = re.findall(rf"`{MODULE_COMMAND}([^`]*)`", README)
+# Every page's commands, each with the page it comes from.
+PAGES = {"README.md": README, "runtime/README.md": RUNTIME_README, **DOC_PAGES}
+ALL_COMMANDS = [(page, words) for page, text in PAGES.items() for words in bash_commands(text)]
+RUNTIME_EXAMPLES = [(page, words) for page, words in ALL_COMMANDS if words[0] == "popcode"
+                    and not any(word.startswith(OWN_DATA) for word in words)]
+SNIPPETS = [(page, code) for page in ("README.md", "runtime/README.md") for code in python_snippets(PAGES[page])]
 
 
-def _ids(commands: list[list[str]]) -> list[str]:
-    return [" ".join(words)[:60] for words in commands]
+def _ids(commands: list[tuple[str, list[str]]]) -> list[str]:
+    return [f"{page}: {' '.join(words)[:60]}" for page, words in commands]
 
 
 def test_the_readme_has_the_commands_it_should() -> None:
@@ -46,10 +60,12 @@ def test_the_readme_has_the_commands_it_should() -> None:
     assert {"make", "popcode", "popcode-train", "torchrun", "pip"} <= programs
     assert ["make", "demo"] in COMMANDS and ["make", "test"] in COMMANDS
     assert len(INLINE_BENCH) >= 4
+    assert python_snippets(README) and python_snippets(RUNTIME_README)
+    assert len(README.splitlines()) < 400, "the README is read in ten minutes; details go to docs/"
 
 
-@pytest.mark.parametrize("words", COMMANDS, ids=_ids(COMMANDS))
-def test_command_parses(words: list[str]) -> None:
+@pytest.mark.parametrize("page, words", ALL_COMMANDS, ids=_ids(ALL_COMMANDS))
+def test_command_parses(page: str, words: list[str]) -> None:
     program, args = words[0], words[1:]
     if program == "popcode":
         runtime_parser().parse_args(args)
@@ -62,12 +78,12 @@ def test_command_parses(words: list[str]) -> None:
     elif program == "make":
         assert re.search(rf"^{re.escape(args[0])}:", (ROOT / "Makefile").read_text(), flags=re.MULTILINE)
     elif program == "pip":
-        assert args[0] == "install" and (ROOT / args[1]).is_dir()
+        assert args[0] == "install" and (ROOT / args[1].split("[")[0]).is_dir()
     else:
-        pytest.fail(f"the README runs {program!r}, which no test checks")
+        pytest.fail(f"{page} runs {program!r}, which no test checks")
     for word in args:
-        if REPO_PATH.match(word) and not word.startswith(("runs/", "data/")):
-            assert (ROOT / word).exists(), f"{word} does not exist"
+        if REPO_PATH.match(word) and not word.startswith(OWN_DATA):
+            assert (ROOT / word).exists(), f"{page}: {word} does not exist"
 
 
 def test_ci_runs_exactly_the_readme_test_command() -> None:
@@ -75,12 +91,13 @@ def test_ci_runs_exactly_the_readme_test_command() -> None:
     assert ci[-1] == "make test"
 
 
-def test_links_and_images_exist() -> None:
-    targets = re.findall(r"\]\(([^)#]+)\)", README)
+@pytest.mark.parametrize("page", ["README.md", "runtime/README.md"])
+def test_links_and_images_exist(page: str) -> None:
+    targets = re.findall(r"\]\(([^)#]+)\)", PAGES[page])
     assert targets
     for target in targets:
         if not target.startswith("http"):
-            assert (ROOT / target).exists(), target
+            assert ((ROOT / page).parent / target).exists(), f"{page}: {target}"
 
 
 @pytest.mark.parametrize("module, options", INLINE_BENCH)
@@ -90,19 +107,71 @@ def test_bench_commands_parse(module: str, options: str) -> None:
     assert result.returncode == 0, result.stderr
 
 
-def test_shipped_model_commands_run(capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
-    shipped = [words for words in COMMANDS if words[0] == "popcode" and words[2].startswith("models/")
-               and not any(w.startswith(("runs/", "data/")) for w in words)]  # those need the reader's own data
-    assert len(shipped) >= 3
-    for words in shipped:
-        args = [str(ROOT / w) if REPO_PATH.match(w) else w for w in words[1:]]
-        shown = made = None
-        if "--draw" in args:  # not over the README's picture: beside it, then compared with it
-            value = args.index("--draw") + 1
-            shown, made = Path(args[value]), tmp_path / Path(args[value]).name
-            args[value] = str(made)
-        assert runtime_main(args) == 0, " ".join(words)
-        if shown is not None:
+def test_the_docs_name_modules_that_exist() -> None:
+    # the pages of docs/ list many more benchmark commands than the README; that each module is there is checked
+    # here, cheaply (the README's own are run with --help above)
+    named = {module for text in DOC_PAGES.values() for module in re.findall(MODULE_COMMAND, text)}
+    assert named
+    missing = sorted(module for module in named if not (ROOT / (module.replace(".", "/") + ".py")).is_file())
+    assert not missing, f"docs/ runs modules that do not exist: {missing}"
+
+
+def test_every_runtime_example_without_own_data_runs() -> None:
+    # the filter leaves out only what needs the reader's own data: the README's own examples all run
+    readme_examples = [words for page, words in RUNTIME_EXAMPLES if page == "README.md"]
+    assert len(readme_examples) >= 5
+    assert {words[1] for words in readme_examples} >= {"info", "predict", "bench"}
+    left_out = [words for words in COMMANDS if words[0] == "popcode" and words not in readme_examples]
+    assert all(any(word.startswith(OWN_DATA) for word in words) for words in left_out)
+
+
+@pytest.mark.parametrize("page, words", RUNTIME_EXAMPLES, ids=_ids(RUNTIME_EXAMPLES))
+def test_runtime_example_runs(page: str, words: list[str], capsys: pytest.CaptureFixture, tmp_path: Path) -> None:
+    args = [str(ROOT / w) if REPO_PATH.match(w) else w for w in words[1:]]
+    shown = made = None
+    if "--draw" in args:  # not over the page's picture: beside it, then compared with it where the repository has it
+        value = args.index("--draw") + 1
+        shown, made = Path(args[value]), tmp_path / Path(args[value]).name
+        args[value] = str(made)
+    capsys.readouterr()
+    assert runtime_main(args) == 0, f"{page}: {' '.join(words)}"
+    out = capsys.readouterr().out
+    if made is not None:
+        assert cv2.imread(str(made)) is not None, f"{page}: no picture drawn"
+        if shown.is_file():
             assert np.array_equal(cv2.imread(str(made)), cv2.imread(str(shown))), f"{shown} is not what it draws"
-    predicts = sum(words[1] == "predict" for words in shipped)
-    assert capsys.readouterr().out.count("box 0 [") == predicts
+    if words[1] == "predict" and "--json" in words:
+        predictions = json.loads(out)["predictions"]
+        assert len(predictions) == words.count("--box")
+        assert all(is_rotation(np.asarray(p["R_m2c"])) for p in predictions)
+    elif words[1] == "predict":
+        assert out.count("box 0 [") == 1, out
+    elif words[1] == "info":
+        assert "representation" in out and "rotation frame" in out
+    elif words[1] == "bench":
+        assert "median ms" in out
+
+
+def _printed_matrix(text: str) -> np.ndarray:
+    """The first 3x3 matrix a snippet prints (numpy's text form)."""
+    numbers = re.findall(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?", text)
+    assert len(numbers) >= 9, f"the snippet printed no rotation matrix: {text!r}"
+    return np.array([float(n) for n in numbers[:9]]).reshape(3, 3)
+
+
+@pytest.mark.parametrize("page, code", SNIPPETS, ids=[page for page, _ in SNIPPETS])
+def test_python_snippet_runs(page: str, code: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # as written, from a folder that holds the repository's models/ (what the snippet's relative paths name) and
+    # nothing else, so that whatever it might write lands there
+    os.symlink(ROOT / "models", tmp_path / "models")
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "__readme__"}
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        exec(compile(code, f"<{page}>", "exec"), namespace)  # noqa: S102 - the snippet is the repository's own text
+    predictions = [value for value in namespace.values() if isinstance(value, Prediction)]
+    predictions += [item for value in namespace.values() if isinstance(value, list)
+                    for item in value if isinstance(item, Prediction)]
+    assert predictions, f"{page}'s snippet keeps no Prediction to check"
+    assert all(is_rotation(p.R_m2c) for p in predictions)
+    assert is_rotation(_printed_matrix(printed.getvalue()), atol=1e-3)  # as printed: a few digits

@@ -1,4 +1,5 @@
-"""``python -m bench.<name>``'s exit: the main's status, or one line and status 2 for bad input."""
+"""The exit of ``python -m bench.<name>`` (and of experiments and tools): the main's status, or one line and status 2
+for bad input."""
 
 from __future__ import annotations
 
@@ -9,10 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.command import run_command
 from popcode_runtime.base.errors import PopcodeError
-
-REPO = Path(__file__).resolve().parents[2]
+from tools.command import run_command
+from tools.paths import ROOT
 
 
 def _bad_input() -> int:
@@ -21,7 +21,7 @@ def _bad_input() -> int:
 
 def test_bad_input_is_one_line_and_status_2(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as raised:
-        run_command("example", _bad_input)
+        run_command("bench.example", _bad_input)
     assert raised.value.code == 2
     assert capsys.readouterr().err == "bench.example: split.json: field 'scenes' is missing\n"
 
@@ -29,19 +29,19 @@ def test_bad_input_is_one_line_and_status_2(capsys: pytest.CaptureFixture[str]) 
 @pytest.mark.parametrize(("returned", "status"), [(3, 3), (0, 0), (None, 0), ({"records": []}, 0)])
 def test_the_status_is_an_int_the_main_returns_else_0(returned: object, status: int) -> None:
     with pytest.raises(SystemExit) as raised:
-        run_command("example", lambda: returned)
+        run_command("bench.example", lambda: returned)
     assert raised.value.code == status
 
 
 def test_other_errors_keep_their_traceback() -> None:
     with pytest.raises(ZeroDivisionError):
-        run_command("example", lambda: 1 / 0)
+        run_command("bench.example", lambda: 1 / 0)
 
 
 def test_a_benchmark_given_a_missing_model_says_so_in_one_line(tmp_path: Path) -> None:
     missing = tmp_path / "missing.onnx"
     result = subprocess.run([sys.executable, "-m", "bench.agreement", str(missing), str(missing), "--split",
-                             str(tmp_path), "--out", str(tmp_path / "out")], cwd=REPO, capture_output=True,
+                             str(tmp_path), "--out", str(tmp_path / "out")], cwd=ROOT, capture_output=True,
                             text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert result.returncode == 2, result.stderr
     assert result.stderr.startswith("bench.agreement: ") and result.stderr.count("\n") == 1, result.stderr

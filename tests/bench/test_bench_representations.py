@@ -1,4 +1,4 @@
-"""Smoke test of bench/representations.py at a tiny size: every file and table shape, no timing."""
+"""Smoke test of ``python -m bench.representations --smoke``: every file and table shape, no timing."""
 
 from __future__ import annotations
 
@@ -6,23 +6,18 @@ import json
 from pathlib import Path
 
 import pytest
-
-from bench import representations as bench
-from popcode_trainer.demo.steps import PipelineSize, small_config
-from popcode_trainer.train.network import NetworkConfig
+from user_commands import run_module
 
 
 @pytest.mark.slow
 def test_tiny_run_writes_every_table(tmp_path: Path) -> None:
-    network = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
-    size = PipelineSize(4, 1, small_config(epochs=1, n_axes=42, n_angles=12, network=network, sigma_deg=30.0,
-                                           batch_size=4, num_hypotheses=4))
-    bench.run_benchmark(size, tmp_path, "smoke")
+    run_module("bench.representations", "--smoke", "--out", tmp_path)
 
     record = json.loads((tmp_path / "representations.json").read_text())
-    assert record["object_groups"] == [[1, 2], [3, 4, 5, 6]]
+    assert record["size"] == "smoke" and record["object_groups"] == [[1, 2], [3, 4, 5, 6]]
     methods = record["results"]["methods"]
-    assert list(methods) == ["population_code", bench.REFINED, "single_variable", "one_hot", "multi_hypothesis"]
+    assert list(methods) == ["population_code", "population_code (refined)", "single_variable", "one_hot",
+                             "multi_hypothesis"]
     for method in methods.values():
         assert list(method["groups"]) == ["Without ambiguity", "With ambiguity", "All objects"]
         assert sorted(method["per_object"]) == ["1", "2", "3", "4", "5", "6"]

@@ -1,10 +1,9 @@
-"""bench/validation_parts.py and bench/tuning_parts.py: closed parts whose declared symmetries are exactly the ones
-they have, the near-symmetric one the only one the near-symmetry finder reports, in a folder the demo accepts."""
+"""tools/own_parts.py's validation and tuning parts: closed parts whose declared symmetries are exactly the ones they
+have, the near-symmetric one the only one the near-symmetry finder reports, in a folder the demo accepts."""
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,8 +11,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from bench import tuning_parts, validation_parts
-from bench.validation_parts import OwnPart
 from popcode_runtime import symmetry_transforms
 from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.data.bop import load_models_info
@@ -22,26 +19,26 @@ from popcode_trainer.data.near_symmetry import look_alike_symmetries
 from popcode_trainer.data.surface_sample import surface_distance, surface_sample
 from popcode_trainer.data.symmetry_check import TOLERANCE, _anchors_mm, check_symmetries
 from popcode_trainer.demo.parts import check_models_folder
+from tools import own_parts
+from tools.own_parts import OwnPart
 
 SYMMETRIC_TOL = 0.001  # of the diameter: every circle's vertices map onto themselves, so only rounding remains
 
 
 @dataclass(frozen=True)
 class PartSet:
-    name: str
+    name: str  # as ``python -m tools.own_parts NAME`` calls it
     parts: tuple[OwnPart, ...]
-    write: Callable[[Sequence[str]], Path]
     look_alike_order: int  # of the near-symmetric part's undeclared rotation about z
 
 
-SETS = (PartSet("validation", validation_parts.VALIDATION_PARTS, validation_parts.main, 4),
-        PartSet("tuning", tuning_parts.TUNING_PARTS, tuning_parts.main, 2))
+SETS = (PartSet("validation", own_parts.VALIDATION_PARTS, 4), PartSet("tuning", own_parts.TUNING_PARTS, 2))
 
 
 @pytest.fixture(scope="module", params=SETS, ids=lambda part_set: part_set.name)
 def part_set(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> tuple[PartSet, Path]:
     chosen: PartSet = request.param
-    return chosen, chosen.write(["--out", str(tmp_path_factory.mktemp(chosen.name) / "models")])
+    return chosen, own_parts.main([chosen.name, "--out", str(tmp_path_factory.mktemp(chosen.name) / "models")])
 
 
 def _mesh(models: Path, obj_id: int) -> trimesh.Trimesh:

@@ -1,5 +1,5 @@
-"""bench/shipped_models.py's options: what a refresh changes of the medium recipe, and bad values refused before
-anything is rendered."""
+"""``python -m experiments.shipped_models``'s options (:mod:`tools.recipes`): what a refresh changes of the medium
+recipe, and bad values refused before anything is rendered."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import argparse
 from pathlib import Path
 
 import pytest
+from user_commands import run_module
 
-from bench.shipped_models import main, shipped_size
-from bench.training import NETWORKS
-from popcode_trainer.demo.run import DEMO_SIZES
+from popcode_trainer.demo.sizes import DEMO_SIZES
+from tools.recipes import NETWORKS, shipped_arguments, shipped_size
 
 
 def _args(**changes: object) -> argparse.Namespace:
@@ -55,22 +55,25 @@ def test_a_named_network_replaces_the_recipe_network_alone() -> None:
 @pytest.mark.parametrize("option", [["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
                                     ["--scene-share", "0"], ["--scene-share", "1"], ["--scene-share", "nan"],
                                     ["--minutes", "0"], ["--network", "huge"]])
-def test_bad_values_exit_2_before_any_file_is_written(option: list[str], tmp_path: Path,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_values_exit_2(option: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as stopped:
-        main(["--out", str(tmp_path / "out"), *option])
+        shipped_arguments(["--out", str(tmp_path / "out"), *option])
     assert stopped.value.code == 2
     assert option[0] in capsys.readouterr().err
+
+
+def test_the_command_refuses_a_bad_value_before_any_file_is_written(tmp_path: Path) -> None:
+    refused = run_module("experiments.shipped_models", "--out", tmp_path / "out", "--box-noise-p", "1.5", status=2)
+    assert refused.stderr.strip().splitlines()[-1].endswith("--box-noise-p must lie in (0, 1], not 1.5")
     assert not (tmp_path / "out").exists()
 
 
-def test_a_training_error_is_one_line_with_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_training_error_is_one_line_with_exit_2(tmp_path: Path) -> None:
     """Data too small for one batch: the trainer's error as one line, not a traceback; the renders stay."""
-    with pytest.raises(SystemExit) as stopped:
-        main(["--out", str(tmp_path / "out"), "--images", "1", "--scenes", "1", "--group", "3", "--minutes", "1"])
-    assert stopped.value.code == 2
-    err = capsys.readouterr().err
+    refused = run_module("experiments.shipped_models", "--out", tmp_path / "out", "--images", "1", "--scenes", "1",
+                         "--group", "3", "--minutes", "1", status=2)
+    err = refused.stderr
     last = err.strip().splitlines()[-1].split("\r")[-1]  # after the render's progress bar
-    assert last.startswith("bench.shipped_models: ") and "smaller than one batch" in last
+    assert last.startswith("experiments.shipped_models: ") and "smaller than one batch" in last
     assert "Traceback" not in err
     assert (tmp_path / "out" / "train").is_dir()

@@ -1,4 +1,4 @@
-"""bench/shipped_variants.sh: one render, several networks trained side by side, each one's model and every log
+"""experiments/shipped_variants.sh: one render, several networks trained side by side, each one's model and every log
 brought back; a wrong call is refused before anything runs."""
 
 from __future__ import annotations
@@ -11,13 +11,14 @@ from pathlib import Path
 
 import onnx
 
-REPO = Path(__file__).resolve().parents[2]
-SCRIPT = REPO / "bench" / "shipped_variants.sh"
+from tools.paths import ROOT
+
+SCRIPT = ROOT / "experiments" / "shipped_variants.sh"
 
 
 def _run(*args: str | Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"  # python3 is this interpreter
-    return subprocess.run(["bash", str(SCRIPT), *map(str, args)], cwd=REPO, capture_output=True, text=True,
+    return subprocess.run(["bash", str(SCRIPT), *map(str, args)], cwd=ROOT, capture_output=True, text=True,
                           timeout=600, env={**os.environ, "PATH": path, **(env or {})})
 
 

@@ -19,8 +19,6 @@ import pytest
 from onnx_models import linear_model, save
 from scene_fixtures import SCENE_OBJECTS, scene_objects
 
-from bench.tuning_parts import TUNING_PARTS
-from bench.validation_parts import write_models
 from popcode_runtime import PoseEstimator, read_image
 from popcode_runtime.bop.bop19_csv import read_bop19_results
 from popcode_runtime.coding.population_code import CodeLayout
@@ -34,8 +32,10 @@ from popcode_trainer.eval.pipeline.evaluate import evaluate_rotations
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.pipeline.split_metrics import SplitMetrics
 from popcode_trainer.eval.reporting.report import write_report
+from tools.own_parts import TUNING_PARTS, write_models
+from tools.paths import SHIPPED_3_6
 
-CALIBRATED = Path(__file__).resolve().parents[2] / "models" / "builtin-parts-3-6.onnx"
+CALIBRATED = SHIPPED_3_6  # the shipped model with a calibrated confidence
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""A naive twin of ``PopulationCode.encode``: DESIGN.md section 2 evaluated neuron by neuron with plain loops.
+"""A naive twin of ``PopulationCode.encode``: docs/design.md#population-code, neuron by neuron with plain loops.
 
 Nothing here uses the runtime's lattice, axis/angle conversion or tuning code;
 only the symmetry rotations (identity first) come from ``symmetry_rotations``.

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_export import trained_checkpoint
+from trained import trained_checkpoint
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.cli import main

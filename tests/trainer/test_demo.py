@@ -6,15 +6,16 @@ import dataclasses
 import json
 import re
 import shutil
+import subprocess
+import sys
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from test_export import calls_of
+from calls import calls_of
 
-from bench import compare_demos
 from popcode_runtime import PoseEstimator
 from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.cli import main as cli_main
@@ -22,13 +23,15 @@ from popcode_trainer.data import hull
 from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget
 from popcode_trainer.demo.parts import builtin_parts
+from popcode_trainer.demo.plan import StagePlan
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
-from popcode_trainer.demo.run import StagePlan, run_demo
+from popcode_trainer.demo.run import run_demo
 from popcode_trainer.demo.steps import PipelineSize, in_processes, run_dir, small_config, train_and_export
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.train import training_data
 from popcode_trainer.train.network import NetworkConfig
 from popcode_trainer.train.run_files import LAST_CHECKPOINT
+from tools.paths import ROOT
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
@@ -138,12 +141,20 @@ def test_epochs_fitted_to_the_budget_are_recorded(demo_run: tuple[Path, dict]) -
     assert f"fitted to a {BUDGET_MINUTES:g}-minute budget on this machine" in (out / "report.md").read_text()
 
 
+def _compare_demos(run_a: Path, run_b: Path) -> subprocess.CompletedProcess[str]:
+    """``python -m experiments.compare_demos RUN_A RUN_B``, as a user runs it."""
+    return subprocess.run([sys.executable, "-m", "experiments.compare_demos", str(run_a), str(run_b)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+
+
 @pytest.mark.slow
 def test_compare_demos_finds_a_changed_number_and_nothing_else(demo_run: tuple[Path, dict], tmp_path: Path) -> None:
     """The tool that shows a restructure kept the demo's numbers: a run against itself has no difference; a copy
     with one score and one learning-curve value changed has exactly those two."""
     out, _ = demo_run
-    assert compare_demos.compare(out, out) == []
+    same = _compare_demos(out, out)
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert same.stdout.startswith("0 differences") and same.stdout.count("\n") == 1, same.stdout
     copy = Path(shutil.copytree(out, tmp_path / "copy"))
     summary = json.loads((copy / SUMMARY_FILE).read_text())
     scores = summary["scores"][POPCODE]["All objects"]
@@ -154,8 +165,10 @@ def test_compare_demos_finds_a_changed_number_and_nothing_else(demo_run: tuple[P
     fields = first.split(",")
     fields[1] = repr(float(fields[1]) + 1e-9)  # train_loss of the first epoch
     metrics.write_text("\n".join([header, ",".join(fields), *rest]) + "\n")
-    differences = compare_demos.compare(out, copy)
-    assert len(differences) == 2, differences
+    changed = _compare_demos(out, copy)
+    assert changed.returncode == 1, changed.stdout + changed.stderr
+    count, *differences = changed.stdout.splitlines()
+    assert count.startswith("2 differences") and len(differences) == 2, changed.stdout
     assert "All objects.MSSD" in differences[0] and "train_loss" in differences[1]
 
 

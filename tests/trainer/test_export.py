@@ -6,18 +6,18 @@ import dataclasses
 import json
 import shutil
 import warnings
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
 import torch
+from calls import calls_of
 from symmetry_cases import CASES
 from synthetic import K, RotatedPoints, draw
 from tiny import tiny_config, tiny_data, tiny_representation
+from trained import pasted_frame, trained_checkpoint
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.coding.population_code import CodeLayout, PopulationCode
@@ -44,15 +44,6 @@ from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from popcode_trainer.train.training_data import build_training_data
 
 RENDERED_OBJ_ID = 6  # a part without symmetry: its code needs no narrower sigma
-
-
-def trained_checkpoint(tmp_path: Path, **train_settings) -> tuple[Path, np.ndarray]:
-    config = tiny_config(tmp_path / "run", epochs=1, **train_settings)
-    rep = tiny_representation(config)
-    train_set, val_set = tiny_data(rep)
-    train(config, rep, train_set, val_set, val_instances=val_set.instances)
-    crops = np.stack([val_set[i]["image"].numpy() for i in range(len(val_set))])
-    return tmp_path / "run" / LAST_CHECKPOINT, crops
 
 
 def test_a_model_trained_on_other_crops_exports_with_their_size(tmp_path: Path) -> None:
@@ -101,19 +92,6 @@ def optimised_op_types(path: Path, out: Path) -> list[str]:
     options.optimized_model_filepath = str(out)
     ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     return [node.op_type for node in onnx.load(str(out)).graph.node]
-
-
-def pasted_frame() -> tuple[np.ndarray, list[tuple[float, ...]]]:
-    """A full frame with the drawn object pasted at several places (so the allocentric conversion matters)
-    and the boxes whose crops are exactly the pasted squares."""
-    frame = np.zeros((480, 640), np.float32)
-    boxes = []
-    for i, (x, y) in enumerate([(20, 30), (300, 200), (500, 340)]):
-        R = np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0]
-        R *= np.linalg.det(R)
-        frame[y : y + 128, x : x + 128] = draw(R)
-        boxes.append((x + 5.8, y + 5.8, 116.4, 116.4))  # padding 1.1 -> a 128 px square: crops are exact
-    return frame, boxes
 
 
 @pytest.mark.parametrize("name", Representation.values())
@@ -365,19 +343,6 @@ def test_pose_agreement_takes_each_crops_symmetries_from_its_object() -> None:
         compare(Path("v.onnx"), output, reference, metadata, obj_ids=[5] * 12)
     with pytest.raises(PopcodeError, match="got 3 object ids for 12 crops"):
         compare(Path("v.onnx"), output, reference, metadata, obj_ids=[1, 2, 2])
-
-
-def calls_of(monkeypatch: pytest.MonkeyPatch, owner: Any, name: str) -> list[tuple]:
-    """The arguments of every call of ``owner.name`` from now on; the real function still runs."""
-    real: Callable = getattr(owner, name)
-    calls: list[tuple] = []
-
-    def counting(*args: Any, **kwargs: Any) -> Any:
-        calls.append(args)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(owner, name, counting)
-    return calls
 
 
 @pytest.fixture(scope="module")

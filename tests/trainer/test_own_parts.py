@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from test_readme import README, bash_commands
+from readme_text import README, bash_commands
 
 from popcode_runtime import PoseEstimator
 from popcode_runtime.base.errors import PopcodeError

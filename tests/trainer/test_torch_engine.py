@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from synthetic import K
-from test_export import pasted_frame, trained_checkpoint
+from trained import pasted_frame, trained_checkpoint
 
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.model.metadata import RotationFrame

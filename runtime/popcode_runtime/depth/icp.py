@@ -13,7 +13,7 @@ object has no readings to match, so it must not be in the fit
 The result must stay an estimate of the same object: a pose whose centre
 (the mean of its surface points) leaves the box or moves more than half the
 diameter from the start's is refused, and so is one that fits the depth worse
-(:func:`.depth_pose.pose_with_depth`).
+(:func:`.placement.pose_with_depth`).
 A continuous symmetry leaves the rotation about its axis unobservable; ICP
 would drift along it freely, so only the axis's new direction is kept and the
 rotation about it stays the start's (the pose moved along the symmetry

@@ -1,9 +1,9 @@
 """One instance's pose with a depth image: the box's translation, then the depth's, then (asked) the refined pose.
 
 Each step falls back to the one before it, and says why: depth that cannot
-place the instance leaves the box's translation (:func:`.depth.translation_from_depth`),
+place the instance leaves the box's translation (:func:`.surface_fit.translation_from_depth`),
 a refinement that fails or fits the depth worse leaves the depth's
-(:func:`.depth_refine.refine_pose`). With several starting rotations (the
+(:func:`.icp.refine_pose`). With several starting rotations (the
 code's hypotheses) each is placed and the pose the depth confirms best kept.
 """
 

@@ -9,7 +9,7 @@ may change a pixel by one grey level), so runs that are to be compared should
 share their rendered splits: copy ``train/``, ``test/`` and ``test_cluttered/`` of
 one run into both ``--out`` folders before running the demo (it resumes from them).
 
-    python -m bench.compare_demos runs/demo-before runs/demo-after
+    python -m experiments.compare_demos runs/demo-before runs/demo-after
 """
 
 from __future__ import annotations
@@ -28,8 +28,7 @@ from onnx import numpy_helper
 from popcode_runtime.base.files import read_json
 from popcode_trainer.demo.report import SUMMARY_FILE
 from popcode_trainer.train.run_files import METRICS_FILE, read_metrics
-
-from .command import run_command
+from tools.command import run_command
 
 # Keys of summary.json (at any depth) that measure time, name the machine or point at files: they differ between
 # any two runs.
@@ -118,4 +117,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("compare_demos", main)
+    run_command("experiments.compare_demos", main)

@@ -1,11 +1,15 @@
-"""Six parts of our own, unlike the built-in ones, to judge a training recipe on parts no recipe choice was tuned on.
+"""Parts of our own, unlike the built-in ones, in two sets: tuning parts to choose recipe settings on, and validation
+parts to judge the chosen recipe on parts no choice was tuned on.
 
-    python -m bench.validation_parts --out DIR
+    python -m tools.own_parts validation --out DIR
+    python -m tools.own_parts tuning --out DIR
 
-writes a BOP models folder (``obj_000001.ply`` ... ``obj_000006.ply`` and ``models_info.json``, millimetres,
-each mesh centred on its bounding box) that ``popcode-train demo --objects DIR`` (or ``render --objects DIR``)
-reads. Each part stands for a symmetry group or a trap the built-in parts (``popcode_trainer.data.objects``)
-do not have:
+writes a BOP models folder (``obj_000001.ply`` ... and ``models_info.json``, millimetres, each mesh centred on its
+bounding box) that ``popcode-train demo --objects DIR`` (or ``render --objects DIR``) reads. A recipe setting (code
+size, sigma, epochs, augmentation) is chosen on the tuning parts; the chosen recipe is then judged once on the
+validation parts, never tuned on them, so their score says how the recipe does on parts it has not seen. Each part
+stands for a symmetry group or a trap the built-in parts (``popcode_trainer.data.objects``) do not have, each set has
+the same kinds of difficulty in other shapes. The validation parts:
 
 1. a 12-tooth gear disc: 12-fold about z and the 12 flips about in-plane axes (dihedral group D12, 24 poses),
 2. a round flange with three bolt holes, a hub and three ribs on one face: 3-fold about z, no flip,
@@ -17,11 +21,20 @@ do not have:
 6. a connecting rod (flat link, a thick boss round the big hole, a smaller hole at the other end): 2-fold
    about its long axis x only.
 
+The tuning parts:
+
+1. an L-shaped plate with unequal legs, a boss at the corner and two holes of different sizes: no symmetry,
+2. a dog-bone link with a hub round each end hole on one face, one hole wider than the other: it looks
+   2-fold about z, but the holes tell the ends apart, so it declares nothing (the near-symmetry warning reports it),
+3. a hexagon flange with a bore, six bolt holes and a round boss on one face: 6-fold about z, no flip,
+4. a rectangular frame with a centred window and four corner holes: 2-fold about x, y and z (dihedral group
+   D2, 4 poses).
+
 Plates with holes are extruded from a Delaunay triangulation of their outline (no boolean engine needed);
 parts of several solids overlap, as the built-in parts do. Every circle has a vertex count that the part's
 rotations map onto itself, so each declared symmetry holds to rounding, and the symmetry check
-(``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_own_part_sets.py`` checks both.
-``bench/tuning_parts.py`` builds the tuning set, on which recipe settings are chosen, from the same helpers.
+(``popcode_trainer.data.symmetry_check``) passes them; ``tests/bench/test_own_part_sets.py`` checks both, and
+that ``popcode-train demo --objects DIR`` accepts each folder.
 """
 
 from __future__ import annotations
@@ -38,8 +51,7 @@ from scipy.spatial import ConvexHull, Delaunay
 
 from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.data.objects import Z_AXIS, model_info, revolve, rotation_4x4
-
-from .command import run_command
+from tools.command import run_command
 
 _STEP_MM = 1.5  # longest outline edge: Delaunay then keeps the outline where features are >= 3 mm apart
 _CIRCLE_SECTIONS = 48  # vertices of a hole or boss circle; divisible by 3, 4 and 12, so the rotations keep it
@@ -180,6 +192,44 @@ def _connecting_rod() -> trimesh.Trimesh:
     return trimesh.util.concatenate([link, boss])
 
 
+def _l_plate() -> trimesh.Trimesh:
+    """L-shaped plate, legs 84 and 58 mm long and 26 and 34 mm wide, a bored boss at the corner on the top face,
+    a 7 mm and a 4 mm hole at uneven places along the legs: no symmetry."""
+    outline = np.array([(0, 0), (84, 0), (84, 26), (34, 26), (34, 58), (0, 58)], dtype=np.float64)
+    holes = [circle(3.5, (66.0, 12.0)), circle(2.0, (16.0, 46.0)), circle(5.0, (16.0, 14.0))]
+    boss = slab(circle(11.0, (16.0, 14.0)), [circle(5.0, (16.0, 14.0))], 14.0, z0_mm=4.0)
+    return trimesh.util.concatenate([slab(outline, holes, 8.0), boss])
+
+
+def _dog_bone_link() -> trimesh.Trimesh:
+    """Flat link of two round ends joined by a narrower waist, a hub round each end hole on the top face; the
+    hole at +x is 14 mm across, the one at -x 7 mm, which breaks the 2-fold symmetry about z it otherwise has."""
+    ends = [(-34.0, 0.0), (34.0, 0.0)]
+    arc = [polar(angle, 16.0) for angle in np.linspace(-120.0, 120.0, 33)]  # an end's outline about its centre
+    waist = [(18.0, 8.0), (-18.0, 8.0)]  # the top edge of the waist, +x to -x
+    outline = [(34.0 + x, y) for x, y in arc] + waist + [(-34.0 - x, -y) for x, y in arc] + [(-x, -y) for x, y in waist]
+    holes = [circle(3.5, ends[0]), circle(7.0, ends[1])]
+    hubs = [slab(circle(12.0, end), [hole], 10.0, z0_mm=4.0) for end, hole in zip(ends, holes, strict=True)]
+    return trimesh.util.concatenate([slab(np.array(outline), holes, 8.0), *hubs])
+
+
+def _hex_flange() -> trimesh.Trimesh:
+    """Hexagon plate (36 mm from centre to corner, corners on x) with a bore and six bolt holes between the
+    corners, a round boss on the top face: 6-fold about z, no flip."""
+    outline = np.array([polar(60.0 * k, 36.0) for k in range(6)])
+    holes = [circle(9.0)] + [circle(3.5, polar(60.0 * k + 30.0, 24.0)) for k in range(6)]
+    return trimesh.util.concatenate([slab(outline, holes, 9.0), slab(circle(16.0), [circle(9.0)], 18.0, z0_mm=5.0)])
+
+
+def _window_frame() -> trimesh.Trimesh:
+    """Rectangular frame 92 x 60 mm with a centred 44 x 22 mm window and a hole near each corner, 10 mm thick:
+    2-fold about x, y and z."""
+    outline = np.array([(-46, -30), (46, -30), (46, 30), (-46, 30)], dtype=np.float64)
+    window = np.array([(-22, -11), (22, -11), (22, 11), (-22, 11)], dtype=np.float64)
+    holes = [window] + [circle(4.5, (x, y)) for x in (-36.0, 36.0) for y in (-20.0, 20.0)]
+    return slab(outline, holes, 10.0)
+
+
 def about_z(order: int) -> list[list[float]]:
     """The ``order - 1`` turns about z by multiples of ``360 / order`` deg (BOP ``symmetries_discrete``)."""
     return [rotation_4x4((0, 0, 1), 2 * np.pi * k / order) for k in range(1, order)]
@@ -212,6 +262,14 @@ VALIDATION_PARTS: tuple[OwnPart, ...] = (
     OwnPart(6, "connecting_rod", _connecting_rod, {"symmetries_discrete": [rotation_4x4((1, 0, 0), np.pi)]}),
 )
 
+TUNING_PARTS: tuple[OwnPart, ...] = (
+    OwnPart(1, "l_plate", _l_plate, {}),
+    OwnPart(2, "dog_bone_link", _dog_bone_link, {}, near_symmetric=True),
+    OwnPart(3, "hex_flange", _hex_flange, {"symmetries_discrete": about_z(6)}),
+    OwnPart(4, "window_frame", _window_frame,
+            {"symmetries_discrete": flips(2) + [rotation_4x4((0, 0, 1), np.pi)]}),
+)
+
 
 def build_own_part(part: OwnPart) -> trimesh.Trimesh:
     """The mesh (mm) of one of our own parts, centred on its bounding box."""
@@ -234,21 +292,22 @@ def write_models(parts: Sequence[OwnPart], out_dir: str | Path) -> Path:
     return out_dir
 
 
-def write_models_main(parts: Sequence[OwnPart], description: str, argv: Sequence[str] | None = None) -> Path:
-    """The command line of a parts module: ``--out DIR``, the folder :func:`write_models` writes ``parts`` to."""
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--out", type=Path, required=True, help="models folder to write (created if missing)")
-    args = parser.parse_args(argv)
-    out_dir = write_models(parts, args.out)
-    for part in parts:
-        print(f"obj_{part.obj_id:06d}.ply  {part.name}")
-    print(f"wrote {len(parts)} parts and models_info.json to {out_dir}")
-    return out_dir
+PART_SETS = {"validation": VALIDATION_PARTS, "tuning": TUNING_PARTS}
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    return write_models_main(VALIDATION_PARTS, __doc__.splitlines()[0], argv)
+    """``SET --out DIR``: write the part set ``SET`` into the models folder ``DIR``."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
+    parser.add_argument("part_set", choices=list(PART_SETS), help="which set of parts to write")
+    parser.add_argument("--out", type=Path, required=True, help="models folder to write (created if missing)")
+    args = parser.parse_args(argv)
+    parts = PART_SETS[args.part_set]
+    out_dir = write_models(parts, args.out)
+    for part in parts:
+        print(f"obj_{part.obj_id:06d}.ply  {part.name}")
+    print(f"wrote {len(parts)} {args.part_set} parts and models_info.json to {out_dir}")
+    return out_dir
 
 
 if __name__ == "__main__":
-    run_command("validation_parts", main)
+    run_command("tools.own_parts", main)

@@ -2,7 +2,7 @@
 rows its inputs ask for, or refuse in one line (exit 2). Anything else is counted as unhandled.
 
 Each call copies a small rendered split into a fresh folder, applies 1-3 random mutations
-(:mod:`bench.run_mutations`) to what ``popcode run`` reads — the detections JSON, the split's JSON files, images and
+(:mod:`tools.run_mutations`) to what ``popcode run`` reads — the detections JSON, the split's JSON files, images and
 folder names, the ``<out>.partial`` of an interrupted run, the options — and calls
 ``popcode_runtime.commands.cli.main`` in-process under a watchdog. A call either starts afresh, resumes the partial
 file of a killed run, or interrupts a run itself (``KeyboardInterrupt`` while reading an image: exit 130) and
@@ -12,7 +12,7 @@ read back, hold rows of images or objects that do not exist or values popcode ne
 detections ask for, or (for a resumed run) differ from a fresh run's on the same inputs. The suite runs a short
 fixed-seed fuzz; this script runs a long one and records it:
 
-    python -m bench.fuzz_run --calls 3000
+    python -m tools.fuzz_run --calls 3000
 
 One call is replayed alone, its folder kept for a look, with ``--call N --keep DIR`` (and the same ``--seed``).
 """
@@ -42,18 +42,17 @@ from typing import Any
 import numpy as np
 
 import popcode_runtime.inference.image_loop as image_loop
-from bench.command import run_command
-from bench.fuzz import pick
-from bench.run_mutations import MUTATIONS, Call, apply, real, regular, write_inputs
 from popcode_runtime import PoseEstimator
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.bop.bop19_csv import read_bop19_results
 from popcode_runtime.bop.detections import ground_truth_boxes
 from popcode_runtime.commands.cli import main as popcode
 from popcode_trainer.train.deadline import deadline
+from tools.command import run_command
+from tools.fuzz import CallTimeout, pick
+from tools.paths import RESULTS, SHIPPED_MODELS
+from tools.run_mutations import MUTATIONS, Call, apply, real, regular, write_inputs
 
-MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
-SHIPPED_MODELS = (MODELS_DIR / "builtin-parts-1-2.onnx", MODELS_DIR / "builtin-parts-3-6.onnx")
 CALL_LIMIT_S = 20.0  # a call still running then is a hang (the slowest calls take about 2 s)
 KILL_POINTS = (1, 2, 4)  # images a killed run closed before it died, for the partial files calls resume
 MODES = ("detections", "gt")
@@ -66,10 +65,6 @@ SCENARIOS = (("fresh", 5), ("resume", 3), ("interrupt", 2))
 BEFORE = {"detections": 4, "split": 4, "options": 2}
 RESUMING = {"partial": 5, "detections": 1.5, "split": 1.5, "options": 2}
 AFTER_INTERRUPTION = {"partial": 3, "detections": 2, "split": 4, "options": 1}  # inputs changed before the resume
-
-
-class CallTimeout(BaseException):
-    """Raised by the watchdog in a call that ran past its limit (a ``BaseException``: nothing may catch it)."""
 
 
 @dataclass(frozen=True)
@@ -144,7 +139,7 @@ def invoke(argv: Sequence[str], interrupt_after: int | None = None, limit_s: flo
         warnings.simplefilter("always")
         result = Result(None, "", 0.0)
         try:
-            with deadline(limit_s, CallTimeout(f"still running after {limit_s:.0f} s")):
+            with deadline(limit_s, CallTimeout(f"still running after {limit_s:g} s")):
                 result.code = popcode(list(argv))
         except SystemExit as exit_:
             result.code, result.argparse = (exit_.code if isinstance(exit_.code, int) else 1), True
@@ -348,8 +343,10 @@ class Record:
     compared_with_fresh: bool = False  # a resume whose results were compared with a fresh run's
 
 
-def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Path | None = None) -> list[Record]:
-    """Call ``index`` of the fuzz with ``seed`` (reproducible alone): its one or two ``popcode run`` calls."""
+def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Path | None = None,
+              limit_s: float = CALL_LIMIT_S) -> list[Record]:
+    """Call ``index`` of the fuzz with ``seed`` (reproducible alone): its one or two ``popcode run`` calls, each
+    under a watchdog of ``limit_s``."""
     rng = np.random.default_rng([seed, index])
     folder = keep if keep is not None else Path(tempfile.mkdtemp(prefix=f"call{index}-", dir=workdir))
     folder.mkdir(parents=True, exist_ok=True)
@@ -367,7 +364,8 @@ def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Pa
         write_inputs(call)
         records = []
         if scenario == "interrupt":
-            records.append(_record(index, "killed", call, pristine, invoke(call.argv(), int(rng.integers(0, 6)))))
+            killed = invoke(call.argv(), int(rng.integers(0, 6)), limit_s)
+            records.append(_record(index, "killed", call, pristine, killed))
             if rng.random() < 0.5:
                 try:
                     partial = Path(call.out + ".partial")
@@ -379,9 +377,9 @@ def fuzz_call(pristine: Pristine, seed: int, index: int, workdir: Path, keep: Pa
                 write_inputs(call, overwrite=True)
         resuming = _has_partial(call)
         records.append(_record(index, "resumed" if scenario == "interrupt" else "run", call, pristine,
-                               invoke(call.argv())))
+                               invoke(call.argv(), limit_s=limit_s)))
         if resuming and not call.forged and records[-1].outcome == "wrote results":
-            records[-1].compared_with_fresh, problem = True, _fresh_run_problem(call)
+            records[-1].compared_with_fresh, problem = True, _fresh_run_problem(call, limit_s)
             if problem is not None:
                 records[-1].outcome, records[-1].problem = "differs from a fresh run", problem
         return records
@@ -397,12 +395,12 @@ def _has_partial(call: Call) -> bool:
         return False
 
 
-def _fresh_run_problem(call: Call) -> str | None:
+def _fresh_run_problem(call: Call, limit_s: float) -> str | None:
     """What differs between a resumed run's results and those of the same command run afresh on the inputs as they
     are now (times aside, as sets of lines), or None: a resume must never mix in rows of inputs that changed."""
     fresh = dataclasses.replace(call, out=str(call.folder / "fresh" / "results.csv"))
     Path(fresh.out).parent.mkdir(exist_ok=True)
-    result = invoke(fresh.argv())
+    result = invoke(fresh.argv(), limit_s=limit_s)
     if result.code != 0:
         return f"the resume wrote results, a fresh run refuses: {result.stderr.strip()[-200:]}"
     rows = [sorted(line.rsplit(",", 1)[0] for line in Path(out).read_text().splitlines()) for out in (call.out,
@@ -460,12 +458,14 @@ class RunFuzzReport:
                 "mutations": dict(self.mutations.most_common()), "most_common_refusals": self.refusals.most_common(15)}
 
 
-def fuzz_run(pristine: Pristine, calls: int, seed: int = 0, workdir: Path | None = None) -> RunFuzzReport:
-    """``calls`` random cases (each one or two calls of ``popcode run``) with a fixed seed."""
+def fuzz_run(pristine: Pristine, calls: int, seed: int = 0, workdir: Path | None = None,
+             limit_s: float = CALL_LIMIT_S) -> RunFuzzReport:
+    """``calls`` random cases (each one or two calls of ``popcode run``, each under a watchdog of ``limit_s``) with a
+    fixed seed."""
     report = RunFuzzReport()
     with tempfile.TemporaryDirectory(prefix="fuzz-run-", dir=workdir) as scratch:
         for index in range(calls):
-            records = fuzz_call(pristine, seed, index, Path(scratch))
+            records = fuzz_call(pristine, seed, index, Path(scratch), limit_s=limit_s)
             for record in records:
                 report.add(record)
             report.cases += 1
@@ -483,7 +483,7 @@ def markdown(report: RunFuzzReport, seed: int, command: str, seconds: float, mac
     return "\n".join([
         f"# Fuzz of popcode run ({', '.join(p.name for p in SHIPPED_MODELS)}, seed {seed})", "",
         f"Command: `{command}`. A 6-image split rendered with `render_builtin_split(folder, 1, size=(160, 120), "
-        "random_position=True)`; each case mutates a copy of it (bench/run_mutations.py) and calls main once, or "
+        "random_position=True)`; each case mutates a copy of it (tools/run_mutations.py) and calls main once, or "
         "twice when it interrupts a run and resumes it.", "", machine, "",
         "| cases | calls of main | " + " | ".join(HANDLED) + " | unhandled | resumes compared with a fresh run "
         "| slowest call s | total s |",
@@ -507,11 +507,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--call", type=int, metavar="N", help="replay case N alone and print what it did")
     parser.add_argument("--keep", type=Path, metavar="DIR", help="with --call: keep the case's folder in DIR")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     from popcode_trainer.data.render import render_builtin_split  # the fuzz calls the runtime; the trainer renders
-
-    from .report import machine, machine_line, write_results
+    from tools.report import machine, machine_line, write_results
 
     with tempfile.TemporaryDirectory(prefix="fuzz-run-") as work:
         split = render_builtin_split(Path(work) / "rendered", 1, size=(160, 120), random_position=True)
@@ -523,7 +522,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         started = time.perf_counter()
         report = fuzz_run(pristine, args.calls, args.seed, Path(work))
         seconds = time.perf_counter() - started
-    command = " ".join(["python -m bench.fuzz_run", *(argv if argv is not None else sys.argv[1:])])
+    command = " ".join(["python -m tools.fuzz_run", *(argv if argv is not None else sys.argv[1:])])
     text = markdown(report, args.seed, command, seconds, machine_line(machine()))
     result = {**report.to_dict(), "seed": args.seed, "seconds": seconds, "command": command,
               "call_limit_s": CALL_LIMIT_S, "models": [path.name for path in SHIPPED_MODELS]}
@@ -534,4 +533,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("fuzz_run", main)
+    run_command("tools.fuzz_run", main)

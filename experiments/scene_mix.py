@@ -1,13 +1,13 @@
 """How much of a training epoch should be cluttered scenes: MSSD on a cluttered and a clean *validation* split
 against the share of scene crops, at an equal number of crop-updates.
 
-    python -m bench.scene_mix [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
+    python -m experiments.scene_mix [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
         [--shares 0 0.25 0.5 0.75] [--images 500] [--scenes 300] [--crop-updates 24000]
         [--objects builtin|MODELS_DIR] [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
 
-Renders the built-in parts (or those of a BOP models folder, ``--objects``: e.g. the validation parts of
-``bench.validation_parts``, to judge a recipe on parts no choice was tuned on) alone (seed 0, as the demo's
-training split) and in cluttered bin scenes (seed 3000, as the demo's training scenes), and two validation
+Renders the built-in parts (or those of a BOP models folder, ``--objects``: e.g. the validation parts that
+``python -m tools.own_parts validation`` writes, to judge a recipe on parts no choice was tuned on) alone (seed 0,
+as the demo's training split) and in cluttered bin scenes (seed 3000, as the demo's training scenes), and two validation
 splits no recipe is reported on: clean single parts (seed 5000) and cluttered scenes (seed 4000). The demo's
 test splits (seeds 1000 and 2000) are never read here. Each share trains one model from the config (``data.splits`` and
 ``data.split_weights`` replaced; share 0 trains on the single parts alone) for the epochs that give
@@ -27,36 +27,36 @@ from pathlib import Path
 from typing import Any
 
 from popcode_runtime.base.files import write_json_atomic
-from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
 from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.demo.parts import BUILTIN, load_parts
 from popcode_trainer.demo.steps import TRAIN_SCENES_SEED_OFFSET
-from popcode_trainer.eval.pipeline.detector_boxes import with_detector_boxes
-from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
-from popcode_trainer.eval.pipeline.models import methods_from_paths
-from popcode_trainer.eval.pipeline.split import read_eval_split
+from popcode_trainer.eval.pipeline.evaluate import MethodResult
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.recall import VISIBILITY_BINS
 from popcode_trainer.train.config import Config, load_config
-from popcode_trainer.train.loop import train
-from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from popcode_trainer.train.training_data import build_training_data
-
-from .budget_curve import _training_so_far
-from .command import run_command
-from .report import machine, machine_line, write_results
+from tools.command import run_command
+from tools.experiment import (
+    CLEAN_VALIDATION_SEED,
+    CLUTTERED_VALIDATION_SEED,
+    TRAIN_SEED,
+    score_last_checkpoint,
+    train_run,
+    training_config,
+    training_so_far,
+)
+from tools.paths import RESULTS
+from tools.report import machine, machine_line, write_results
 
 DETECTOR_BOXES = "detector"
-TRAIN_SEED, CLUTTERED_VALIDATION_SEED, CLEAN_VALIDATION_SEED = 0, 4000, 5000
 VALIDATION_SCENES, VALIDATION_IMAGES = 80, 40
 
 
 def _config(base: Config, single: Path, scenes: Path, share: float, run_dir: Path, epochs: int) -> Config:
     splits, weights = ((str(single),), ()) if share == 0 else ((str(single), str(scenes)), (1.0 - share, share))
-    data = replace(base.data, splits=splits, split_weights=weights, models_dir=str(single / BUILTIN_MODELS_FOLDER))
-    return Config.from_dict(replace(base, data=data, train=replace(base.train, out_dir=str(run_dir),
-                                                                   epochs=epochs)).to_dict())
+    return training_config(base, run_dir, epochs, splits=splits, split_weights=weights,
+                           models_dir=str(single / BUILTIN_MODELS_FOLDER))
 
 
 def _scores(result: MethodResult) -> dict[str, Any]:
@@ -67,11 +67,7 @@ def _scores(result: MethodResult) -> dict[str, Any]:
 
 
 def _score(run_dir: Path, name: str, split_dir: Path, obj_ids: Sequence[int], boxes: str = "none") -> dict[str, Any]:
-    split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER, obj_ids)
-    if boxes != "none":
-        split = with_detector_boxes(split, box_noise_preset(boxes))
-    methods = methods_from_paths([run_dir / LAST_CHECKPOINT], [name])
-    return _scores(evaluate_models(methods, split, vsd=False, progress=False)[0])
+    return _scores(score_last_checkpoint(run_dir, name, split_dir, obj_ids, boxes))
 
 
 @dataclass(frozen=True)
@@ -127,9 +123,8 @@ def compare(base: Config, shares: Sequence[float], splits: Splits, crop_updates:
         data = build_training_data(config)
         epochs = max(1, round(crop_updates / len(data.train_set)))
         config = _config(base, single, scene_split, share, run_dir, epochs)
-        train(config, data.representation, data.train_set, data.val_set, resume=(run_dir / LAST_CHECKPOINT).exists(),
-              val_instances=data.val_instances)
-        row = {"share": share, "epochs": epochs, "epoch_crops": len(data.train_set), **_training_so_far(run_dir),
+        train_run(config, data)
+        row = {"share": share, "epochs": epochs, "epoch_crops": len(data.train_set), **training_so_far(run_dir),
                "clean": _score(run_dir, name, clean, obj_ids), "cluttered": _score(run_dir, name, cluttered, obj_ids),
                "cluttered_detector_boxes": _score(run_dir, name, cluttered, obj_ids, DETECTOR_BOXES)}
         write_json_atomic(scored, row)
@@ -153,7 +148,7 @@ def to_markdown(name: str, rows: Sequence[dict[str, Any]], arguments: str, descr
     counts = ", ".join(f"{b}: {rows[0]['cluttered']['by_visibility'][b]['instances']:.0f}" for b in bins)
     return "\n".join([
         f"# Share of cluttered scenes in training: {name}", "",
-        f"`python -m bench.scene_mix {arguments}`. MSSD (BOP19 recall, rotation only, ground-truth boxes and "
+        f"`python -m experiments.scene_mix {arguments}`. MSSD (BOP19 recall, rotation only, ground-truth boxes and "
         f"translation) of each model's last checkpoint on two validation splits: clean single parts (seed "
         f"{CLEAN_VALIDATION_SEED}) and cluttered bin scenes with the industrial sensor (seed "
         f"{CLUTTERED_VALIDATION_SEED}; instances >= 10 % visible, per visible-fraction bin: {counts}). Training: "
@@ -179,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="parts of one model")
     parser.add_argument("--work", type=Path, default=Path("runs/scene_mix"), help="splits and runs (resumable)")
     parser.add_argument("--name", default="quick", help="name of the comparison (results file scene-mix-<name>)")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     if any(not 0.0 <= share < 1.0 for share in args.shares):
         parser.error("--shares must lie in [0, 1)")
@@ -193,4 +188,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_command("scene_mix", lambda: 0 if main() else 1)
+    run_command("experiments.scene_mix", lambda: 0 if main() else 1)

@@ -1,11 +1,12 @@
 """Fuzz ``PoseEstimator.predict`` with random, mostly hostile, arguments: every call must either return
-valid rotations or raise ``PopcodeError`` (issue 19). Anything else is counted as unhandled.
+valid rotations or raise ``PopcodeError`` (issue 19). Anything else is counted as unhandled, a call still running
+after :data:`CALL_LIMIT_S` (its watchdog) too.
 
 Images of every dtype and shape (NaN, out of range, empty, RGBA), boxes from sub-pixel to 1e300 px,
 NaN and inf, camera matrices from physical to absurd, ``top_k``/``obj_ids`` of the wrong type. The
 suite runs a short fixed-seed fuzz; this script runs a long one on a real model and records it:
 
-    python -m bench.fuzz --calls 20000
+    python -m tools.fuzz --calls 20000
 """
 
 from __future__ import annotations
@@ -21,11 +22,16 @@ from typing import Any
 import numpy as np
 
 from popcode_runtime import PopcodeError, PoseEstimator
+from popcode_trainer.train.deadline import deadline
+from tools.command import run_command
+from tools.paths import RESULTS, SHIPPED_3_6
 
-from .command import run_command
-
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "builtin-parts-3-6.onnx"
 MAX_SIDE = 400  # random images stay small: the fuzz is about arguments, not about pixels
+CALL_LIMIT_S = 10.0  # a call still running then is a hang (the slowest calls take about half a second)
+
+
+class CallTimeout(BaseException):
+    """Raised by the watchdog in a call that ran past its limit (a ``BaseException``: nothing may catch it)."""
 
 
 def pick(rng: np.random.Generator, options: Sequence[Any]) -> Any:
@@ -108,7 +114,8 @@ def random_call(rng: np.random.Generator, obj_ids: Sequence[int]) -> dict[str, A
 
 @dataclass
 class FuzzReport:
-    """What the calls did: returned rotations, refused with ``PopcodeError``, or anything else (unhandled)."""
+    """What the calls did: returned rotations, refused with ``PopcodeError``, or anything else (unhandled: another
+    exception, or a hang past the watchdog's limit)."""
 
     calls: int = 0
     returned: int = 0
@@ -131,8 +138,8 @@ def _valid(prediction: Any) -> bool:
     return bool(ok and (prediction.t_m2c_mm is None or np.isfinite(prediction.t_m2c_mm).all()))
 
 
-def fuzz(estimator: PoseEstimator, calls: int, seed: int = 0) -> FuzzReport:
-    """``calls`` random ``predict`` calls with a fixed seed."""
+def fuzz(estimator: PoseEstimator, calls: int, seed: int = 0, limit_s: float = CALL_LIMIT_S) -> FuzzReport:
+    """``calls`` random ``predict`` calls with a fixed seed, each under a watchdog of ``limit_s``."""
     rng = np.random.default_rng(seed)
     obj_ids = sorted(estimator.metadata.objects)
     report = FuzzReport()
@@ -140,10 +147,13 @@ def fuzz(estimator: PoseEstimator, calls: int, seed: int = 0) -> FuzzReport:
         arguments = random_call(rng, obj_ids)
         started = time.perf_counter()
         try:
-            predictions = estimator.predict(**arguments)
+            with deadline(limit_s, CallTimeout(f"still running after {limit_s:g} s")):
+                predictions = estimator.predict(**arguments)
         except PopcodeError as error:
             report.refused += 1
             report.refusals[" ".join(str(error).split()[:4])] += 1
+        except CallTimeout as error:
+            report.unhandled.append(f"hang: {error}")
         except Exception as error:  # what the fuzz is looking for
             report.unhandled.append(f"{type(error).__name__}: {str(error)[:200]}")
         else:
@@ -156,23 +166,25 @@ def fuzz(estimator: PoseEstimator, calls: int, seed: int = 0) -> FuzzReport:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--model", type=Path, default=SHIPPED_MODEL)
+    parser.add_argument("--model", type=Path, default=SHIPPED_3_6)
     parser.add_argument("--calls", type=int, default=20000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    from .report import write_results  # torch, for the machine record; the fuzz itself needs the runtime only
+    from tools.report import write_results  # torch, for the machine record; the fuzz itself needs no torch
 
     started = time.perf_counter()
     report = fuzz(PoseEstimator(args.model, threads=args.threads), args.calls, args.seed)
     seconds = time.perf_counter() - started
-    result = {**report.to_dict(), "model": args.model.name, "seed": args.seed, "seconds": seconds}
+    result = {**report.to_dict(), "model": args.model.name, "seed": args.seed, "seconds": seconds,
+              "call_limit_s": CALL_LIMIT_S}
     lines = [f"# Fuzz of PoseEstimator.predict ({args.model.name}, seed {args.seed})", "",
              "| calls | returned | refused (PopcodeError) | unhandled | invalid rotations | slowest call s | total s |",
              "|---:|---:|---:|---:|---:|---:|---:|",
              f"| {report.calls} | {report.returned} | {report.refused} | {len(report.unhandled)} | "
              f"{report.invalid_rotations} | {report.slowest_s:.2f} | {seconds:.0f} |", "",
+             f"Each call ran under a {CALL_LIMIT_S:.0f} s watchdog (one still running then counts as unhandled).", "",
              "Most common refusals: " + "; ".join(f"{text}... ({n})" for text, n in report.refusals.most_common(8))]
     json_path, _ = write_results(args.out, "fuzz", {"fuzz": result}, "\n".join(lines))
     print("\n".join(lines))
@@ -181,4 +193,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("fuzz", main)
+    run_command("tools.fuzz", main)

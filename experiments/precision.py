@@ -1,9 +1,9 @@
 """Does bf16 training lose accuracy? The quick recipe in fp32 and in bf16 autocast at equal epochs, per seed.
 
-    python -m bench.precision [--config trainer/configs/quick.toml] [--set KEY=VALUE ...] [--epochs 12]
+    python -m experiments.precision [--config trainer/configs/quick.toml] [--set KEY=VALUE ...] [--epochs 12]
         [--images 800] [--seeds 0 1] [--obj-ids 3 4 5 6] [--work DIR] [--name precision]
 
-Each (precision, seed) trains one model with ``bench.budget_curve.curve`` (the built-in parts' training split,
+Each (precision, seed) trains one model with ``experiments.budget_curve.curve`` (the built-in parts' training split,
 seed 0, and its validation split, seed 2000) and scores its last checkpoint: MSSD on the validation split and
 the median error on the images the run held out of training. The exported model is fp32 whatever the training
 precision, so both are scored the same way.
@@ -28,10 +28,12 @@ from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
 
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.config import load_config
+from tools.command import run_command
+from tools.experiment import VALIDATION_SEED
+from tools.paths import RESULTS
+from tools.report import machine, machine_line, write_results
 
-from .budget_curve import VALIDATION_SEED, curve
-from .command import run_command
-from .report import machine, machine_line, write_results
+from .budget_curve import curve
 
 PRECISIONS = ("fp32", "bf16")
 BF16_OUTPUT_ROUNDING = 2.0**-8  # relative: the largest error of rounding an fp32 value to bf16's 8-bit mantissa
@@ -79,7 +81,7 @@ def to_markdown(rows: Sequence[dict[str, Any]], rounding: dict[str, float], argu
                      f"{sum(r['held_out_median_deg'] for r in chosen) / len(chosen):.1f}° median")
     return "\n".join([
         "# bf16 training against fp32: accuracy at equal epochs", "",
-        f"`python -m bench.precision {arguments}`. MSSD (BOP19 recall, rotation only, GT translation) on the "
+        f"`python -m experiments.precision {arguments}`. MSSD (BOP19 recall, rotation only, GT translation) on the "
         f"validation split (seed {VALIDATION_SEED}) and the median rotation error on the images each run held out of "
         "its training split; the exported models are fp32. On a CPU without native bf16 the bf16 run is emulated: "
         "the same roundings (bf16 inputs, fp32 sums) at a fraction of the speed, so compare accuracy here and speed "
@@ -103,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
     parser.add_argument("--work", type=Path, default=Path("runs/precision"), help="splits and runs (resumable)")
     parser.add_argument("--name", default="precision", help="results file stem (bench/results/NAME.{json,md})")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     if args.epochs < 1 or args.images < 1:
         parser.error("--epochs and --images must be at least 1")
@@ -119,4 +121,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_command("precision", lambda: 0 if main() else 1)
+    run_command("experiments.precision", lambda: 0 if main() else 1)

@@ -1,7 +1,7 @@
 """Train the shipped models: the medium demo's data, network and recipe, the population code alone, its epochs
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
-    python -m bench.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
+    python -m experiments.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
         [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--scene-share S] [--network NAME]
         [--render-only]
 
@@ -16,7 +16,7 @@ arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` chang
 check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
 budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
 detector-like boxes; ``--scene-share`` the share of an epoch's crops cut from the training scenes;
-``--network`` trains another of :data:`bench.training.NETWORKS` (the trunk's width).
+``--network`` trains another of :data:`tools.recipes.NETWORKS` (the trunk's width).
 ``--render-only`` renders the data and stops: variants trained side by side on one GPU (its eager step leaves it
 mostly idle) then each get an ``--out`` holding links to these splits. Rerunning with the same ``--out``
 resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of
@@ -30,7 +30,6 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -38,26 +37,15 @@ import torch
 from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
+from popcode_trainer.demo.plan import FIRST_EPOCHS, StagePlan, plan
 from popcode_trainer.demo.report import POPCODE
-from popcode_trainer.demo.run import (
-    DEMO_SIZES,
-    FIRST_EPOCHS,
-    DemoSize,
-    StagePlan,
-    fit_epochs,
-    plan,
-    prepare_parts,
-    train_models,
-)
-from popcode_trainer.demo.steps import PipelineSize, render_splits, run_dir
-from popcode_trainer.train.fast_path import COMPILE_CHOICES
+from popcode_trainer.demo.run import fit_epochs, prepare_parts, train_models
+from popcode_trainer.demo.steps import render_splits, run_dir
 from popcode_trainer.train.run_files import METRICS_FILE
+from tools.command import bad_input_exits
+from tools.recipes import shipped_arguments, shipped_size
+from tools.report import machine
 
-from .command import bad_input_exits
-from .report import machine
-from .training import NETWORKS
-
-SIZE = "medium"
 RUN_FILE = "run.json"  # beside the copied exports
 
 
@@ -76,49 +64,10 @@ def copy_exports(folder: Path, destination: Path) -> None:
         shutil.copy2(path, target / path.name)
 
 
-def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
-    """The medium demo fitted to ``args.minutes``, and the run it makes: the population code alone, with the
-    data, compile, box-noise and scene-share choices of ``args`` (``None``: the medium size's)."""
-    demo = replace(DEMO_SIZES[SIZE], minutes=args.minutes)
-    config = demo.pipeline.config
-    config = replace(config, train=replace(config.train, compile=args.compile))
-    if args.network is not None:
-        config = replace(config, network=NETWORKS[args.network])  # output_dim follows each model's code
-    if args.box_noise_p is not None:
-        config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
-    size = replace(demo.pipeline, representations=(POPCODE,), config=config,
-                   train_images_per_object=args.images or demo.pipeline.train_images_per_object,
-                   train_scenes=args.scenes or demo.pipeline.train_scenes,
-                   scene_share=demo.pipeline.scene_share if args.scene_share is None else args.scene_share)
-    return demo, size
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--minutes", type=float, default=8.0, help="budget of the whole run (default 8)")
-    parser.add_argument("--out", type=Path, default=Path("runs/shipped"))
-    parser.add_argument("--copy-to", type=Path, help="copy each model's exports here once it is exported")
-    parser.add_argument("--images", type=int, help="training images per part instead of the medium size's")
-    parser.add_argument("--scenes", type=int, help="training scenes instead of the medium size's")
-    parser.add_argument("--group", nargs="+", type=int, metavar="OBJ_ID",
-                        help="train only the model of the object group holding these parts (default: every group)")
-    parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
-    parser.add_argument("--box-noise-p", type=float, metavar="P",
-                        help="share of the crops cut from detector-like boxes instead of the medium size's")
-    parser.add_argument("--scene-share", type=float, metavar="S",
-                        help="share of an epoch's crops cut from the training scenes instead of the medium size's")
-    parser.add_argument("--network", choices=list(NETWORKS),
-                        help="the network to train instead of the medium size's (bench.training.NETWORKS)")
-    parser.add_argument("--render-only", action="store_true", help="render the data into --out and stop")
-    args = parser.parse_args(argv)
-    if not args.minutes > 0:
-        parser.error(f"--minutes must be positive, not {args.minutes}")
-    if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
-        parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
-    if args.scene_share is not None and not 0.0 < args.scene_share < 1.0:
-        parser.error(f"--scene-share must lie in (0, 1), not {args.scene_share}")
+    args, parser = shipped_arguments(argv, __doc__.split("\n\n")[0])
     started = time.perf_counter()
-    with bad_input_exits("shipped_models"):  # the renders stay for a rerun
+    with bad_input_exits("experiments.shipped_models"):  # the renders stay for a rerun
         return _train(args, parser, started, list(sys.argv[1:] if argv is None else argv))
 
 

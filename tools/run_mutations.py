@@ -1,4 +1,4 @@
-"""The mutations :mod:`bench.fuzz_run` applies to what ``popcode run`` reads: the detections JSON, a BOP split's
+"""The mutations :mod:`tools.fuzz_run` applies to what ``popcode run`` reads: the detections JSON, a BOP split's
 JSON files, images and folder names, the ``<out>.partial`` of an interrupted run, and the options.
 
 Each mutation changes a :class:`Call` (its working copy of the split on disk, its detections and partial file in
@@ -24,7 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench.fuzz import pick
+from tools.fuzz import pick
 
 OVERSIZE_BYTES = (1 << 26) + 1  # one byte over the runtime's JSON limit; written sparse, so it costs nothing
 DETECTION_FIELDS = ("scene_id", "image_id", "category_id", "bbox", "score", "time")
@@ -675,7 +675,7 @@ def options(call: Call, rng: np.random.Generator) -> str:
     return "progress shown"
 
 
-# group -> mutations; :mod:`bench.fuzz_run` draws a group, then one of its mutations
+# group -> mutations; :mod:`tools.fuzz_run` draws a group, then one of its mutations
 MUTATIONS: dict[str, tuple[Mutation, ...]] = {
     "detections": (detection_value, detection_fields, detection_box, detection_score, detection_target,
                    detection_copies, detections_whole),

@@ -1,4 +1,5 @@
-"""Shared output of the benchmarks: a JSON file that names the machine beside the markdown findings."""
+"""Shared output of the benchmarks, experiments and fuzzers: a JSON file that names the machine beside the markdown
+findings."""
 
 from __future__ import annotations
 

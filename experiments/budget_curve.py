@@ -1,6 +1,6 @@
 """Accuracy against training budget: MSSD on a validation split after N crop-updates of one recipe.
 
-    python -m bench.budget_curve [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
+    python -m experiments.budget_curve [--config trainer/configs/quick.toml] [--set KEY=VALUE ...]
         [--epochs 5 10 20 40] [--images 1000] [--obj-ids 3 4 5 6] [--work DIR] [--name NAME]
 
 Renders the built-in parts into a training split (seed 0) and a separate validation split
@@ -20,51 +20,33 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import write_json_atomic
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
-from popcode_trainer.eval.pipeline.evaluate import evaluate_models
-from popcode_trainer.eval.pipeline.models import methods_from_paths
-from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.train.config import Config, load_config
-from popcode_trainer.train.loop import train
-from popcode_trainer.train.run_files import LAST_CHECKPOINT, read_metrics
 from popcode_trainer.train.training_data import build_training_data
-
-from .command import run_command
-from .report import machine, machine_line, write_results
-
-TRAIN_SEED, VALIDATION_SEED = 0, 2000  # pipeline.render_splits uses seed + 1000 for the test split
-
-
-def _config(base: Config, train_split: Path, run_dir: Path, epochs: int) -> Config:
-    data = replace(base.data, splits=(str(train_split),), models_dir=str(train_split / BUILTIN_MODELS_FOLDER),
-                   obj_ids=())
-    return Config.from_dict(replace(base, data=data, train=replace(base.train, out_dir=str(run_dir),
-                                                                   epochs=epochs)).to_dict())
-
-
-def _training_so_far(run_dir: Path) -> dict[str, float]:
-    """Seconds of the training loop and crops seen over the epochs run so far, and the last epoch's
-    median error on the images the run held out of its training split (up to symmetry)."""
-    metrics = read_metrics(run_dir, ("seconds", "samples_per_s", "val_error_median_deg"))
-    return {"training_s": sum(metrics["seconds"].tolist()),
-            "crop_updates": int(round(sum((metrics["samples_per_s"] * metrics["seconds"]).tolist()))),
-            "held_out_median_deg": round(float(metrics["val_error_median_deg"][-1]), 2)}
+from tools.command import run_command
+from tools.experiment import (
+    TRAIN_SEED,
+    VALIDATION_SEED,
+    score_last_checkpoint,
+    train_run,
+    training_config,
+    training_so_far,
+)
+from tools.paths import RESULTS
+from tools.report import machine, machine_line, write_results
 
 
 def _point(config: Config, run_dir: Path, validation_split: Path, obj_ids: Sequence[int]) -> dict[str, Any]:
-    split = read_eval_split([validation_split], validation_split / BUILTIN_MODELS_FOLDER, obj_ids)
-    methods = methods_from_paths([run_dir / LAST_CHECKPOINT], [config.train.representation])
-    result = evaluate_models(methods, split, vsd=False, progress=False)[0]
+    result = score_last_checkpoint(run_dir, config.train.representation, validation_split, obj_ids)
     return {
         "epochs": config.train.epochs,
-        **_training_so_far(run_dir),
+        **training_so_far(run_dir),
         "mssd": result.groups["All objects"]["MSSD"],
         "mssd_with_ambiguity": result.groups["With ambiguity"]["MSSD"],
         "mssd_without_ambiguity": result.groups["Without ambiguity"]["MSSD"],
@@ -84,10 +66,9 @@ def curve(base: Config, epochs: Sequence[int], images: int, obj_ids: Sequence[in
     for budget in sorted(set(epochs) - {p["epochs"] for p in points}):
         if points and budget < max(p["epochs"] for p in points):
             raise PopcodeError(f"{run_dir} has trained past {budget} epochs; score smaller budgets in a new --work")
-        config = _config(base, train_split, run_dir, budget)
-        data = build_training_data(config)
-        train(config, data.representation, data.train_set, data.val_set, resume=(run_dir / LAST_CHECKPOINT).exists(),
-              val_instances=data.val_instances)
+        config = training_config(base, run_dir, budget, splits=(str(train_split),),
+                                 models_dir=str(train_split / BUILTIN_MODELS_FOLDER), obj_ids=())
+        train_run(config, build_training_data(config))
         points.append(_point(config, run_dir, validation_split, obj_ids))
         write_json_atomic(scored, points)
         print(f"{budget} epochs: MSSD {100 * points[-1]['mssd']:.1f} %", flush=True)
@@ -106,9 +87,10 @@ def to_markdown(name: str, points: Sequence[dict[str, Any]], overrides: Sequence
               *(f"obj {obj}" for obj in obj_ids)]
     return "\n".join([
         f"# Accuracy against training budget: {name}", "",
-        f"`python -m bench.budget_curve` with {images} training images per part, overrides: "
+        f"`python -m experiments.budget_curve` with {images} training images per part, overrides: "
         f"{', '.join(f'`{o}`' for o in overrides) or 'none'}. MSSD (BOP19 recall, rotation only, GT translation) "
-        "on the validation split (seed 2000), last checkpoint of one run extended epoch budget by epoch budget.",
+        f"on the validation split (seed {VALIDATION_SEED}), last checkpoint of one run extended epoch budget by "
+        "epoch budget.",
         "", machine_line(machine_description), "", markdown_table(header, rows),
     ])
 
@@ -123,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--obj-ids", nargs="+", type=int, default=[3, 4, 5, 6], help="built-in parts (one model)")
     parser.add_argument("--work", type=Path, default=Path("runs/budget_curve"), help="splits and runs (resumable)")
     parser.add_argument("--name", default="quick", help="name of the curve (results file budget-<name>)")
-    parser.add_argument("--out", type=Path, default=Path("bench/results"))
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     base = load_config(args.config, args.overrides)
     points = curve(base, args.epochs, args.images, args.obj_ids, args.work, args.name)
@@ -135,4 +117,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_command("budget_curve", lambda: 0 if main() else 1)
+    run_command("experiments.budget_curve", lambda: 0 if main() else 1)
