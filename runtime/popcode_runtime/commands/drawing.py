@@ -2,11 +2,10 @@
 
 OpenCV only; the picture is BGR uint8 as OpenCV writes it. Model x is drawn red, y green, z blue.
 
-**Symmetric objects.** Poses ``R`` and ``R·S`` (``S`` a symmetry rotation) are the same estimate, so the
-picture must not tell them apart. Rule: a model direction ``v`` is drawn as the set of segments from the
-centre to ``R·S_k·v`` over every symmetry rotation ``S_k`` (its *orbit*). The symmetries form a group, so
-for an equivalent pose ``R·S_j`` the products ``S_j·S_k`` run over the same set and the picture is
-identical. What that gives:
+**Symmetric objects.** Poses ``R`` and ``R·S`` (``S`` a symmetry rotation) are the same estimate, so the picture
+must not tell them apart. Rule: a model direction ``v`` is drawn as the set of segments from the centre to
+``R·S_k·v`` over every symmetry rotation ``S_k`` (its *orbit*). The symmetries form a group, so for an equivalent
+pose ``R·S_j`` the products ``S_j·S_k`` run over the same set and the picture is identical. What that gives:
 
 - an axis every symmetry fixes (z of a part 2-fold about z) is an arrow;
 - an axis the symmetries only reverse (x and y of that part) is an undirected line through the centre;
@@ -21,10 +20,10 @@ about the axis of a continuous symmetry), so it too is the same for every equiva
 
 **Placement.** With a translation ``t_m2c_mm`` the points are projected with the camera
 (:mod:`popcode_runtime.geometry.camera`) and the axes are as long as half the box's longer side at the object's
-depth. Without one (or one that puts the object behind the camera) the axes start at the box centre and
-are drawn orthographically, the camera-frame x and y of each direction, half the box's longer side long:
-a picture of the rotation, not of a position. The ellipse of a continuous symmetry is drawn
-orthographically in both cases (weak perspective at the object's depth).
+depth. Without one (or one that puts the object behind the camera) the axes start at the box centre and are drawn
+orthographically, the camera-frame x and y of each direction, half the box's longer side long: a picture of the
+rotation, not of a position. The ellipse of a continuous symmetry is drawn orthographically in both cases (weak
+perspective at the object's depth).
 """
 
 from __future__ import annotations
