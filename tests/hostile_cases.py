@@ -148,6 +148,19 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
                                        "surface_points_mm must be a list"),
     "surface_normals_not_unit": ("popcode.objects", _objects(surface_points_mm=SURFACE,
                                                              surface_normals=[[0, 0, 2]] * 16), "unit vectors"),
+    # issue 50: bounds and declarations
+    "symmetry_numbers_as_text": ("popcode.objects", _objects(symmetries_discrete=[[str(v) for v in OBJECT[
+        "symmetries_discrete"][0]]]), "symmetries_discrete[0] is not a list of numbers: got ['-1.0', "),
+    "symmetry_true_for_one": ("popcode.objects", _objects(symmetries_discrete=[[True if v == 1 else v for v in OBJECT[
+        "symmetries_discrete"][0]]]), "symmetries_discrete[0] is not a list of numbers"),
+    "continuous_axis_as_text": ("popcode.objects", _objects(symmetries_discrete=[], symmetries_continuous=[
+        {"axis": ["0", "0", "1"]}]), "symmetries_continuous[0] axis is not a list of numbers"),
+    "continuous_four": ("popcode.objects", _objects(symmetries_discrete=[], symmetries_continuous=[
+        {"axis": [0, 0, 1]}] * 4), "symmetries_continuous lists 4 symmetries; at most 3 are allowed"),
+    "symmetries_counted_before_read": ("popcode.objects", _objects(symmetries_continuous=["abc"] * 4),
+                                       "symmetries_continuous lists 4 symmetries; at most 3"),
+    "hull_over_the_limit": ("popcode.objects", _objects(hull_points_mm=[[k % 7, k % 11, k % 13] for k in range(1025)]),
+                            "hull_points_mm lists 1025 points; at most 1024 are allowed"),
 }
 
 
@@ -273,6 +286,39 @@ CLI_CASES: list[CliCase] = [
             "never replaces or joins"),
     CliCase("command-unknown", ("frobnicate",), "invalid choice"),
     CliCase("command-missing", (), "required"),
+    # issue 50: cameras and depth
+    CliCase("K-of-another-image-size", _predict("--K", "864,864,359.5,269.5"),
+            "principal point at (359.5, 269.5), outside the 160x120 image"),
+    CliCase("K-principal-point-5000", _predict("--K", "200,200,5000,60"), "principal point at (5000, 60), outside"),
+    CliCase("K-principal-point-negative", _predict("--K", "200,200,80,-60"), "principal point at (80, -60), outside"),
+    CliCase("K-field-of-view-178-deg", _predict("--K", "1,1,80,60"), "a camera sees 0.5 to 170 deg"),
+    CliCase("K-field-of-view-0.1-deg", _predict("--K", "1e5,1e5,80,60"), "a camera sees 0.5 to 170 deg"),
+    CliCase("K-fy-of-another-image", _predict("--K", "200,1,80,60"), "a camera sees 0.5 to 170 deg"),
+    CliCase("K-another-camera-translation", _predict("--K", "864,864,359.5,269.5", "--translation"), "outside the"),
+    CliCase("K-another-camera-depth", _predict("--K", "864,864,359.5,269.5", "--depth", "{folder}/depth.png",
+                                               model="depth_model.onnx"), "outside the 160x120 image"),
+    CliCase("crop-origin-without-K", _predict("--crop-origin", "10,10"), "--crop-origin places IMAGE in the frame"),
+    CliCase("crop-origin-words", _predict("--K", GOOD_K, "--crop-origin", "a,b"), "must be comma-separated numbers"),
+    CliCase("crop-origin-three-numbers", _predict("--K", GOOD_K, "--crop-origin", "1,2,3"), "needs 2 numbers"),
+    CliCase("crop-origin-nan", _predict("--K", GOOD_K, "--crop-origin", "nan,0"), "contains NaN or inf"),
+    CliCase("crop-origin-1e9", _predict("--K", GOOD_K, "--crop-origin", "1e9,0"), "lies beyond 1e+06 px"),
+    CliCase("crop-origin-left-of-the-frame", _predict("--K", GOOD_K, "--crop-origin", "-500,0"),
+            "wholly left of or above"),
+    CliCase("crop-origin-off-axis", _predict("--K", GOOD_K, "--crop-origin", "5000,0"), "deg off the optical axis"),
+    CliCase("crop-origin-with-the-crops-own-K", _predict("--K", "200,200,-20,60", "--crop-origin", "100,0"),
+            "outside its own frame"),
+    CliCase("depth-torn", _predict("--K", GOOD_K, "--depth", "{folder}/depth_torn.png", model="depth_model.onnx"),
+            "ends before its IEND chunk"),
+    CliCase("depth-damaged", _predict("--K", GOOD_K, "--depth", "{folder}/depth_damaged.png",
+                                      model="depth_model.onnx"), "chunk 'IDAT' fails its CRC"),
+    CliCase("depth-16-bit-rgba", _predict("--K", GOOD_K, "--depth", "{folder}/depth_rgba16.png",
+                                          model="depth_model.onnx"), "has 4 channels"),
+    CliCase("run-depth-without-depth-scale", ("run", "{folder}/depth_model.onnx", "--split", "{folder}/split_unscaled",
+                                              "--gt-boxes", "--depth", "--out", "{folder}/../unscaled.csv"),
+            "scene 1 image 0 has no 'depth_scale' in its scene_camera.json entry"),
+    CliCase("run-cam-K-of-another-image-size", ("run", "{folder}/model.onnx", "--split", "{folder}/split_other_camera",
+                                                "--gt-boxes", "--out", "{folder}/../other_camera.csv"),
+            "scene 1 image 0 (000000.png), its cam_K in scene_camera.json: the camera K puts its principal point"),
 ]
 
 
@@ -438,6 +484,26 @@ API_CASES: list[tuple[str, Callable[[Path], object], str]] = [
     ("metadata-padding", lambda folder: ModelMetadata(representation="population_code", code=LAYOUT,
                                                       objects={1: CASES["none"]}, crop_padding=-1),
      "crop_padding must lie in"),
+    # issue 50: cameras and depth
+    ("K-of-another-image-size", _predict_with(K=[864, 864, 359.5, 269.5]), "outside the 160x120 image"),
+    ("K-principal-point-5000", _predict_with(K=[200, 200, 5000, 60]), "principal point at (5000, 60), outside"),
+    ("K-3x3-of-another-image-size", _predict_with(K=np.array([[864, 0, 359.5], [0, 864, 269.5], [0, 0, 1]])),
+     "outside the 160x120 image"),
+    ("K-field-of-view-178-deg", _predict_with(K=[1, 1, 80, 60]), "a camera sees 0.5 to 170 deg"),
+    ("K-field-of-view-0.1-deg", _predict_with(K=[1e5, 1e5, 80, 60], translation=True), "a camera sees 0.5 to 170"),
+    ("K-another-camera-depth", lambda folder: PoseEstimator(folder / "depth_model.onnx", threads=1).predict(
+        _scene(), [[20, 20, 60, 50]], K=[864, 864, 359.5, 269.5], depth=_depth()), "outside the 160x120 image"),
+    ("crop-origin-without-K", _predict_with(crop_origin=(10, 10)), "crop_origin moves K's principal point"),
+    ("crop-origin-text", _predict_with(K=GOOD_K_LIST, crop_origin="10,10"), "must be numbers, got the text"),
+    ("crop-origin-three-numbers", _predict_with(K=GOOD_K_LIST, crop_origin=[1, 2, 3]), "must have shape"),
+    ("crop-origin-none-entry", _predict_with(K=GOOD_K_LIST, crop_origin=[None, 1]), "contains NaN or inf"),
+    ("crop-origin-inf", _predict_with(K=GOOD_K_LIST, crop_origin=[np.inf, 0]), "contains NaN or inf"),
+    ("crop-origin-off-axis", _predict_with(K=GOOD_K_LIST, crop_origin=(0, 5000)), "deg off the optical axis"),
+    ("crop-origin-left-of-the-frame", _predict_with(K=GOOD_K_LIST, crop_origin=(-500, 0)), "wholly left of"),
+    ("read-depth-torn", lambda folder: read_depth(folder / "depth_torn.png"), "ends before its IEND chunk"),
+    ("read-depth-damaged", lambda folder: read_depth(folder / "depth_damaged.png"), "fails its CRC"),
+    ("read-depth-16-bit-rgba", lambda folder: read_depth(folder / "depth_rgba16.png"), "has 4 channels"),
+    ("read-image-torn-depth-png", lambda folder: read_image(folder / "depth_torn.png"), "ends before its IEND"),
 ]
 
 

@@ -6,6 +6,7 @@ venv test reads the files it wrote.
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 from pathlib import Path
@@ -13,11 +14,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import onnx
-from hostile_cases import DEPTH_MM, DEPTH_OBJECT, IMAGE_SHAPE, LAYOUT, METADATA_CASES, OBJECT
+from hostile_cases import DEPTH_MM, DEPTH_OBJECT, GOOD_K_LIST, IMAGE_SHAPE, LAYOUT, METADATA_CASES, OBJECT
 from onnx import TensorProto, helper
 from onnx_models import ONNX_IR_VERSION, ONNX_OPSET, linear_model
 
-from popcode_runtime import ModelMetadata, PopulationCode, Representation, symmetry_rotations
+from popcode_runtime import ModelMetadata, PopulationCode, Representation, parse_camera_matrix, symmetry_rotations
 from popcode_runtime.geometry.rotations import matrix_to_sixd, random_rotations
 from popcode_runtime.model.metadata import INPUT_NAME, OUTPUT_NAME
 
@@ -158,4 +159,28 @@ def write_hostile_files(folder: Path) -> Path:
     cv2.imwrite(str(folder / "depth_small.png"), np.full((60, 80), DEPTH_MM, np.uint16))
     cv2.imwrite(str(folder / "depth_colour.png"), np.full((*IMAGE_SHAPE, 3), 100, np.uint8))
     cv2.imwrite(str(folder / "depth_far.png"), np.full(IMAGE_SHAPE, 65535, np.uint16))
+    # issue 50: cameras and depth
+    depth_png = (folder / "depth.png").read_bytes()
+    (folder / "depth_torn.png").write_bytes(depth_png[: len(depth_png) // 2])  # libpng: "Read Error"
+    damaged = bytearray(depth_png)
+    damaged[depth_png.index(b"IDAT") + 8] ^= 0xFF  # a byte of the pixel data: the chunk's CRC no longer holds
+    (folder / "depth_damaged.png").write_bytes(bytes(damaged))
+    cv2.imwrite(str(folder / "depth_rgba16.png"), np.full((*IMAGE_SHAPE, 4), DEPTH_MM, np.uint16))
+    _write_split(folder / "split_unscaled", {"cam_K": parse_camera_matrix(GOOD_K_LIST).ravel().tolist()})
+    other_camera = parse_camera_matrix([864.0, 864.0, 359.5, 269.5])  # a 720x540 camera's, not scene.png's
+    _write_split(folder / "split_other_camera", {"cam_K": other_camera.ravel().tolist(), "depth_scale": 1.0})
     return folder
+
+
+def _write_split(split: Path, camera: dict) -> None:
+    """One scene of one image of object 7 (depth.png's depth beside scene.png) whose scene_camera.json entry is
+    ``camera``."""
+    scene = split / "000001"
+    for kind, name in (("gray", "scene.png"), ("depth", "depth.png")):
+        (scene / kind).mkdir(parents=True, exist_ok=True)
+        (scene / kind / "000000.png").write_bytes((split.parent / name).read_bytes())
+    (scene / "scene_camera.json").write_text(json.dumps({"0": camera}))
+    (scene / "scene_gt.json").write_text(json.dumps({"0": [{"cam_R_m2c": np.eye(3).ravel().tolist(),
+                                                            "cam_t_m2c": [0, 0, DEPTH_MM], "obj_id": 7}]}))
+    (scene / "scene_gt_info.json").write_text(json.dumps({"0": [{"bbox_obj": [20, 20, 60, 50],
+                                                                 "bbox_visib": [20, 20, 60, 50], "visib_fract": 1.0}]}))

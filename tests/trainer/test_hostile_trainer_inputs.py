@@ -315,6 +315,122 @@ CASES = [
 ]
 
 
+# issue 50: bounds and declarations
+_BAR = trimesh.creation.box((60.0, 30.0, 10.0))  # its diameter, the box's diagonal: 67.8233 mm
+_HALF_TURN_Z = _about((0, 0, 1), 180)[0]
+
+
+def _checked(files: Path, name: str, mesh_ply: str | None = None, objects: int = 1, **entry: object) -> list[str]:
+    """``demo --check`` of a models folder of the bar (or of a PLY text) whose entries are the bar's, changed."""
+    folder = files / f"bounds_{name}"
+    if not folder.is_dir():
+        folder.mkdir()
+        if mesh_ply is None:
+            _BAR.export(folder / "obj_000001.ply")
+        else:
+            (folder / "obj_000001.ply").write_text(mesh_ply)
+        info = {**model_info(_BAR, {}), **entry}
+        (folder / "models_info.json").write_text(json.dumps({str(k): info for k in range(1, objects + 1)}))
+    return ["demo", "--objects", str(folder), "--check"]
+
+
+CASES += [
+    ("demo-objects-over-the-limit", lambda f: _checked(f, "objects", objects=10_001),
+     "lists 10001 objects; at most 10000 are allowed"),
+    ("demo-symmetries-counted-before-read", lambda f: _checked(f, "discrete_1001", symmetries_discrete=[
+        _HALF_TURN_Z] * 1000 + ["abc"]), "object 1: symmetries_discrete lists 1001 symmetries; at most 1000"),
+    ("demo-continuous-counted-before-read", lambda f: _checked(f, "continuous_4", symmetries_continuous=[
+        {"axis": [0, 0, 1]}] * 3 + ["abc"]), "object 1: symmetries_continuous lists 4 symmetries; at most 3"),
+    ("demo-symmetry-listed-twice", lambda f: _checked(f, "repeat", symmetries_discrete=[_HALF_TURN_Z] * 2),
+     "symmetries_discrete[1] (rotation 180.0 deg about (0, 0, 1)) repeats symmetries_discrete[0]; list each"),
+    ("demo-identity-listed", lambda f: _checked(f, "identity", symmetries_discrete=[np.eye(4).ravel().tolist()]),
+     "symmetries_discrete[0] (rotation 0.0 deg about"),
+    ("demo-symmetry-numbers-as-text", lambda f: _checked(f, "text_matrix", symmetries_discrete=[
+        [str(v) for v in _HALF_TURN_Z]]), "symmetries_discrete[0] is not a list of numbers: got ['-1.0', "),
+    ("demo-diameter-as-text", lambda f: _checked(f, "diameter_text", diameter="71"),
+     "key 'diameter' of object 1 must be a positive number, got '71' (str); its mesh's diameter is 67.8233 mm"),
+    ("demo-diameter-true", lambda f: _checked(f, "diameter_true", diameter=True),
+     "must be a positive number, got True (bool); its mesh's diameter is 67.8233 mm"),
+    ("demo-extent-true", lambda f: _checked(f, "size_true", size_x=True), "object 1: size_x must be a number"),
+    ("demo-extent-as-text", lambda f: _checked(f, "min_text", min_z="-5"), "object 1: min_z must be a number"),
+    ("demo-diameter-smaller", lambda f: _checked(f, "diameter_smaller", diameter=40.7),
+     "diameter 40.7 mm in models_info.json is smaller than the mesh's 67.8233 mm (the largest distance between two "
+     "of its vertices) by more than 2 %: set it to 67.8233"),
+    ("demo-diameter-larger", lambda f: _checked(f, "diameter_larger", diameter=71.2),
+     "diameter 71.2 mm in models_info.json is larger than the mesh's 67.8233 mm"),
+    ("demo-ply-header-claims-billions", lambda f: _checked(f, "ply_billions", mesh_ply=_ply(
+        "0 0 0\n10 0 0\n0 10 0\n0 0 10").replace("element vertex 4", "element vertex 3000000000")),
+     "its header claims 3,000,000,000 vertex elements; at most 4,000,000 are allowed: decimate the mesh"),
+    ("demo-ply-header-claims-more-than-the-file", lambda f: _checked(f, "ply_truncated", mesh_ply=_ply(
+        "0 0 0\n10 0 0\n0 10 0\n0 0 10").replace("element vertex 4", "element vertex 1000000")),
+     "its header claims 1,000,000 vertex, 2 face elements, more than its 43 bytes of data hold"),
+    ("demo-epochs-1e20", lambda f: ["demo", "--check", "--epochs", "100000000000000000000"],
+     "--epochs must be at most 100,000, got 100,000,000,000,000,000,000"),
+    ("demo-images-1e7", lambda f: ["demo", "--check", "--images", "10000000"],
+     "--images must be at most 1,000,000, got 10,000,000"),
+    ("train-epochs-1e18", lambda f: ["train", "--set", "train.epochs=1000000000000000000"],
+     "train.epochs must be at most 100,000 (the paper trains 80), got 1,000,000,000,000,000,000"),
+]
+
+
+# issue 50: one writer, evaluate's output
+def _occupied(lock: Path, fifo: bool = False) -> Path:
+    """``lock``'s folder, with a folder (or a FIFO, whose open would wait for a writer) where a command keeps its
+    lock file."""
+    lock.parent.mkdir(exist_ok=True)
+    if fifo and not lock.is_fifo():
+        os.mkfifo(lock)
+    elif not fifo:
+        lock.mkdir(exist_ok=True)
+    return lock.parent
+
+
+def _evaluate_hull(files: Path, out: Path, *options: str) -> list[str]:
+    return ["evaluate", str(files / "box_fit/hull.onnx"), "--split", str(files / "split"), "--models-dir",
+            str(files / "bar_2fold"), "--out", str(out), *options]
+
+
+CASES += [
+    ("render-shard-lock-is-a-folder", lambda f: ["render", "--objects", "builtin", "--images", "1", "--out",
+                                                 str(_occupied(f / "render_lock_folder" / ".render-0-of-1.lock"))],
+     ".render-0-of-1.lock is not a regular file; remove it (it is where the lock is kept)"),
+    ("train-run-lock-is-a-fifo", lambda f: [
+        *_train(f), "--set", f'train.out_dir="{_occupied(f / "train_lock_fifo" / "train.lock", fifo=True)}"'],
+     "train.lock is not a regular file; remove it"),
+    ("export-lock-is-a-folder", lambda f: _export(f, out=str(_occupied(f / "export_lock" / "out.onnx.lock")
+                                                             / "out.onnx")), "out.onnx.lock is not a regular file"),
+    ("evaluate-lock-is-a-fifo", lambda f: _evaluate_hull(f, _occupied(f / "evaluate_lock_fifo" / "evaluate.lock",
+                                                                      fifo=True)),
+     "evaluate.lock is not a regular file (a link, device or FIFO)"),
+]
+
+
+def test_evaluate_records_the_decoder_of_each_method(files: Path, tmp_path: Path) -> None:
+    """A single --decoder keeps the method's plain name, so the report says which decoder it used."""
+    assert main(_evaluate_hull(files, tmp_path / "refined", "--decoder", "refined")) == 0
+    assert json.loads((tmp_path / "refined" / "report.json").read_text())["methods"]["hull"]["decoder"] == "refined"
+    assert "| hull | refined |" in (tmp_path / "refined" / "report.md").read_text()
+
+
+def test_evaluate_refuses_an_out_it_cannot_write_before_any_prediction(files: Path, monkeypatch) -> None:
+    """An --out to be made in a folder this user may not write is refused before the first image is predicted, not
+    when the report is written. The tests run as root, whom permissions do not stop: the system's answer for
+    another user is given."""
+    def predicted(*args, **kwargs):
+        raise AssertionError("a prediction ran before --out was checked")
+
+    read_only = files / "read_only"
+    read_only.mkdir(exist_ok=True)
+    access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kwargs: path != read_only and access(path, mode, **kwargs))
+    monkeypatch.setattr("popcode_trainer.eval.pipeline.models.predict_rotations", predicted)
+    stderr = io.StringIO()
+    monkeypatch.setattr("sys.stderr", stderr)
+    assert main(_evaluate_hull(files, read_only / "eval")) == 2
+    assert error_lines(stderr.getvalue()) == [f"popcode-train: error: --out {read_only / 'eval'}: folder {read_only} "
+                                              "is not writable"]
+
+
 def test_a_refused_render_writes_nothing(files, monkeypatch):
     """Options are checked before the built-in models are written into the new split."""
     stderr = io.StringIO()

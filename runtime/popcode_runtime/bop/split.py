@@ -131,14 +131,15 @@ def read_depth_scale(camera: Any, path: Path, im_id: int) -> float:
 @dataclass(frozen=True)
 class SplitImage:
     """One image of a split, its camera (None where the split has no ``scene_camera.json``) and its depth image
-    (None where the split has none)."""
+    (None where the split has none) with its ``depth_scale`` (None where its ``scene_camera.json`` entry gives none:
+    BOP's format puts it there for every split with depth, and no default is right for all of them)."""
 
     scene_id: int
     im_id: int
     path: Path
     K: np.ndarray | None
     depth_path: Path | None = None
-    depth_scale: float = 1.0  # mm per depth unit
+    depth_scale: float | None = None  # mm per depth unit
 
 
 def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
@@ -156,8 +157,8 @@ def split_images(split_dir: str | Path) -> dict[tuple[int, int], SplitImage]:
             path = files[stem]
             K = read_cam_K(cameras[im_id], camera_path, im_id) if im_id in cameras else None
             depth_path = depths[depth_ids[im_id]] if im_id in depth_ids else None
-            depth_scale = read_depth_scale(cameras[im_id], camera_path, im_id) if depth_path and im_id in cameras \
-                else 1.0
+            scaled = depth_path is not None and im_id in cameras and "depth_scale" in cameras[im_id]
+            depth_scale = read_depth_scale(cameras[im_id], camera_path, im_id) if scaled else None
             images[(scene_id, im_id)] = SplitImage(scene_id, im_id, path, K, depth_path, depth_scale)
     return images
 

@@ -16,7 +16,7 @@ from .. import __version__
 from ..base.errors import PopcodeError
 from ..base.files import OVERWRITE_HELP, check_picture_path, write_picture_atomic
 from ..depth.surface_fit import object_surface, read_depth
-from ..geometry.camera import parse_camera_matrix
+from ..geometry.camera import MAX_FIELD_OF_VIEW_DEG, MIN_FIELD_OF_VIEW_DEG, camera_for_image, parse_camera_matrix
 from ..geometry.crop import MAX_IMAGE_PIXELS, read_image
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.symmetries import symmetry_class
@@ -29,7 +29,7 @@ from .drawing import draw_predictions
 from .options import DEFAULT_BENCH_BATCHES, check_options
 
 INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
-NUMBER_OPTIONS = ("--box", "--K")  # their values may start with a minus sign
+NUMBER_OPTIONS = ("--box", "--K", "--crop-origin")  # their values may start with a minus sign
 
 
 def _numbers(text: str, count: int | None, what: str) -> list[float]:
@@ -50,6 +50,10 @@ def _camera(text: str) -> list[float]:
     return _numbers(text, None, "--K fx,fy,cx,cy")
 
 
+def _point(text: str) -> list[float]:
+    return _numbers(text, 2, "--crop-origin X,Y")
+
+
 def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--provider", action="append", metavar="NAME",
                         help="execution provider: cpu (default), cuda, coreml, ...; repeat for a preference order")
@@ -67,9 +71,10 @@ def _predict(args: argparse.Namespace) -> int:
     predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
                                     top_k=args.top_k, translation=args.translation, depth=depth,
                                     depth_scale=1.0 if args.depth_scale is None else args.depth_scale,
-                                    refine_depth=args.refine)
+                                    refine_depth=args.refine, crop_origin=args.crop_origin)
     if args.draw:
-        write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, K))
+        camera = None if K is None else camera_for_image(K, image.shape, args.crop_origin)  # in the image's pixels
+        write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, camera))
     if args.json:
         print(json.dumps({"model": str(args.model), "image": str(args.image),
                           "predictions": [p.to_dict() for p in predictions]}, indent=2))
@@ -166,7 +171,12 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_argument("--box", type=_box, action="append", required=True, metavar="X,Y,W,H",
                          help="object box in pixels (top-left corner, width, height); repeat for several objects")
     predict.add_argument("--K", type=_camera, metavar="FX,FY,CX,CY",
-                         help="camera intrinsics (needed by allocentric models); fx,fy,cx,cy or 9 numbers row-major")
+                         help="camera intrinsics (needed by allocentric models); fx,fy,cx,cy or 9 numbers row-major; "
+                              f"checked against IMAGE (principal point on it, a field of view of "
+                              f"{MIN_FIELD_OF_VIEW_DEG:g} to {MAX_FIELD_OF_VIEW_DEG:g} deg)")
+    predict.add_argument("--crop-origin", type=_point, metavar="X,Y",
+                         help="IMAGE is a crop of the frame --K belongs to, its top-left pixel at X,Y there (the "
+                              "principal point is moved by it)")
     predict.add_argument("--decoder", choices=DECODERS, default="argmax",
                          help="argmax: the paper's winning neuron (default); refined: sub-neuron estimate")
     predict.add_argument("--top-k", type=int, default=1, metavar="K",

@@ -30,6 +30,7 @@ NEEDS: dict[str, tuple[Needs, ...]] = {
         Needs("code", "json", "--code prints the raw network output in the JSON; add --json"),
         Needs("refine", "depth", "--refine is about the depth image: add --depth PNG"),
         Needs("depth_scale", "depth", "--depth-scale is about the depth image: add --depth PNG"),
+        Needs("crop_origin", "K", "--crop-origin places IMAGE in the frame of the camera --K: add --K"),
     ),
     "run": (
         Needs("refine", "depth", "--refine refines the pose against each image's depth: add --depth"),

@@ -32,6 +32,7 @@ from ..bop.bop19_csv import PoseEstimate
 from ..bop.detections import Detection
 from ..bop.split import SplitImage
 from ..depth.icp import require_small_gicp
+from ..geometry.camera import camera_for_image
 from ..geometry.crop import check_box
 from ..inference.estimator import PoseEstimator
 from ..inference.image_loop import ImageBoxes, estimate_images, route_objects
@@ -90,35 +91,53 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
                            "translation from the box needs the camera")
 
 
-def _check_boxes(keys: Sequence[ImageKey], by_image: Mapping[ImageKey, Sequence[Detection]],
-                 images: Mapping[ImageKey, SplitImage]) -> None:
-    """Before any work: every box against its image's size, read from the file's header (an image whose header
-    is not read here is checked when it is read)."""
+def _check_image_sizes(keys: Sequence[ImageKey], by_image: Mapping[ImageKey, Sequence[Detection]],
+                       images: Mapping[ImageKey, SplitImage]) -> None:
+    """Before any work: every camera and box against its image's size, read from the file's header (an image
+    whose header is not read here is checked when it is read). A split's image is the whole frame its cam_K
+    belongs to."""
     for key in keys:
         path = images[key].path
         try:  # a FIFO would block the open; unreadable files are named when the loop reads them
             size = image_size(path) if path.is_file() else None
         except OSError:
             size = None
-        for detection in by_image[key] if size is not None else ():
+        if size is None:
+            continue
+        where = f"scene {key[0]} image {key[1]} ({path.name})"
+        try:
+            camera_for_image(images[key].K, (size[1], size[0]))
+        except PopcodeError as error:
+            raise PopcodeError(f"{where}, its cam_K in scene_camera.json: {error}") from error
+        for detection in by_image[key]:
             try:
                 check_box(detection.box, (size[1], size[0]))
             except PopcodeError as error:
-                raise PopcodeError(f"scene {key[0]} image {key[1]} ({path.name}), the detection of "
-                                   f"object {detection.obj_id}: {error}") from error
+                raise PopcodeError(f"{where}, the detection of object {detection.obj_id}: {error}") from error
 
 
 def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
                  by_image: dict[ImageKey, list[Detection]], estimators: Sequence[PoseEstimator],
                  owner: Mapping[int, int], refine: bool) -> None:
-    """Before any work: every image has a depth image, every model the surface points of its detected objects, and
-    refinement its library."""
+    """Before any work: every image has a depth image and its depth_scale, every model the surface points of its
+    detected objects, and refinement its library.
+
+    A missing depth_scale is refused, not taken as 1: BOP's format gives it in scene_camera.json for every split
+    with depth, the datasets' units differ (0.1 mm for T-LESS, 1 mm for LM), and a wrong one would send every
+    instance back to the box's translation with a note that does not say why.
+    """
     lacking = [key for key in keys if images[key].depth_path is None]
     if lacking:
         scene_id, im_id = lacking[0]
         more = f" (and {len(lacking) - 1} more images)" if len(lacking) > 1 else ""
         raise PopcodeError(f"scene {scene_id} image {im_id} has no depth image in its depth/ folder{more}: --depth "
                            "reads each image's depth")
+    unscaled = [key for key in keys if images[key].depth_scale is None]
+    if unscaled:
+        scene_id, im_id = unscaled[0]
+        more = f" (and {len(unscaled) - 1} more images)" if len(unscaled) > 1 else ""
+        raise PopcodeError(f"scene {scene_id} image {im_id} has no 'depth_scale' in its scene_camera.json entry{more}: "
+                           "--depth needs the mm per depth unit there, as BOP's format gives it")
     for obj_id in sorted({d.obj_id for key in keys for d in by_image[key]}):
         estimators[owner[obj_id]].object_surface(obj_id)
     if refine:
@@ -182,7 +201,7 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
                            f"{', '.join(map(str, sorted(owner)))}): wrong models or wrong detections file?")
     _check_images(by_image, images)
     keys = sorted(by_image)[:max_images]
-    _check_boxes(keys, by_image, images)
+    _check_image_sizes(keys, by_image, images)
     if depth:
         _check_depth(keys, images, by_image, estimators, owner, refine)
     if draw_dir is not None:  # never an input nor this run's own files; a resumed run finds its earlier pictures

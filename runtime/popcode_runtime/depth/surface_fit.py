@@ -97,8 +97,9 @@ def object_surface(info: Mapping[str, Any]) -> ObjectSurface | None:
 
 
 def read_depth(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
-    """A depth image file as stored (e.g. 16-bit PNG); one channel, else an error naming the file."""
-    depth = read_image_file(path, max_pixels, "depth image")
+    """A depth image file as stored (e.g. 16-bit PNG); one channel, else an error naming the file and its channels
+    (read with alpha, which OpenCV's colour reading would drop)."""
+    depth = read_image_file(path, max_pixels, "depth image", as_stored=True)
     if depth.ndim != 2:
         raise PopcodeError(f"depth image {path} has {depth.shape[2]} channels; a depth image has one")
     return depth

@@ -13,6 +13,7 @@ half pixel; the crop uses the centre, which both readings share.
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -31,6 +32,8 @@ MAX_IMAGE_PIXELS = 1 << 30  # OpenCV's own default limit (CV_IO_MAX_IMAGE_PIXELS
 MAX_BOX_FACTOR = 4.0  # a box may be at most this many times the image's longer side (objects cut by the border)
 MIN_BOX_PX = 1.0  # a box's longer side [px]; smaller boxes hold no object to see
 MAX_SQUARE_PIXELS = 1 << 28  # the padded square before resizing: 1 GiB of float32
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_READ_BLOCK = 1 << 20  # bytes read at a time while checking a PNG's chunks
 
 _GREY_WEIGHTS_RGB = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -40,12 +43,17 @@ def read_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
     return to_grey(read_image_file(path, max_pixels))
 
 
-def read_image_file(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS, what: str = "image") -> np.ndarray:
+def read_image_file(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS, what: str = "image",
+                    as_stored: bool = False) -> np.ndarray:
     """An image file's pixels as stored (any bit depth; colour as RGB ``(H, W, 3)``): the one reader of images and
     depth images.
 
     Files of more than ``max_pixels`` pixels are refused from their header,
-    before OpenCV decodes (and allocates) them. ``what`` names the file in errors.
+    before OpenCV decodes (and allocates) them, and a PNG whose chunks are
+    torn or damaged before libpng prints its own complaint on stderr. ``what``
+    names the file in errors. ``as_stored`` keeps every channel (alpha too) in
+    OpenCV's order, untouched by colour handling: for depth images, whose
+    channel count is then told as it is.
     """
     path = checked_path(path, f"{what} path")
     max_pixels = integer(max_pixels, "max_pixels", 1)
@@ -58,16 +66,44 @@ def read_image_file(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS, what: 
     if size is not None and size[0] * size[1] > max_pixels:
         raise PopcodeError(f"{what} {path} is {size[0]}x{size[1]} = {size[0] * size[1]} pixels, more than the "
                            f"limit of {max_pixels}")
+    with library_step(f"read {what} {path}"):
+        _check_png_chunks(path, what)
     with library_step(f"decode {what} {path} with OpenCV"):
-        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if as_stored else cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if image is None:
         raise PopcodeError(f"cannot read {what} {path}: not an image format OpenCV can decode")
     if image.shape[0] * image.shape[1] > max_pixels:
         raise PopcodeError(f"{what} {path} has {image.shape[0] * image.shape[1]} pixels, more than the limit of "
                            f"{max_pixels}")
-    if image.ndim == 3:
+    if image.ndim == 3 and not as_stored:
         image = image[..., :3][..., ::-1]  # OpenCV reads BGR(A); popcode works in RGB
     return image
+
+
+def _check_png_chunks(path: Path, what: str) -> None:
+    """Refuse a PNG that ends before its ``IEND`` chunk or has a chunk failing its CRC; other formats pass.
+
+    libpng reports such a file on stderr itself (``libpng error: Read Error``), which no OpenCV log level
+    silences: checked here, the file is named in one line instead.
+    """
+    with open(path, "rb") as handle:
+        if handle.read(len(PNG_SIGNATURE)) != PNG_SIGNATURE:
+            return
+        while True:
+            head = handle.read(8)  # the chunk's length and kind, then its data and CRC
+            length, kind = (int.from_bytes(head[:4], "big"), head[4:]) if len(head) == 8 else (0, b"")
+            crc, done = zlib.crc32(kind), 0
+            while done < length and (block := handle.read(min(length - done, _READ_BLOCK))):
+                crc, done = zlib.crc32(block, crc), done + len(block)
+            stored = handle.read(4)
+            if len(head) < 8 or done < length or len(stored) < 4:
+                raise PopcodeError(f"cannot read {what} {path}: the PNG ends before its IEND chunk (a torn or "
+                                   "truncated file)")
+            if int.from_bytes(stored, "big") != crc:
+                raise PopcodeError(f"cannot read {what} {path}: its PNG chunk {kind.decode('latin-1')!r} fails its "
+                                   "CRC (a damaged file)")
+            if kind == b"IEND":
+                return
 
 
 def check_image(image: np.ndarray) -> np.ndarray:

@@ -7,13 +7,18 @@ The transformations map the model onto itself: ``x -> R x + t``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+import itertools
+import numbers
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from ..base.checks import shown
 from ..base.errors import PopcodeError
+from ..base.limits import MAX_CONTINUOUS_SYMMETRIES, MAX_DISCRETE_SYMMETRIES
 from ..base.text_enum import TextEnum
 from .rotations import axis_angle_to_matrix, geodesic_angle
 
@@ -37,43 +42,71 @@ class SymmetryTransforms:
         return len(self.R)
 
 
+def _declared(info: Mapping[str, Any], key: str, limit: int) -> Sequence[Any]:
+    """The list under ``key`` (absent or null: empty), its length checked before any entry is read."""
+    value = info.get(key)
+    if value is None:
+        return []
+    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, (Sequence, np.ndarray)):
+        raise PopcodeError(f"{key} must be a list, got {shown(value)} ({type(value).__name__})")
+    if len(value) > limit:
+        raise PopcodeError(f"{key} lists {len(value)} symmetries; at most {limit} are allowed (the part's group, "
+                           "each symmetry once)")
+    return value
+
+
+_JSON_NUMBERS = {int, float}  # exactly these types (a bool is an int subclass, not one of them)
+
+
+def _numbers(value: Any, name: str, count: int) -> np.ndarray:
+    """``count`` numbers as float64; text and true/false are refused, not coerced (``"1"`` and ``true`` are no 1)."""
+    items = np.asarray(value, dtype=object).ravel() if isinstance(value, (Sequence, np.ndarray)) else None
+    if items is None or isinstance(value, (str, bytes)) or not all(
+            isinstance(item, numbers.Real) and not isinstance(item, (bool, np.bool_)) for item in items):
+        raise PopcodeError(f"{name} is not a list of numbers: got {shown(value)}")
+    if items.size != count:
+        raise PopcodeError(f"{name} has {items.size} numbers; {count} are needed")
+    try:
+        array = items.astype(np.float64)
+    except OverflowError as error:  # an integer beyond a float's range
+        raise PopcodeError(f"{name} contains NaN or inf") from error
+    if not np.isfinite(array).all():
+        raise PopcodeError(f"{name} contains NaN or inf")
+    return array
+
+
 def _discrete(info: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    Rs, ts = [np.eye(3)], [np.zeros(3)]
-    for index, flat in enumerate(info.get("symmetries_discrete", []) or []):
-        try:
-            matrix = np.asarray(flat, dtype=np.float64)
-        except (TypeError, ValueError, OverflowError) as error:
-            raise PopcodeError(f"symmetries_discrete[{index}] is not a list of numbers") from error
-        if matrix.size != 16:
-            raise PopcodeError(
-                f"symmetries_discrete[{index}] has {matrix.size} numbers; a row-major 4x4 matrix has 16"
-            )
-        if not np.isfinite(matrix).all():
-            raise PopcodeError(f"symmetries_discrete[{index}] contains NaN or inf")
-        matrix = matrix.reshape(4, 4)
-        R = matrix[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-            raise PopcodeError(f"symmetries_discrete[{index}] is not a proper rotation")
-        Rs.append(R)
-        ts.append(matrix[:3, 3])
-    return np.stack(Rs), np.stack(ts)
+    """The declared rotations and translations, identity first; a model's list at the limit is read in a
+    millisecond or two, as every object is read several times when a model loads."""
+    declared = _declared(info, "symmetries_discrete", MAX_DISCRETE_SYMMETRIES)
+    flats = None
+    if all(type(flat) is list and len(flat) == 16 for flat in declared) and \
+            set(map(type, itertools.chain.from_iterable(declared))) <= _JSON_NUMBERS:
+        with contextlib.suppress(OverflowError):  # an integer beyond a float's range: named below
+            flats = np.array(declared, dtype=np.float64).reshape(-1, 16)  # as JSON gives them: read at once
+    if flats is None or not np.isfinite(flats).all():  # anything else one by one: the first that is not 16 numbers
+        flats = np.array([_numbers(flat, f"symmetries_discrete[{index}]", 16) for index, flat in enumerate(declared)]
+                         ).reshape(-1, 16)
+    matrices = np.concatenate([np.eye(4)[None], flats.reshape(-1, 4, 4)])
+    R = matrices[:, :3, :3]
+    proper = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2)) <= 1e-3
+    proper &= np.linalg.det(R) >= 0
+    if not proper.all():
+        raise PopcodeError(f"symmetries_discrete[{int(np.argmin(proper)) - 1}] is not a proper rotation")
+    return R.copy(), matrices[:, :3, 3].copy()
 
 
 def _continuous(info: Mapping[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
     result = []
-    for index, sym in enumerate(info.get("symmetries_continuous", []) or []):
-        try:
-            axis = np.asarray(sym["axis"], dtype=np.float64).reshape(3)
-            offset = np.asarray(sym.get("offset", [0, 0, 0]), dtype=np.float64).reshape(3)
-        except (AttributeError, KeyError, TypeError, ValueError) as error:
-            raise PopcodeError(
-                f"symmetries_continuous[{index}] needs 'axis' and 'offset' as 3 numbers each"
-            ) from error
+    for index, sym in enumerate(_declared(info, "symmetries_continuous", MAX_CONTINUOUS_SYMMETRIES)):
+        name = f"symmetries_continuous[{index}]"
+        if not isinstance(sym, Mapping) or "axis" not in sym:
+            raise PopcodeError(f"{name} needs 'axis' and 'offset' as 3 numbers each")
+        axis = _numbers(sym["axis"], f"{name} axis", 3)
+        offset = _numbers(sym.get("offset", [0, 0, 0]), f"{name} offset", 3)
         norm = np.linalg.norm(axis)
-        if not np.isfinite(offset).all():
-            raise PopcodeError(f"symmetries_continuous[{index}] has a NaN or inf offset")
         if not np.isfinite(norm) or norm < 1e-9:
-            raise PopcodeError(f"symmetries_continuous[{index}] has a zero or invalid axis")
+            raise PopcodeError(f"{name} has a zero or invalid axis")
         result.append((axis / norm, offset))
     return result
 

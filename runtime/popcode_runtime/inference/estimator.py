@@ -132,12 +132,16 @@ class PoseEstimator:
         depth: np.ndarray | None = None,
         depth_scale: float = 1.0,
         refine_depth: bool = False,
+        crop_origin: Sequence[float] | None = None,
     ) -> list[Prediction]:
         """Rotations of the objects in ``boxes`` (``(x, y, w, h)`` pixels) of ``image``.
 
         ``image`` is grey ``(H, W)`` or RGB ``(H, W, 3)``, uint8/uint16 or float
         in [0, 1]. ``K`` (``fx, fy, cx, cy`` or 3x3) is required for models that
-        predict allocentric rotations and for ``translation``. ``obj_ids`` names
+        predict allocentric rotations and for ``translation``; it is checked
+        against the image (principal point on it, a field of view a camera can
+        have). For an image cut from a larger frame, ``K`` is that frame's and
+        ``crop_origin`` ``(x, y)`` the image's top-left in it. ``obj_ids`` names
         the object in each box (needed for models of several objects when
         ``translation`` or ``top_k`` uses the object's extents or symmetries).
         ``top_k > 1`` lists every distinct pose of a population code. Up to
@@ -154,7 +158,8 @@ class PoseEstimator:
         """
         request = check_request(self.metadata, image, boxes, K=K, return_code=return_code, obj_ids=obj_ids,
                                 top_k=top_k, translation=translation, depth=depth, depth_scale=depth_scale,
-                                refine_depth=refine_depth, object_surface=self.object_surface)
+                                refine_depth=refine_depth, object_surface=self.object_surface,
+                                crop_origin=crop_origin)
         timings, predictions = Timings(), []
         for start in range(0, len(boxes), self.chunk_size):
             chunk = range(start, min(start + self.chunk_size, len(boxes)))

@@ -38,7 +38,7 @@ class ImageBoxes(Generic[Key]):
     boxes: Sequence[tuple[float, float, float, float]]  # x, y, w, h px
     obj_ids: Sequence[int]  # the object in each box
     depth_path: Path | None = None  # the image's depth image, read and given to the models when set
-    depth_scale: float = 1.0  # mm per depth unit
+    depth_scale: float | None = 1.0  # mm per depth unit; None (its split lacks one) only without depth_path
 
     def __post_init__(self) -> None:
         if len(self.obj_ids) != len(self.boxes):

@@ -16,7 +16,7 @@ from ..base.checks import flag, integer
 from ..base.errors import PopcodeError
 from ..depth.icp import require_small_gicp
 from ..depth.surface_fit import ObjectSurface, check_depth
-from ..geometry.camera import parse_camera_matrix
+from ..geometry.camera import camera_for_image, parse_camera_matrix
 from ..geometry.crop import check_image
 from ..model.metadata import ModelMetadata, Representation, RotationFrame
 
@@ -31,7 +31,7 @@ class PredictRequest:
 
     image: np.ndarray  # grey or RGB, as :func:`check_image` passes it
     ids: list[int | None]  # the object of each box; None for a model of several objects not told which
-    camera: np.ndarray | None  # K, 3x3
+    camera: np.ndarray | None  # K, 3x3, in the image's pixels
     return_code: bool
     top_k: int
     translation: bool
@@ -42,9 +42,12 @@ class PredictRequest:
 def check_request(meta: ModelMetadata, image: np.ndarray, boxes: Sequence[Sequence[float]], *,
                   K: Sequence[float] | np.ndarray | None, return_code: bool, obj_ids: Sequence[int] | None,
                   top_k: int, translation: bool, depth: np.ndarray | None, depth_scale: float, refine_depth: bool,
-                  object_surface: Callable[[int | None], ObjectSurface]) -> PredictRequest:
+                  object_surface: Callable[[int | None], ObjectSurface],
+                  crop_origin: Sequence[float] | np.ndarray | None) -> PredictRequest:
     """The arguments of :meth:`PoseEstimator.predict` checked for the model ``meta`` (see its docstring);
-    ``object_surface`` refuses an object whose surface points depth would need and the model lacks."""
+    ``object_surface`` refuses an object whose surface points depth would need and the model lacks. ``K`` is
+    checked against the image (and moved into a crop's pixels by ``crop_origin``): another image's camera would
+    silently turn an allocentric model's rotations and misplace every translation."""
     return_code, translation = flag(return_code, "return_code"), flag(translation, "translation")
     refine_depth = flag(refine_depth, "refine_depth")
     top_k = integer(top_k, "top_k", 1, MAX_TOP_K)
@@ -52,6 +55,8 @@ def check_request(meta: ModelMetadata, image: np.ndarray, boxes: Sequence[Sequen
         raise PopcodeError("refine_depth refines the pose against a depth image: pass depth")
     translation = translation or depth is not None
     camera = _camera(meta, K, translation, depth is not None)
+    if crop_origin is not None and camera is None:
+        raise PopcodeError("crop_origin moves K's principal point into the crop: pass the camera matrix K")
     if top_k > 1 and meta.representation != Representation.POPULATION_CODE:
         raise PopcodeError(f"hypotheses (top_k > 1) need a population-code model, this one is {meta.representation}")
     if obj_ids is None and len(meta.objects) > 1 and (translation or top_k > 1):
@@ -62,6 +67,8 @@ def check_request(meta: ModelMetadata, image: np.ndarray, boxes: Sequence[Sequen
                            f"{MEMORY_BUDGET_BYTES >> 20} MiB; ask for fewer boxes at a time")
     ids = object_ids(meta, len(boxes), obj_ids)
     image = check_image(image)
+    if camera is not None:
+        camera = camera_for_image(camera, image.shape, crop_origin)
     depth_mm = None
     if depth is not None:
         depth_mm = check_depth(depth, image.shape, depth_scale)

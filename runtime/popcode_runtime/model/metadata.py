@@ -16,12 +16,13 @@ from typing import Any
 from ..base.checks import integer, mapping, number
 from ..base.errors import PopcodeError
 from ..base.files import name_id, parse_json
+from ..base.limits import MAX_HULL_POINTS, MAX_METADATA_CHARS, MAX_OBJECTS
 from ..base.text_enum import TextEnum
 from ..coding.confidence import Calibrator
 from ..coding.population_code import CodeLayout
 from ..depth.surface_fit import object_surface
 from ..geometry.crop import CROP_PADDING, CROP_SIZE, MAX_CROP_PADDING, MIN_CROP_PADDING
-from ..geometry.symmetries import SymmetryClass, symmetry_class, symmetry_transforms
+from ..geometry.symmetries import SymmetryClass, continuous_symmetries, discrete_transforms, symmetry_class
 from ..geometry.translation import object_points_mm
 
 FORMAT_VERSION = 1
@@ -29,8 +30,6 @@ INPUT_NAME = "image"
 OUTPUT_NAME = "code"
 MIN_INPUT_SIZE, MAX_INPUT_SIZE = 8, 1024  # crop side [px]; a batch of crops is N x size^2 floats
 MAX_HYPOTHESES = 1024
-MAX_OBJECTS = 10000
-MAX_DISCRETE_SYMMETRIES = 1000
 
 
 class Representation(TextEnum):
@@ -96,7 +95,7 @@ class ModelMetadata:
         if len(self.objects) > MAX_OBJECTS:
             raise PopcodeError(f"metadata lists {len(self.objects)} objects, more than the limit of {MAX_OBJECTS}")
         for obj_id, info in self.objects.items():
-            _check_object(obj_id, info)
+            check_object_info(obj_id, info)
         classes = {symmetry_class(info) for info in self.objects.values()}
         continuous = SymmetryClass.CONTINUOUS in classes
         if continuous and len(classes) > 1:
@@ -154,6 +153,10 @@ class ModelMetadata:
         """
         if "popcode.format_version" not in props:
             raise PopcodeError("not a popcode model: its metadata has no 'popcode.format_version'")
+        chars = sum(len(value) for value in props.values())
+        if chars > MAX_METADATA_CHARS:
+            raise PopcodeError(f"the model's metadata holds {chars:,} characters, more than the limit of "
+                               f"{MAX_METADATA_CHARS:,}: export fewer objects per model")
 
         def load(key: str, default: Any = None) -> Any:
             if key not in props:
@@ -195,8 +198,12 @@ def _calibrator(value: Any) -> Calibrator | None:
     return None if value is None else Calibrator.from_dict(value)
 
 
-def _check_object(obj_id: Any, info: Any) -> None:
-    """An object's entry must be a BOP ``models_info`` mapping with sound numbers; the error names the object."""
+def check_object_info(obj_id: Any, info: Any) -> None:
+    """An object's entry must be a BOP ``models_info`` mapping with sound numbers; the error names the object.
+
+    The trainer checks a models folder's entries with this too. Symmetries are read, never expanded: their
+    count is checked before any matrix is read (:mod:`popcode_runtime.geometry.symmetries`).
+    """
     integer(obj_id, "object id", 0)
     info = mapping(info, f"object {obj_id}")
     try:
@@ -206,13 +213,12 @@ def _check_object(obj_id: Any, info: Any) -> None:
         for key in ("min_x", "min_y", "min_z"):
             if key in info:
                 number(info[key], key)
-        discrete = info.get("symmetries_discrete") or []
-        if not isinstance(discrete, list) or len(discrete) > MAX_DISCRETE_SYMMETRIES:
-            raise PopcodeError(f"symmetries_discrete must be a list of at most {MAX_DISCRETE_SYMMETRIES} matrices")
-        if not isinstance(info.get("symmetries_continuous") or [], list):
-            raise PopcodeError("symmetries_continuous must be a list")
-        symmetry_transforms(info)
+        discrete_transforms(info)
+        continuous_symmetries(info)
         if "hull_points_mm" in info:  # checked now, not at the first call that asks for a translation
+            if isinstance(info["hull_points_mm"], list) and len(info["hull_points_mm"]) > MAX_HULL_POINTS:
+                raise PopcodeError(f"hull_points_mm lists {len(info['hull_points_mm'])} points; at most "
+                                   f"{MAX_HULL_POINTS} are allowed (every box fit projects them all)")
             object_points_mm(info)
         object_surface(info)  # likewise the surface points that depth needs, where the model has them
     except PopcodeError as error:

@@ -9,10 +9,12 @@ from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
 
+from ..data.render import MAX_RENDERED_IMAGES
 from ..demo.parts import BUILTIN
 from ..demo.report import REPORT_FILE
 from ..demo.run import describe_parts, prepare_parts, run_demo
 from ..demo.sizes import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
+from ..train.config import MAX_EPOCHS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,7 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "together; a user's parts that need different codes apart), export ONNX (float and int8), "
                     "evaluate both with the BOP metrics through the runtime, time the runtime, and write "
                     f"{REPORT_FILE} with tables and figures. A models folder is checked before anything is "
-                    "rendered. Rerun with the same --out to resume an interrupted demo.")
+                    "rendered. Rerun with the same --out to resume an interrupted demo; a second demo on the same "
+                    "--out is refused while the first runs.")
     parser.add_argument("--objects", default=BUILTIN, metavar="MODELS",
                         help="'builtin' (default: the six built-in parts) or a BOP models folder with "
                              "models_info.json and obj_XXXXXX.ply meshes in millimetres")
@@ -47,9 +50,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     demo = {**DEMO_SIZES, **HIDDEN_SIZES}[args.size]
     size, minutes = demo.pipeline, demo.minutes
-    for option, value in (("--epochs", args.epochs), ("--images", args.images), ("--minutes", args.minutes)):
+    for option, value, most in (("--epochs", args.epochs, MAX_EPOCHS), ("--images", args.images, MAX_RENDERED_IMAGES),
+                                ("--minutes", args.minutes, math.inf)):
         if value is not None and not (value >= 1 and math.isfinite(value)):
             raise PopcodeError(f"{option} must be at least 1 and finite, got {value}")
+        if value is not None and value > most:
+            raise PopcodeError(f"{option} must be at most {most:,}, got {value:,}")
     if args.epochs is not None and args.minutes is not None:
         raise PopcodeError("--epochs and --minutes both set the training budget; give one")
     if args.check:

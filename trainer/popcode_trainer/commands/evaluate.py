@@ -7,7 +7,15 @@ import os
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.base.files import MAX_NAME_BYTES, OVERWRITE_HELP, check_output_file, refuse_inputs, require_folder
+from popcode_runtime.base.files import (
+    MAX_NAME_BYTES,
+    OVERWRITE_HELP,
+    check_output_file,
+    check_writable_file,
+    refuse_inputs,
+    require_folder,
+)
+from popcode_runtime.base.output_lock import folder_lock
 from popcode_runtime.bop.split import BOP19_MIN_VISIB_FRACT
 from popcode_runtime.inference.request import MAX_TOP_K
 from popcode_runtime.model.decoding import DECODERS
@@ -21,6 +29,8 @@ from ..eval.pipeline.models import ARGMAX, methods_from_paths
 from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.report import report_files, write_report
 from ..eval.reporting.sections import report_markdown
+
+EVALUATE_LOCK = "evaluate.lock"  # held in --out while an evaluation writes its report there
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -114,23 +124,27 @@ def run(args: argparse.Namespace) -> int:
         elif len(name.encode()) > MAX_NAME_BYTES:
             raise PopcodeError(f"--out: the file name {name[:40]}... is {len(name.encode())} bytes; at most "
                                f"{MAX_NAME_BYTES}: give the method a shorter --name")
-    split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
-    if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
-        split = with_detector_boxes(split, noise, args.box_noise_seed)
-    results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation,
-                              top_k=args.top_k, depth=args.depth, refine=args.refine)
-    written = write_report(results, args.out, bop19_csv=args.bop19_csv)
+    with folder_lock(args.out, EVALUATE_LOCK, f"another popcode-train evaluate is writing {args.out} (it holds "
+                                              f"{EVALUATE_LOCK}); wait for it to end, or give another --out"):
+        split = read_eval_split(args.splits, args.models_dir, args.obj_ids, args.max_instances, args.min_visib_fract)
+        if noise is not None:  # once, before any method: every method and the translation fit crop the same boxes
+            split = with_detector_boxes(split, noise, args.box_noise_seed)
+        results = evaluate_models(methods, split, vsd=args.vsd, obj_ids=args.obj_ids, translation=args.translation,
+                                  top_k=args.top_k, depth=args.depth, refine=args.refine)
+        written = write_report(results, args.out, bop19_csv=args.bop19_csv)
     print(report_markdown(results))
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
 
 
 def _check_out_folder(out: Path) -> None:
-    """``--out`` is a folder, or can be made one: nothing but folders on the way (checked before any work)."""
+    """``--out`` is a writable folder, or can be made one: nothing but folders on the way, the first it makes in
+    a writable one (checked before any work)."""
     if os.path.lexists(out) and not out.is_dir():
         raise PopcodeError(f"--out {out} is not a folder (a file, link or FIFO); give a folder for the report")
-    ancestor = out.parent
-    while not os.path.lexists(ancestor) and ancestor != ancestor.parent:  # a dangling link stops the walk
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise PopcodeError(f"--out {out}: {ancestor} is not a folder, so the report's folder cannot be made")
+    made = out  # the first folder on the way that does not exist yet, or --out itself
+    while not os.path.lexists(made.parent) and made.parent != made.parent.parent:  # a dangling link stops the walk
+        made = made.parent
+    if not made.parent.is_dir():
+        raise PopcodeError(f"--out {out}: {made.parent} is not a folder, so the report's folder cannot be made")
+    check_writable_file(out / EVALUATE_LOCK if out.is_dir() else made, "--out")

@@ -10,6 +10,7 @@ import numpy as np
 
 from popcode_runtime.base.errors import PopcodeError, first_line
 from popcode_runtime.base.files import OVERWRITE_HELP, check_output_file
+from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.coding.confidence import DEFAULT_THRESHOLD_DEG
 
 from ..export.confidence_fit import calibrate_checkpoint
@@ -100,13 +101,16 @@ def run(args: argparse.Namespace) -> int:
     inputs = [args.checkpoint, *filter(None, [args.crops, args.crop_obj_ids])]
     for path in [args.out, *(quantised_path(args.out, kind) for kind in args.quantize)]:
         check_output_file(path, "--out", inputs, args.overwrite)
-    state = checkpoint.load_trained(args.checkpoint)  # read once, and refused here before any crop is read
-    crops, obj_ids, split = _crops(args, state)
-    trained = trained_model(state, args.checkpoint)
-    calibrator, note = (None, "not asked for (--no-confidence)") if args.no_confidence else \
-        calibrate_checkpoint(trained, args.confidence_threshold, split=split)
-    results = export_trained(trained, args.out, crops, tuple(args.quantize), args.split_output,
-                             obj_ids=obj_ids, calibrator=calibrator)
+    lock = args.out.with_name(f"{args.out.name}.lock")  # beside the float model: one for it and its quantised copies
+    with OutputLock(lock, f"another popcode-train export is writing {args.out} (it holds {lock.name}); wait for it "
+                          "to end, or give another --out"):
+        state = checkpoint.load_trained(args.checkpoint)  # read once, and refused here before any crop is read
+        crops, obj_ids, split = _crops(args, state)
+        trained = trained_model(state, args.checkpoint)
+        calibrator, note = (None, "not asked for (--no-confidence)") if args.no_confidence else \
+            calibrate_checkpoint(trained, args.confidence_threshold, split=split)
+        results = export_trained(trained, args.out, crops, tuple(args.quantize), args.split_output,
+                                 obj_ids=obj_ids, calibrator=calibrator)
     print(f"{'model':<50} {'max abs diff':>14} {'argmax agreement':>17} {'pose agreement':>15}")
     for result in results:
         print(f"{str(result.path):<50} {result.max_abs_diff:>14.3g} {_percent(result.argmax_agreement):>17} "

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import re
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.output_lock import folder_lock
 
 from ..data.bop import RENDER_MARKER
 from ..data.objects import BUILTIN_PARTS, write_builtin_models
@@ -17,6 +20,8 @@ from ..data.sensor import SENSOR_PRESETS
 SINGLE_OBJECT_SIZE = (128, 128)
 SCENE_SIZE = (720, 540)
 SCENE_OPTIONS = ("parts", "distractors", "bin", "bin_size_mm", "sensor")  # SceneSettings fields; None: its default
+SHARD_LOCK = ".render-{index}-of-{count}.lock"  # held in the split folder while a render writes that shard
+SHARD_LOCK_NAME = re.compile(r"\.render-\d+-of-\d+\.lock")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "split (--images: one object per image), or cluttered scenes of several parts and distractors "
                     "dropped into a bin and seen from above (--scenes), with masks, visibility and depth as the "
                     "BOP toolkit writes them. Rerun the same command to complete an interrupted render; shards "
-                    "(--shard i/n) rendered into one folder, or copied together and rerun, form one split.")
+                    "(--shard i/n) rendered into one folder, or copied together and rerun, form one split. A second "
+                    "render of the same shard into one folder is refused while the first runs.")
     parser.add_argument("--objects", required=True,
                         help="'builtin' (written to OUT/models) or a BOP models folder with models_info.json")
     parser.add_argument("--out", required=True, type=Path, help="split folder to write")
@@ -77,8 +83,9 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
     shard = parse_shard(args.shard)  # every option checked before anything is written
     settings = _scene_settings(args) if args.scenes is not None else _image_settings(args)
-    if args.out.is_dir() and not (args.out / RENDER_MARKER).is_file() \
-            and any(entry.name != BUILTIN_MODELS_FOLDER for entry in args.out.iterdir()):
+    if args.out.is_dir() and not (args.out / RENDER_MARKER).is_file() and any(
+            entry.name != BUILTIN_MODELS_FOLDER and not SHARD_LOCK_NAME.fullmatch(entry.name)
+            for entry in args.out.iterdir()):
         raise PopcodeError(f"--out {args.out} holds files but no {RENDER_MARKER}: not a split this command made "
                            "(or one whose settings are lost); render into an empty or new folder")
     if args.objects == "builtin":
@@ -89,16 +96,26 @@ def run(args: argparse.Namespace) -> int:
         if (args.out / RENDER_MARKER).is_file() and not (args.out / BUILTIN_MODELS_FOLDER).is_dir():
             raise PopcodeError(f"--out {args.out} was rendered from other models (it has no "
                                f"{BUILTIN_MODELS_FOLDER}/ folder); render the built-in parts into another folder")
-        models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
-    else:
-        models_dir = Path(args.objects)
-        if not models_dir.is_dir():
-            raise PopcodeError(f"--objects: no such models folder {models_dir} (or use 'builtin')")
-    if isinstance(settings, SceneSettings):
-        return _run_scenes(args, models_dir, settings, shard)
-    render_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=shard, progress=not args.quiet)
+    elif not Path(args.objects).is_dir():
+        raise PopcodeError(f"--objects: no such models folder {args.objects} (or use 'builtin')")
+    with _shard_lock(args.out, shard):
+        if args.objects == "builtin":
+            models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)
+        else:
+            models_dir = Path(args.objects)
+        if isinstance(settings, SceneSettings):
+            return _run_scenes(args, models_dir, settings, shard)
+        render_split(models_dir, args.out, settings, obj_ids=args.obj_ids, shard=shard, progress=not args.quiet)
     print(f"split written to {args.out} (models: {models_dir})")
     return 0
+
+
+def _shard_lock(out: Path, shard: tuple[int, int]) -> AbstractContextManager[None]:
+    """One writer per shard, not per folder: the shards of a split render side by side into one folder."""
+    name = SHARD_LOCK.format(index=shard[0], count=shard[1])
+    return folder_lock(out, name, f"another popcode-train render is writing shard {shard[0]}/{shard[1]} of {out} "
+                                  f"(it holds {name}); wait for it to end, or render another --shard or into "
+                                  "another --out")
 
 
 def _image_settings(args: argparse.Namespace) -> RenderSettings:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..train.config import load_config
-from ..train.loop import train
+from ..train.loop import run_lock, train
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,9 +24,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides)
-    from ..train.training_data import build_training_data  # the data side, imported once the config is valid
+    from ..train.training_data import build_training_data, read_training_split  # once the config is valid
 
-    data = build_training_data(config)
-    train(config, data.representation, data.train_set, data.val_set, resume=args.resume,
-          val_instances=data.val_instances)
+    split = read_training_split(config)  # the data checked before the run folder is made
+    with run_lock(config.train.out_dir):  # before the crop cache, which lies in the run folder by default
+        data = build_training_data(config, split=split)
+        train(config, data.representation, data.train_set, data.val_set, resume=args.resume,
+              val_instances=data.val_instances, locked=True)
     return 0

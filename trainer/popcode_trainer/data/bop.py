@@ -7,6 +7,7 @@ Only the JSON files are read when a split is indexed; images are opened by whoev
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,8 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.base.checks import shown
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import read_json, require_folder
+from popcode_runtime.base.limits import MAX_OBJECTS
 from popcode_runtime.bop.split import (
     BOX_KINDS,
     GroundTruth,
@@ -29,7 +32,10 @@ from popcode_runtime.bop.split import (
     scene_ground_truth,
 )
 from popcode_runtime.geometry.crop import check_box
-from popcode_runtime.geometry.symmetries import symmetry_transforms
+from popcode_runtime.model.metadata import check_object_info
+
+from .meshes import load_mesh
+from .objects import mesh_diameter_mm
 
 RENDER_MARKER = "popcode_render.json"  # written by the renderer into a split it made
 
@@ -114,19 +120,36 @@ def check_image_matches(instance: Instance, width: int, height: int) -> None:
 
 
 def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
-    """``models_info.json`` keyed by object id, each entry checked (diameter, extents, symmetries)."""
+    """``models_info.json`` keyed by object id, each entry checked as the runtime checks a model's objects (numbers
+    that are numbers, symmetries counted before they are read) and with a positive diameter.
+
+    The object count is checked before any entry, against the runtime's limit: what trains here must load there.
+    """
     path = Path(models_dir) / "models_info.json"
     models_info = int_keys(read_json(path), path)
+    if len(models_info) > MAX_OBJECTS:
+        raise PopcodeError(f"{path} lists {len(models_info)} objects; at most {MAX_OBJECTS} are allowed (the "
+                           "runtime's limit per model): split them into several models folders")
     for obj_id, info in models_info.items():
-        where = f"object {obj_id}"
-        diameter = float(json_field(info, "diameter", path, where, size=1)[0])
-        if diameter <= 0:
-            raise PopcodeError(f"{path}: key 'diameter' of {where} must be positive, got {diameter}")
+        diameter = json_field(info, "diameter", path, f"object {obj_id}")
+        if isinstance(diameter, bool) or not isinstance(diameter, numbers.Real) or not diameter > 0:
+            raise PopcodeError(f"{path}: key 'diameter' of object {obj_id} must be a positive number, got "
+                               f"{shown(diameter)} ({type(diameter).__name__}){_measured(models_dir, obj_id)}")
         try:
-            symmetry_transforms(info)
+            check_object_info(obj_id, info)
         except PopcodeError as error:
-            raise PopcodeError(f"{path}: {where}: {error}") from error
+            raise PopcodeError(f"{path}: {error}") from error
     return models_info
+
+
+def _measured(models_dir: str | Path, obj_id: int) -> str:
+    """What a refused diameter should be: the mesh's, where it has one that loads (an error message's tail)."""
+    try:
+        mesh = load_mesh(model_path(models_dir, obj_id))
+    except PopcodeError:
+        return ""
+    return (f"; its mesh's diameter is {mesh_diameter_mm(mesh):.6g} mm (the largest distance between two of its "
+            "vertices: popcode_trainer.data.objects.model_info writes it)")
 
 
 def _scene_instances(scene_dir: Path, obj_ids: set[int], min_visib_fract: float, box: str,

@@ -19,46 +19,34 @@ import hashlib
 import json
 import warnings
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.limits import MAX_DISCRETE_SYMMETRIES
 from popcode_runtime.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from popcode_runtime.geometry.symmetries import continuous_symmetries, discrete_transforms
 
 from .bop import model_path
-from .closure import closure
 from .meshes import load_mesh
 from .near_symmetry import LookAlike, look_alike_symmetries
 from .surface_sample import PERCENTILE, SurfaceSample, diameter_mm, surface_distance, surface_sample
 
 TOLERANCE = 0.02  # of the diameter: the percentile distance a true symmetry stays under
 GROUP_TOLERANCE = 0.01  # of the diameter: two transforms that move no anchor further are the same
+REPEAT_TOLERANCE = 1e-6  # of the diameter: a declared transform this close to an earlier one is listed twice
 CONTINUOUS_ANGLES_DEG = (37.0, 90.0, 180.0, 251.0)  # incommensurate with small n-folds
-MAX_GROUP = 1000  # elements; a declared set whose closure grows past this is no finite group
+MAX_GROUP = MAX_DISCRETE_SYMMETRIES + 1  # elements, the identity too: a larger closure cannot be declared
+_PRODUCT_BLOCK = 1 << 16  # compositions composed and looked up at once (about 20 MB)
 
 _checked: dict[tuple[Any, ...], tuple[LookAlike, ...]] = {}  # (mesh file, its size and mtime, declaration) passed
 # (digest of the mesh file's bytes, its models_info entry) that passed -> the look-alikes found: the same part copied
 # into another folder (each split holds its models) is not sampled again, and warns as a new file does.
 _passed: dict[tuple[str, str], tuple[LookAlike, ...]] = {}
-
-
-@dataclass(frozen=True)
-class Transform:
-    """``x -> R x + t_mm`` with the name it was declared under."""
-
-    R: np.ndarray  # (3, 3)
-    t_mm: np.ndarray  # (3,)
-    name: str
-
-    def then(self, other: Transform) -> Transform:
-        """``other`` applied after ``self``."""
-        return Transform(other.R @ self.R, other.R @ self.t_mm + other.t_mm,
-                         f"{other.name} after {self.name}")
 
 
 def describe(R: np.ndarray, t_mm: np.ndarray) -> str:
@@ -92,33 +80,100 @@ def _anchors_mm(info: Mapping[str, Any], diameter_mm: float) -> np.ndarray:
     return np.vstack([np.zeros(3), 0.5 * diameter_mm * np.eye(3)])
 
 
-def _same(a: Transform, b: Transform, anchors_mm: np.ndarray, tolerance_mm: float) -> bool:
-    moved_a = anchors_mm @ a.R.T + a.t_mm
-    moved_b = anchors_mm @ b.R.T + b.t_mm
-    return float(np.abs(moved_a - moved_b).max()) <= tolerance_mm
+def _images(R: np.ndarray, t_mm: np.ndarray, anchors_mm: np.ndarray) -> np.ndarray:
+    """Where transforms ``(K, 3, 3)``, ``(K, 3)`` move the anchors, one row ``(K, 3 A)`` per transform: two rows
+    within the group tolerance (largest coordinate difference) are the same transform."""
+    return (np.einsum("kij,aj->kai", R, anchors_mm) + t_mm[:, None]).reshape(len(R), anchors_mm.size)
+
+
+def _distinct(images: np.ndarray, tolerance_mm: float, budget: int) -> list[int]:
+    """Indices of the rows that differ from every earlier kept row, in order; stops once more than ``budget`` are
+    kept. Rows in one cell of a ``tolerance_mm`` grid (repeats) are looked at once, so a million repeats cost one
+    sort, not a million comparisons."""
+    _, first = np.unique(np.floor(images / tolerance_mm), axis=0, return_index=True)
+    kept: list[int] = []
+    for index in np.sort(first):
+        if not kept or np.abs(images[kept] - images[index]).max(axis=1).min() > tolerance_mm:
+            kept.append(int(index))
+            if len(kept) > budget:
+                break
+    return kept
+
+
+def _closure(R: np.ndarray, t_mm: np.ndarray, anchors_mm: np.ndarray, tolerance_mm: float
+             ) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int]]:
+    """The transforms that ``(R, t_mm)`` (the identity and the declared ones) generate, breadth first: each new
+    element composed with every declared one, a product kept unless it is an element already. Returns the
+    elements (declared first, then in the order found), whether they closed within :data:`MAX_GROUP`, and the
+    indices ``(a, b)`` of the first product found (declared ``b`` after declared ``a``; ``(0, 0)`` if none).
+
+    Vectorised: products are composed in blocks and looked up in a k-d tree of the elements, so a declared list at
+    the limit costs seconds, not the hours of comparing a million products one by one."""
+    group_R, group_t, group_images = [R], [t_mm], [_images(R, t_mm, anchors_mm)]
+    frontier_R, frontier_t, first = R, t_mm, None
+    bound = np.nextafter(tolerance_mm, np.inf)  # the tree finds neighbours strictly nearer than its bound
+    rows = max(1, _PRODUCT_BLOCK // len(R))
+    while len(frontier_R):
+        tree = cKDTree(np.concatenate(group_images))
+        room = MAX_GROUP - sum(len(elements) for elements in group_R)
+        new_R, new_t, new_images = R[:0], t_mm[:0], group_images[0][:0]  # this round's elements, each once
+        for start in range(0, len(frontier_R), rows):
+            a_R, a_t = frontier_R[start:start + rows], frontier_t[start:start + rows]
+            product_R = np.einsum("bij,fjk->fbik", R, a_R).reshape(-1, 3, 3)  # declared b after element a
+            product_t = (np.einsum("bij,fj->fbi", R, a_t) + t_mm).reshape(-1, 3)
+            images = _images(product_R, product_t, anchors_mm)
+            unknown = np.flatnonzero(np.isinf(tree.query(images, p=np.inf, distance_upper_bound=bound)[0]))
+            if first is None and len(unknown):  # the first round's frontier is the declared list itself
+                first = divmod(start * len(R) + int(unknown[0]), len(R))
+            new_R, new_t = np.concatenate([new_R, product_R[unknown]]), np.concatenate([new_t, product_t[unknown]])
+            new_images = np.concatenate([new_images, images[unknown]])
+            kept = _distinct(new_images, tolerance_mm, room)  # the round's earlier elements stay first
+            new_R, new_t, new_images = new_R[kept], new_t[kept], new_images[kept]
+            if len(kept) > room:
+                return np.concatenate([*group_R, new_R]), np.concatenate([*group_t, new_t]), False, first or (0, 0)
+        group_R.append(new_R)
+        group_t.append(new_t)
+        group_images.append(new_images)
+        frontier_R, frontier_t = new_R, new_t
+    return np.concatenate(group_R), np.concatenate(group_t), True, first or (0, 0)
 
 
 def check_closed(info: Mapping[str, Any], name: str, diameter_mm: float) -> None:
-    """Refuse a declared discrete set that, with the identity, is not closed under composition.
+    """Refuse a declared discrete set that repeats a transform or, with the identity, is not closed under
+    composition.
 
-    Composition is compared up to the continuous symmetry when there is one;
-    the message lists what the closure adds, which the user must declare.
+    Closure is judged up to the continuous symmetry when there is one; the message names the first composition
+    the group lacks and how many it lacks in all, which the user must declare.
     """
-    transforms = discrete_transforms(info)
-    declared = [Transform(R, t, "identity" if k == 0 else f"symmetries_discrete[{k - 1}]")
-                for k, (R, t) in enumerate(zip(transforms.R, transforms.t_mm, strict=True))]
+    transforms = discrete_transforms(info)  # at most MAX_DISCRETE_SYMMETRIES: counted before any is read
+    R, t = transforms.R, transforms.t_mm
     anchors, tolerance = _anchors_mm(info, diameter_mm), GROUP_TOLERANCE * diameter_mm
-    group, missing, closed = closure(declared, declared, Transform.then,
-                                     lambda t, group: any(_same(t, g, anchors, tolerance) for g in group), MAX_GROUP)
+    # a repeat is the same transform twice, told apart on points that span space: two flips that differ by a turn
+    # about a continuous axis are one pose up to that symmetry, yet both may be listed (BOP's models do)
+    images = _images(R, t, _anchors_mm({}, diameter_mm))
+    distinct = _distinct(images, REPEAT_TOLERANCE * diameter_mm, len(R))
+    if len(distinct) < len(R):
+        repeat = next(k for k, kept in enumerate([*distinct, len(R)]) if k != kept)
+        earlier = int(np.abs(images[:repeat] - images[repeat]).max(axis=1).argmin())
+        raise PopcodeError(f"{name}: {_name(repeat)} ({describe(R[repeat], t[repeat])}) repeats {_name(earlier)}; "
+                           "list each symmetry once, and not the identity")
+    group_R, group_t, closed, (a, b) = _closure(R, t, anchors, tolerance)
     if not closed:
-        raise PopcodeError(f"{name}: the declared discrete symmetries generate more than "
-                           f"{MAX_GROUP} transforms; they are not the symmetries of a rigid part")
+        raise PopcodeError(f"{name}: the declared discrete symmetries generate more than {MAX_DISCRETE_SYMMETRIES} "
+                           "transforms besides the identity, more than models_info.json may list; they are not the "
+                           "symmetries of a rigid part")
+    missing = len(group_R) - len(R)
     if missing:
-        first = missing[0]
         raise PopcodeError(
-            f"{name}: the declared discrete symmetries are not closed under composition: {first.name} "
-            f"({describe(first.R, first.t_mm)}) is not declared, and the group lacks {len(missing)} in all; "
-            f"declare all {len(group) - 1} non-identity symmetries in symmetries_discrete, not only a generator")
+            f"{name}: the declared discrete symmetries are not closed under composition: {_name(b)} after "
+            f"{_name(a)} ({describe(group_R[len(R)], group_t[len(R)])}) is not declared, and the group lacks "
+            f"{missing} in all; declare all {len(group_R) - 1} non-identity symmetries in symmetries_discrete, "
+            "not only a generator")
+
+
+def _name(index: int) -> str:
+    """A transform by its place in the identity-first list."""
+    return "the identity" if index == 0 else f"symmetries_discrete[{index - 1}]"
 
 
 def check_symmetries(mesh: trimesh.Trimesh, info: Mapping[str, Any], name: str,
@@ -128,6 +183,7 @@ def check_symmetries(mesh: trimesh.Trimesh, info: Mapping[str, Any], name: str,
     if len(transforms) == 1 and not continuous:
         return
     diameter = diameter_mm(mesh, info)
+    check_closed(info, name, diameter)  # first: it costs no surface query per declared transform
     sample = sample or surface_sample(mesh, diameter, name)
     for k in range(1, len(transforms)):
         R, t = transforms.R[k], transforms.t_mm[k]
@@ -139,7 +195,6 @@ def check_symmetries(mesh: trimesh.Trimesh, info: Mapping[str, Any], name: str,
         worst = int(np.argmax(shares))
         _refuse(name, f"symmetries_continuous[{k}] (axis ({_numbers(axis)}) through ({_numbers(offset)}) mm, "
                       f"turned {CONTINUOUS_ANGLES_DEG[worst]:g} deg)", shares[worst])
-    check_closed(info, name, diameter)
 
 
 def _declaration(info: Mapping[str, Any]) -> str:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.depth.icp import INSTALL_HINT, require_small_gicp
 from popcode_runtime.inference.benchmark import benchmark_estimator
 from popcode_runtime.inference.estimator import PoseEstimator
@@ -52,6 +53,7 @@ LATENCY_BATCHES = (1, 8)
 CLUTTERED_METHODS = (POPCODE, BASELINE)  # scored on the cluttered split too, side by side with the clean one
 CLUTTERED_TOP_K = 3  # the population code's best of its top-k hypotheses in clutter
 DETECTOR_BOXES = "detector"  # the box-noise preset the cluttered split is scored with once more (IoU about 0.75)
+DEMO_LOCK = "demo.lock"  # held in the run folder while a demo writes it; each model's training holds its own
 
 
 def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = None,
@@ -61,7 +63,8 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
 
     Without ``size`` the named size is used with its time budget; ``minutes`` sets a budget for any size
     (the epochs are then fitted to it, within the named size's bounds). ``objects``: ``"builtin"`` or a BOP
-    models folder, checked before anything is written.
+    models folder, checked before anything is written. A second demo into ``out_dir`` is refused while this one
+    runs (it holds :data:`DEMO_LOCK`).
     """
     sizes = {**DEMO_SIZES, **HIDDEN_SIZES}
     if size_name not in sizes and size is None:
@@ -79,50 +82,52 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
     parts, codes = prepare_parts(objects, size.config.code)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    groups = [list(group.obj_ids) for group in codes]
-    objects_count = len(parts.obj_ids)
-    stages = plan(size, groups, objects_count, fit_epochs=minutes is not None)
-    duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
-                else f"{size.config.train.epochs} epochs, about {minutes_text(stages.remaining_s())} on a 2-core CPU "
-                     "(the estimate corrects itself as steps finish)")
-    print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
-          flush=True)
-    if not parts.builtin:
-        print(f"Checked {describe_parts(parts, codes)}", flush=True)
-    with stages.stage("render"):
-        train_split, test_split = render_splits(size, out_dir, parts=parts)
-    epoch_fit = None
-    if minutes is not None:
-        with stages.stage(FIRST_EPOCHS):
-            epoch_fit = fit_epochs(size, demo, codes, train_split, out_dir, started, stages)
-        size = size.with_epochs(epoch_fit.epochs)
-        # What is left of each model's training is now measured, not estimated: stated in reference seconds.
-        stages.revise({train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
-            run_dir(out_dir, r, g).name] / stages.scale + SECONDS_PER_EXPORT for r in size.representations
-            for g in groups})
-        print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
-              f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
-              f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
+    with OutputLock(out_dir / DEMO_LOCK, f"another popcode-train demo is writing {out_dir} (it holds {DEMO_LOCK}); "
+                                        "wait for it to end, or give another --out"):
+        groups = [list(group.obj_ids) for group in codes]
+        objects_count = len(parts.obj_ids)
+        stages = plan(size, groups, objects_count, fit_epochs=minutes is not None)
+        duration = (f"the epochs fitted so that it takes about {minutes:g} min on this machine" if minutes is not None
+                    else f"{size.config.train.epochs} epochs, about {minutes_text(stages.remaining_s())} on a 2-core "
+                         "CPU (the estimate corrects itself as steps finish)")
+        print(f"popcode demo, size {size_name}: {len(stages.estimates)} steps, {duration}; output in {out_dir}",
               flush=True)
-    models = train_models(size, codes, train_split, out_dir, stages)
-    with stages.stage("evaluate"):
-        split, results = evaluate_clean(demo_methods(models), test_split)
-        write_report(results, out_dir / "eval")
-    cluttered = None
-    if size.cluttered_test_scenes:
-        with stages.stage("cluttered test split"):
-            cluttered = evaluate_cluttered(size, models, out_dir, parts)
-    with stages.stage("latency"):
-        latency = measure_latency(models, latency_iterations)
-    with stages.stage("figures"):
-        run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
-        figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
-    run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
-                  cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
-                  parts.fill_range()[1])
-    summary = write_outputs(run)
-    print(f"\ndone in {minutes_text(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
-    return summary
+        if not parts.builtin:
+            print(f"Checked {describe_parts(parts, codes)}", flush=True)
+        with stages.stage("render"):
+            train_split, test_split = render_splits(size, out_dir, parts=parts)
+        epoch_fit = None
+        if minutes is not None:
+            with stages.stage(FIRST_EPOCHS):
+                epoch_fit = fit_epochs(size, demo, codes, train_split, out_dir, started, stages)
+            size = size.with_epochs(epoch_fit.epochs)
+            # What is left of each model's training is now measured, not estimated: stated in reference seconds.
+            stages.revise({train_stage(r, g): (epoch_fit.epochs - 1) * epoch_fit.first_epoch_seconds[
+                run_dir(out_dir, r, g).name] / stages.scale + SECONDS_PER_EXPORT for r in size.representations
+                for g in groups})
+            print(f"{epoch_fit.epochs} epochs: one epoch of every model takes "
+                  f"{sum(epoch_fit.first_epoch_seconds.values()):.0f} s here and the {minutes:g}-minute budget left "
+                  f"{epoch_fit.seconds_left:.0f} s for training (bounds {epoch_fit.bounds[0]}-{epoch_fit.bounds[1]})",
+                  flush=True)
+        models = train_models(size, codes, train_split, out_dir, stages)
+        with stages.stage("evaluate"):
+            split, results = evaluate_clean(demo_methods(models), test_split)
+            write_report(results, out_dir / "eval")
+        cluttered = None
+        if size.cluttered_test_scenes:
+            with stages.stage("cluttered test split"):
+                cluttered = evaluate_cluttered(size, models, out_dir, parts)
+        with stages.stage("latency"):
+            latency = measure_latency(models, latency_iterations)
+        with stages.stage("figures"):
+            run_dirs = [run_dir(out_dir, r, g) for r in size.representations for g in groups]
+            figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
+        run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
+                      cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
+                      parts.fill_range()[1])
+        summary = write_outputs(run)
+        print(f"\ndone in {minutes_text(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
+        return summary
 
 
 def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], train_split: Path,

@@ -40,6 +40,9 @@ BOX_KINDS = ("bbox_obj", "bbox_visib")
 BACKGROUND_POLICIES = ("auto", "always", "never")  # where rendered crops get a pasted background (samples.py)
 DEVICES = ("auto", "cpu", "cuda")
 MAX_CONV_CHANNELS = 4096  # the paper's widest is 256
+# The paper trains 80; each epoch writes a metrics.csv row and may write a checkpoint, and the schedule and the
+# demo's time estimate are sized by the count, so a count of 10^20 is a typo, refused before any work.
+MAX_EPOCHS = 100_000
 # Network fields that follow from the representation and the crop, not from the user.
 DERIVED_NETWORK_FIELDS = ("output_dim", "input_size")
 
@@ -216,6 +219,9 @@ def _check_choices(config: Config) -> None:
     for key in ("epochs", "batch_size", "num_hypotheses"):
         if getattr(config.train, key) < 1:
             raise PopcodeError(f"train.{key} must be at least 1")
+    if config.train.epochs > MAX_EPOCHS:
+        raise PopcodeError(f"train.epochs must be at most {MAX_EPOCHS:,} (the paper trains 80), got "
+                           f"{config.train.epochs:,}")
     if not 0 <= config.train.seed < 2**63:  # numpy's and torch's generators take no negative seed
         raise PopcodeError(f"train.seed must lie in [0, 2^63), got {config.train.seed}")
     if config.data.num_workers < 0:

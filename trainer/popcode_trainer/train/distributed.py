@@ -43,10 +43,15 @@ def _pick_device(requested: str, local_rank: int) -> torch.device:
     return torch.device("cpu")
 
 
+def launched_rank() -> int:
+    """This process's rank as ``torchrun`` launched it (0 alone), known before the process group is joined."""
+    return int(os.environ.get("RANK", "0"))
+
+
 def setup(requested_device: str) -> Context:
     """Join the ``torchrun`` process group if there is one; pick this rank's device."""
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
+    rank = launched_rank()
     device = _pick_device(requested_device, int(os.environ.get("LOCAL_RANK", "0")))
     if world_size > 1 and not dist.is_initialized():
         if device.type == "cuda":

@@ -13,6 +13,7 @@ import math
 import random
 import time
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.model.metadata import RotationFrame
 
 from . import allocator, checkpoint, distributed, fast_path
@@ -32,7 +34,7 @@ from .config import Config
 from .epoch_record import EpochRecord, truncate_metrics
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
-from .run_files import LAST_CHECKPOINT, METRICS_FILE, EpochMetrics
+from .run_files import LAST_CHECKPOINT, METRICS_FILE, RUN_LOCK, EpochMetrics
 from .schedule import learning_rate
 
 
@@ -89,26 +91,42 @@ def validate(model: nn.Module, loader: DataLoader, representation: OutputReprese
     return loss_sum / max(count, 1.0), np.asarray(distributed.gather_lists(errors, context))
 
 
+def run_lock(out_dir: str | Path) -> AbstractContextManager[object]:
+    """Hold ``<out_dir>/train.lock`` (the folder made here) while a run writes the folder, so that a second run
+    into it is refused. Under ``torchrun`` only rank 0 holds it: the other ranks write nothing there, and their own
+    rank 0's lock would refuse them."""
+    if distributed.launched_rank() != 0:
+        return nullcontext()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return OutputLock(out_dir / RUN_LOCK, f"another process is training into {out_dir} (it holds {RUN_LOCK}); "
+                                          "wait for it to end, or train into another folder (train: --set "
+                                          "train.out_dir=DIR; demo: another --out)")
+
+
 def train(config: Config, representation: OutputRepresentation, train_set: Dataset, val_set: Dataset | None = None,
           resume: bool = False, val_instances: Sequence[InstanceLike] | None = None,
-          stop_after_epoch: int | None = None) -> list[EpochMetrics]:
+          stop_after_epoch: int | None = None, locked: bool = False) -> list[EpochMetrics]:
     """Train (or resume) per ``config``; writes checkpoints and metrics to ``config.train.out_dir``.
 
     ``train_set``/``val_set`` yield dicts with ``image`` (1, S, S), ``target``,
     ``R_m2c``, ``obj_id`` and ``index`` (the ``CropDataset`` contract);
     ``val_instances[index]`` gives K and the box for allocentric validation.
     ``stop_after_epoch`` ends the call after that epoch (checkpointed) of a run of ``train.epochs``: the rate
-    schedule still sees the whole run, and a later call resumes it.
+    schedule still sees the whole run, and a later call resumes it. ``locked``: the caller holds the run folder's
+    lock already (:func:`run_lock`); else this call holds it.
     Returns the metrics of the epochs this call ran.
     """
     cfg = config.train
-    context = distributed.setup(cfg.device)
-    try:
-        history = _run(config, representation, train_set, val_set, resume, val_instances, context, stop_after_epoch)
-    except BaseException:
-        distributed.teardown(context)
-        raise
-    distributed.teardown(context, finished=True)
+    with (nullcontext() if locked else run_lock(cfg.out_dir)):
+        context = distributed.setup(cfg.device)
+        try:
+            history = _run(config, representation, train_set, val_set, resume, val_instances, context,
+                           stop_after_epoch)
+        except BaseException:
+            distributed.teardown(context)
+            raise
+        distributed.teardown(context, finished=True)
     return history
 
 
@@ -116,7 +134,6 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
          resume: bool, val_instances: Sequence[InstanceLike] | None,
          context: distributed.Context, stop_after_epoch: int | None = None) -> list[EpochMetrics]:
     cfg = config.train
-    out_dir = Path(cfg.out_dir)
     if cfg.batch_size % context.world_size:
         raise PopcodeError(f"train.batch_size {cfg.batch_size} must be divisible by the {context.world_size} ranks")
     rank_batch = cfg.batch_size // context.world_size
@@ -128,7 +145,6 @@ def _run(config: Config, representation: OutputRepresentation, train_set: Datase
     if context.is_main:
         tqdm.write(f"training step: {trainee.path.describe()}"
                    + ("; freed memory kept for the next step" if trainee.memory_kept else ""))
-        out_dir.mkdir(parents=True, exist_ok=True)
     saver = EpochRecord(config, representation.metadata, trainee.net_config, trainee.model, trainee.optimizer,
                         trainee.scaler) if context.is_main else None
     history = []
@@ -207,7 +223,8 @@ def _start(config: Config, trainee: _Trainee, resume: bool, context: distributed
             truncate_metrics(out_dir / METRICS_FILE, start_epoch)
         return start_epoch, float(state["best_val_error_deg"])
     if (out_dir / LAST_CHECKPOINT).exists():
-        raise PopcodeError(f"{out_dir} already holds a run; pass --resume to continue it or choose a new out_dir")
+        raise PopcodeError(f"{out_dir} already holds a run; continue it with train --resume, or train into another "
+                           "folder (--set train.out_dir=DIR)")
     if context.is_main:
         (out_dir / METRICS_FILE).unlink(missing_ok=True)  # rows of a run killed before its first checkpoint
     return 0, math.inf

@@ -74,6 +74,7 @@ class MethodResult:
     image_s: np.ndarray | None = None  # (N,) seconds of the estimates of the instance's image; None: given rotations
     depth_poses: tuple[DepthPoses, ...] = ()  # with depth: the 6-D poses of each depth mode, beside full_pose's
     look_alikes: dict[int, np.ndarray] = field(default_factory=dict)  # SplitMetrics.look_alikes
+    decoder: str | None = None  # how the models' outputs became rotations; None: given rotations, a results file
 
 
 def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
@@ -129,7 +130,8 @@ def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progre
     return dataclasses.replace(result, confidence=confidence_evaluation(estimates, metrics, result.errors,
                                                                         method.confidence_thresholds_deg),
                                top_k=top_k, best_of_top_k=best, score=estimates.bop19_score(),
-                               image_s=estimates.image_s, depth_poses=posed)
+                               image_s=estimates.image_s, depth_poses=posed,
+                               decoder=method.decoder if isinstance(method, Method) else None)
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,

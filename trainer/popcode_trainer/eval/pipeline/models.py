@@ -114,6 +114,11 @@ class Method:
     def estimators(self) -> list[PoseEstimator]:
         return [model.estimator for model in self.models]
 
+    @property
+    def decoder(self) -> str:
+        """How the method's models turn their output into a rotation (one decoder for all: :meth:`with_decoder`)."""
+        return self.models[0].estimator.decoder
+
     def accepts_decoder(self, decoder: str) -> bool:
         """Whether every model of the method can be decoded by ``decoder``."""
         try:

@@ -147,12 +147,14 @@ def report_files(names: Sequence[str], bop19_csv: bool = False, depth_keys: Sequ
 
 
 def report_dict(results: Sequence[MethodResult]) -> dict[str, Any]:
-    """The JSON report: per method its models, per-object and grouped scores, tightest recalls and timings."""
+    """The JSON report: per method its models and their decoder (None: a results file), per-object and grouped
+    scores, tightest recalls and timings."""
     split = shared_split(results)
     translation = translation_rows(results)
     methods: dict[str, Any] = {}
     for r in results:
-        methods[r.name] = {"models": list(r.model_paths), "groups": r.groups, "per_object": r.per_object,
+        methods[r.name] = {"models": list(r.model_paths), "decoder": r.decoder, "groups": r.groups,
+                           "per_object": r.per_object,
                            "tightest": r.tightest, "by_visibility": r.by_visibility,
                            "model_ms_per_crop": r.model_ms_per_crop, "metric_s": r.metric_s,
                            "confidence": None if r.confidence is None else r.confidence.to_dict()}

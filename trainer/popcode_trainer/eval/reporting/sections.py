@@ -34,10 +34,12 @@ GT_ROTATION = "ground-truth rotation"
 
 
 def timing_markdown(results: Sequence[MethodResult]) -> str:
-    """Model time per crop (crop + network + decoding) beside the metric computation time."""
-    rows = [(result.name, "–" if math.isnan(result.model_ms_per_crop) else f"{result.model_ms_per_crop:.2f}",
+    """Each method's decoder and model time per crop (crop + network + decoding) beside the metric computation
+    time."""
+    rows = [(result.name, result.decoder or "–",
+             "–" if math.isnan(result.model_ms_per_crop) else f"{result.model_ms_per_crop:.2f}",
              f"{result.metric_s:.1f}") for result in results]
-    return markdown_table(["Method", "model ms / crop", "metrics s"], rows)
+    return markdown_table(["Method", "decoder", "model ms / crop", "metrics s"], rows)
 
 
 def shared_split(results: Sequence[MethodResult]) -> EvalSplit:
@@ -75,7 +77,8 @@ def tightest_markdown(results: Sequence[MethodResult]) -> list[str]:
 
 
 def report_markdown(results: Sequence[MethodResult]) -> str:
-    """Table IV (with / without ambiguity), its tightest-threshold recalls, per-object tables (Table III), timings."""
+    """Table IV (with / without ambiguity), its tightest-threshold recalls, per-object tables (Table III), each
+    method's decoder and timings."""
     split = shared_split(results)
     counts = Counter(inst.obj_id for inst in split.instances)
     ambiguity = ambiguous_objects(split.models_info)
@@ -97,7 +100,10 @@ def report_markdown(results: Sequence[MethodResult]) -> str:
     confidence = confidence_markdown(results)
     if confidence:
         parts.append(confidence)
-    parts += ["## Timing", timing_markdown(results)]
+    parts += ["## Decoders and timing",
+              "The decoder turns a model's output into a rotation (argmax: the paper's; refined: between grid "
+              "points, fitted to a population code's peak); – for rotations read from a results file.",
+              timing_markdown(results)]
     return "\n\n".join(parts) + "\n"
 
 
