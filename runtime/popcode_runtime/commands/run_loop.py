@@ -83,12 +83,15 @@ def _check_images(by_image: dict[ImageKey, list[Detection]], images: dict[ImageK
         scene_id, im_id = missing[0]
         raise PopcodeError(f"detections name {len(missing)} image(s) that are not in the split, first scene "
                            f"{scene_id} image {im_id}: wrong split or wrong detections file?")
-    uncalibrated = sorted(key for key in by_image if images[key].K is None)
-    if uncalibrated:
-        scene_id, im_id = uncalibrated[0]
-        more = f" (and {len(uncalibrated) - 1} more images)" if len(uncalibrated) > 1 else ""
-        raise PopcodeError(f"scene {scene_id} image {im_id} has no cam_K in its scene_camera.json{more}: the "
-                           "translation from the box needs the camera")
+    _refuse_first(sorted(key for key in by_image if images[key].K is None),
+                  "has no cam_K in its scene_camera.json{more}: the translation from the box needs the camera")
+
+
+def _refuse_first(keys: Sequence[ImageKey], problem: str) -> None:
+    """Refuse the first of ``keys``, the images that have ``problem`` (``{more}`` in it counts the others)."""
+    if keys:
+        more = f" (and {len(keys) - 1} more images)" if len(keys) > 1 else ""
+        raise PopcodeError(f"scene {keys[0][0]} image {keys[0][1]} {problem.format(more=more)}")
 
 
 def _check_image_sizes(keys: Sequence[ImageKey], by_image: Mapping[ImageKey, Sequence[Detection]],
@@ -126,18 +129,11 @@ def _check_depth(keys: Sequence[ImageKey], images: dict[ImageKey, SplitImage],
     with depth, the datasets' units differ (0.1 mm for T-LESS, 1 mm for LM), and a wrong one would send every
     instance back to the box's translation with a note that does not say why.
     """
-    lacking = [key for key in keys if images[key].depth_path is None]
-    if lacking:
-        scene_id, im_id = lacking[0]
-        more = f" (and {len(lacking) - 1} more images)" if len(lacking) > 1 else ""
-        raise PopcodeError(f"scene {scene_id} image {im_id} has no depth image in its depth/ folder{more}: --depth "
-                           "reads each image's depth")
-    unscaled = [key for key in keys if images[key].depth_scale is None]
-    if unscaled:
-        scene_id, im_id = unscaled[0]
-        more = f" (and {len(unscaled) - 1} more images)" if len(unscaled) > 1 else ""
-        raise PopcodeError(f"scene {scene_id} image {im_id} has no 'depth_scale' in its scene_camera.json entry{more}: "
-                           "--depth needs the mm per depth unit there, as BOP's format gives it")
+    _refuse_first([key for key in keys if images[key].depth_path is None],
+                  "has no depth image in its depth/ folder{more}: --depth reads each image's depth")
+    _refuse_first([key for key in keys if images[key].depth_scale is None],
+                  "has no 'depth_scale' in its scene_camera.json entry{more}: --depth needs the mm per depth unit "
+                  "there, as BOP's format gives it")
     for obj_id in sorted({d.obj_id for key in keys for d in by_image[key]}):
         estimators[owner[obj_id]].object_surface(obj_id)
     if refine:
