@@ -3,14 +3,19 @@
 #   make test   the test suite (what CI runs)
 PYTHON ?= python3
 VENV ?= .venv
-TORCH ?= torch==2.13.0
+# torch and the torchvision built for it (torchvision's detectors: popcode-train train-detector); both from the
+# machine's local wheels where it has them.
+TORCH ?= torch==2.14.1 torchvision==0.29.1
 BIN := $(VENV)/bin
 export PYOPENGL_PLATFORM ?= egl
 
 $(BIN)/.installed: pyproject.toml runtime/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet "$(TORCH)"
+	$(BIN)/python -m pip install --quiet $(TORCH)
 	$(BIN)/python -m pip install --quiet -e "./runtime[depth]" -e ".[dev]"
+	# triton (a GPU compiler the CUDA build of torch brings) is never used on a CPU, and importing it beside Mesa's
+	# EGL can crash the process at random (bench/results/detector-choices.md): gone, as in torch's CPU builds.
+	$(BIN)/python -m pip uninstall --quiet --yes triton
 	touch $@
 
 .PHONY: install demo test lint

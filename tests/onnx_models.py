@@ -13,6 +13,12 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from popcode_runtime.model.detector_metadata import (
+    DETECTOR_BOXES,
+    DETECTOR_INPUT,
+    DETECTOR_SCORES,
+    DetectorMetadata,
+)
 from popcode_runtime.model.metadata import INPUT_NAME, OUTPUT_NAME, ModelMetadata
 
 ONNX_IR_VERSION = 10  # onnx >= 1.23 writes IR 14, which current onnxruntime releases refuse
@@ -56,3 +62,33 @@ def linear_model(
 def save(model: onnx.ModelProto, path: Path) -> Path:
     onnx.save(model, str(path))
     return path
+
+
+def fixed_detector(boxes: np.ndarray, scores: np.ndarray, metadata: DetectorMetadata | None,
+                   brightness_gate: bool = False) -> onnx.ModelProto:
+    """A detector graph whose outputs are the given ``boxes`` ``(L, 4)`` (input pixels) and ``scores`` ``(L, C)``;
+    with ``brightness_gate`` the scores are multiplied by the frame's mean brightness (a black frame finds
+    nothing), so tests see the frame reach the network."""
+    width = metadata.input_width if metadata is not None else 64
+    height = metadata.input_height if metadata is not None else 48
+    nodes = [helper.make_node("Identity", ["B"], [DETECTOR_BOXES])]
+    if brightness_gate:
+        nodes += [helper.make_node("ReduceMean", [DETECTOR_INPUT], ["mean"], keepdims=0),
+                  helper.make_node("Mul", ["S", "mean"], [DETECTOR_SCORES])]
+    else:
+        nodes += [helper.make_node("Identity", ["S"], [DETECTOR_SCORES]),
+                  helper.make_node("ReduceMean", [DETECTOR_INPUT], ["unused"], keepdims=0)]
+    graph = helper.make_graph(
+        nodes, "popcode_test_detector",
+        [helper.make_tensor_value_info(DETECTOR_INPUT, TensorProto.FLOAT, [1, 1, height, width])],
+        [helper.make_tensor_value_info(DETECTOR_BOXES, TensorProto.FLOAT, [1, len(boxes), 4]),
+         helper.make_tensor_value_info(DETECTOR_SCORES, TensorProto.FLOAT, [1, len(boxes), scores.shape[1]])],
+        initializer=[numpy_helper.from_array(np.asarray(boxes, np.float32)[None], "B"),
+                     numpy_helper.from_array(np.asarray(scores, np.float32)[None], "S")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
+    model.ir_version = ONNX_IR_VERSION
+    if metadata is not None:
+        helper.set_model_props(model, metadata.to_props())
+    onnx.checker.check_model(model)
+    return model

@@ -19,6 +19,9 @@ COMMAND_MODULES: tuple[str, ...] = (
     "export",
     "evaluate",
     "detections",
+    "evaluate_detections",
+    "train_detector",
+    "export_detector",
     "demo",
 )
 

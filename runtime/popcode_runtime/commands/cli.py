@@ -1,4 +1,4 @@
-"""The ``popcode`` command: predict, info and bench on an ONNX popcode model; run over a BOP split."""
+"""The ``popcode`` command: predict, info and bench on an ONNX popcode model; run over a BOP split; detect."""
 
 from __future__ import annotations
 
@@ -22,9 +22,12 @@ from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.symmetries import symmetry_class
 from ..inference.benchmark import benchmark_estimator, machine_description
 from ..inference.estimator import PoseEstimator
+from ..inference.frame import FramePoseEstimator
 from ..inference.prediction import Prediction
 from ..model.decoding import DECODERS
+from . import detect as detect_command
 from . import run as run_command
+from .detect import add_detector_options, open_detector
 from .drawing import draw_predictions
 from .options import DEFAULT_BENCH_BATCHES, check_options
 
@@ -65,25 +68,36 @@ def _predict(args: argparse.Namespace) -> int:
         # before the model runs: a typo costs a line, not the run
         check_picture_path(args.draw, "--draw", [args.model, args.image, *filter(None, [args.depth])], args.overwrite)
     estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
+    frame = FramePoseEstimator(open_detector(args), [estimator], [str(args.model)]) if args.detector else None
     image = read_image(args.image, args.max_pixels)
     depth = read_depth(args.depth, args.max_pixels) if args.depth else None
     K = parse_camera_matrix(args.K) if args.K else None
-    predictions = estimator.predict(image, args.box, K=K, return_code=args.code, obj_ids=args.obj_id,
-                                    top_k=args.top_k, translation=args.translation, depth=depth,
-                                    depth_scale=1.0 if args.depth_scale is None else args.depth_scale,
-                                    refine_depth=args.refine, crop_origin=args.crop_origin)
+    options = {"K": K, "return_code": args.code, "top_k": args.top_k, "translation": args.translation,
+               "depth": depth, "depth_scale": 1.0 if args.depth_scale is None else args.depth_scale,
+               "refine_depth": args.refine}
+    if frame is not None:
+        poses = frame.estimate(image, **options)
+        predictions, detections = [pose.prediction for pose in poses], [pose.detection for pose in poses]
+    else:
+        predictions = estimator.predict(image, args.box, obj_ids=args.obj_id, crop_origin=args.crop_origin,
+                                        **options)
+        detections = [None] * len(predictions)
     if args.draw:
         camera = None if K is None else camera_for_image(K, image.shape, args.crop_origin)  # in the image's pixels
         write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, camera))
     if args.json:
         print(json.dumps({"model": str(args.model), "image": str(args.image),
-                          "predictions": [p.to_dict() for p in predictions]}, indent=2))
+                          "predictions": [{**p.to_dict(), **({} if d is None else {"detection": d.to_dict()})}
+                                          for p, d in zip(predictions, detections, strict=True)]}, indent=2))
         return 0
     np.set_printoptions(precision=4, suppress=True)
-    for index, prediction in enumerate(predictions):
+    if frame is not None and not predictions:
+        print(f"no parts of objects {list(estimator.metadata.objects)} found", file=sys.stderr)
+    for index, (prediction, detection) in enumerate(zip(predictions, detections, strict=True)):
         axis = ", ".join(f"{v:+.3f}" for v in prediction.axis)
-        print(f"box {index} {list(prediction.box)}: angle {np.degrees(prediction.angle_rad):.1f} deg "
-              f"about ({axis}), score {prediction.score:.3f}")
+        found = "" if detection is None else f"object {detection.obj_id} detected (score {detection.score:.3f}) in "
+        print(f"{found}box {index} {[round(v, 1) for v in prediction.box]}: angle "
+              f"{np.degrees(prediction.angle_rad):.1f} deg about ({axis}), score {prediction.score:.3f}")
         for row in prediction.R_m2c:
             print("    " + "  ".join(f"{v:+.4f}" for v in row))
         if prediction.t_m2c_mm is not None:
@@ -168,8 +182,12 @@ def build_parser() -> argparse.ArgumentParser:
                                   description="Crop each box, run the model once on the batch, decode rotations.")
     predict.add_argument("model", help="popcode ONNX model")
     predict.add_argument("image", help="image file (grey or colour, 8 or 16 bit)")
-    predict.add_argument("--box", type=_box, action="append", required=True, metavar="X,Y,W,H",
-                         help="object box in pixels (top-left corner, width, height); repeat for several objects")
+    predict.add_argument("--box", type=_box, action="append", metavar="X,Y,W,H",
+                         help="object box in pixels (top-left corner, width, height); repeat for several objects "
+                              "(or --detector)")
+    predict.add_argument("--detector", metavar="DET.onnx",
+                         help="find the model's objects with this popcode detector instead of --box")
+    add_detector_options(predict)
     predict.add_argument("--K", type=_camera, metavar="FX,FY,CX,CY",
                          help="camera intrinsics (needed by allocentric models); fx,fy,cx,cy or 9 numbers row-major; "
                               f"checked against IMAGE (principal point on it, a field of view of "
@@ -222,6 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_runtime_options(bench)
     bench.set_defaults(handler=_bench)
     run_command.register(commands, _add_runtime_options)
+    detect_command.register(commands, _add_runtime_options)
     return parser
 
 

@@ -34,6 +34,12 @@ NEEDS: dict[str, tuple[Needs, ...]] = {
     ),
     "run": (
         Needs("refine", "depth", "--refine refines the pose against each image's depth: add --depth"),
+        *(Needs(option, "detector", f"--{option.replace('_', '-')} sets how --detector runs: add --detector DET.onnx")
+          for option in ("score_threshold", "nms_iou", "max_detections")),
+    ),
+    "detect": (
+        Needs("out", "split", "--out writes the detections of a --split; for one IMAGE the boxes are printed"),
+        Needs("max_images", "split", "--max-images counts the images of a --split"),
     ),
 }
 DEFAULT_BENCH_BATCHES = (1, 8, 32)
@@ -53,7 +59,17 @@ def check_options(args: argparse.Namespace) -> None:
 
 
 def _check_predict(args: argparse.Namespace) -> None:
-    if len(args.box) > MAX_BOXES_PER_CALL:
+    if (args.box is None) == (args.detector is None):
+        raise PopcodeError("give the objects' boxes (--box X,Y,W,H, repeatable) or a detector to find them "
+                           "(--detector DET.onnx), one of the two")
+    if args.detector is None and any(given(args, o) for o in ("score_threshold", "nms_iou", "max_detections")):
+        raise PopcodeError("--score-threshold, --nms-iou and --max-detections set how --detector runs: add "
+                           "--detector DET.onnx")
+    if args.detector is not None and args.crop_origin is not None:
+        raise PopcodeError("--crop-origin places a crop of a frame; --detector looks at whole camera frames")
+    if args.detector is not None and args.obj_id:
+        raise PopcodeError("--obj-id names the object in each --box; the detector names the objects it finds")
+    if args.box is not None and len(args.box) > MAX_BOXES_PER_CALL:
         raise PopcodeError(f"{len(args.box)} boxes; the limit is {MAX_BOXES_PER_CALL} per call")
     if args.max_pixels < 1:
         raise PopcodeError(f"--max-pixels must be positive, got {args.max_pixels}")
@@ -68,6 +84,20 @@ def _check_bench(args: argparse.Namespace) -> None:
         raise PopcodeError(f"--batch {max(args.batch)} is more than the limit of {MAX_BENCH_BATCH}")
 
 
+def _check_detect(args: argparse.Namespace) -> None:
+    if (args.image is None) == (args.split is None):
+        raise PopcodeError("give an IMAGE to detect in, or a --split of images (then also --out JSON), one of the "
+                           "two")
+    if args.split is not None and args.out is None:
+        raise PopcodeError("--split writes its detections to a file: add --out JSON")
+    if args.json and args.split is not None:
+        raise PopcodeError("--json prints one IMAGE's boxes; a --split's detections are written to --out as JSON")
+    if args.max_images is not None and args.max_images < 1:
+        raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
+    if args.max_pixels < 1:
+        raise PopcodeError(f"--max-pixels must be positive, got {args.max_pixels}")
+
+
 def _check_run(args: argparse.Namespace) -> None:
     if args.max_images is not None and args.max_images < 1:
         raise PopcodeError(f"--max-images must be at least 1, got {args.max_images}")
@@ -75,4 +105,4 @@ def _check_run(args: argparse.Namespace) -> None:
         raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
 
 
-CHECKS = {"predict": _check_predict, "bench": _check_bench, "run": _check_run}
+CHECKS = {"predict": _check_predict, "bench": _check_bench, "run": _check_run, "detect": _check_detect}

@@ -6,11 +6,13 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
+from ..base.errors import PopcodeError
 from ..base.files import OVERWRITE_HELP, check_writable_file, refuse_inputs, require_folder
 from ..bop.detections import ground_truth_boxes, read_detections
 from ..bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, split_images
 from ..inference.estimator import PoseEstimator
 from ..model.decoding import DECODERS
+from .detect import add_detector_options, detect_split, open_detector
 from .run_fingerprint import run_fingerprint
 from .run_loop import run_detections
 from .run_results import companion_paths, sources_path
@@ -38,6 +40,10 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
                              "bbox, score, time}")
     source.add_argument("--gt-boxes", action="store_true",
                         help="use the split's own boxes (scene_gt_info.json): the paper's protocol")
+    source.add_argument("--detector", type=Path, metavar="DET.onnx",
+                        help="find the parts in each image with this popcode detector (popcode-train "
+                             "train-detector): from the camera frame alone")
+    add_detector_options(run)
     run.add_argument("--box-kind", choices=BOX_KINDS, default="bbox_obj",
                      help="with --gt-boxes: which box of scene_gt_info.json (default bbox_obj)")
     run.add_argument("--min-visib-fract", type=float, default=BOP19_MIN_VISIB_FRACT, metavar="F",
@@ -66,7 +72,7 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
 
 
 def handle(args: argparse.Namespace) -> int:
-    inputs = [args.split, *args.models, *filter(None, [args.detections])]
+    inputs = [args.split, *args.models, *filter(None, [args.detections, args.detector])]
     args.out = check_writable_file(args.out, "--out", inputs)
     for companion in companion_paths(args.out):
         check_writable_file(companion, "--out", inputs)
@@ -76,9 +82,17 @@ def handle(args: argparse.Namespace) -> int:
     require_folder(args.split, "split folder")
     estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
                   for path in args.models]
-    detections = read_detections(args.detections) if args.detections else \
-        ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
     images = split_images(args.split)
+    if args.detector:
+        detector = open_detector(args)
+        known = {obj_id for estimator in estimators for obj_id in estimator.metadata.objects}
+        if not known & set(detector.obj_ids):
+            raise PopcodeError(f"{args.detector} finds objects {list(detector.obj_ids)} and the models know objects "
+                               f"{sorted(known)}: none in common (wrong detector or wrong models?)")
+        detections = detect_split(detector, images, args.max_images, not args.quiet)
+    else:
+        detections = read_detections(args.detections) if args.detections else \
+            ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
     summary = run_detections(estimators, [str(path) for path in args.models], images, detections, out=args.out,
                              fingerprint=run_fingerprint(args, images), max_images=args.max_images,
                              progress=not args.quiet, draw_dir=args.draw, depth=args.depth, refine=args.refine,

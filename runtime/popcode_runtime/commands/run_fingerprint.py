@@ -67,12 +67,21 @@ def split_digest(images: Mapping[ImageKey, SplitImage], depth: bool = False) -> 
     return digest.hexdigest()
 
 
+def _detections_source(args: argparse.Namespace) -> object:
+    """Where the boxes come from: a detections file's bytes, a detector's with its thresholds, or the split's own."""
+    if args.detections:
+        return file_digest(args.detections)
+    if args.detector:
+        return {"detector": model_digest(args.detector), "score_threshold": args.score_threshold,
+                "nms_iou": args.nms_iou, "max_detections": args.max_detections}
+    return {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}
+
+
 def run_fingerprint(args: argparse.Namespace, images: Mapping[ImageKey, SplitImage]) -> str:
     """The fingerprint of a ``popcode run`` command line (``args``) over a split's ``images``."""
     parts = {"models": [model_digest(path) for path in args.models], "decoder": args.decoder,
              "providers": args.provider, "max_images": args.max_images, "split": split_digest(images, args.depth),
              "depth": args.depth, "refine": args.refine,
              "draw": None if args.draw is None else os.path.realpath(args.draw),
-             "detections": file_digest(args.detections) if args.detections else
-             {"gt_boxes": args.box_kind, "min_visib_fract": args.min_visib_fract}}
+             "detections": _detections_source(args)}
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]

@@ -56,8 +56,9 @@ class RunSummary:
 class Progress:
     """One line on stderr: images done, rate and time left (redrawn in place on a terminal, every 10 % else)."""
 
-    def __init__(self, total: int, enabled: bool = True) -> None:
+    def __init__(self, total: int, enabled: bool = True, label: str = "popcode run") -> None:
         self.total, self.enabled, self.started = total, enabled and total > 0, time.perf_counter()
+        self.label = label
         self.tty, self.last_shown, self.count = sys.stderr.isatty(), -1.0, 0
 
     def step(self) -> None:
@@ -70,7 +71,7 @@ class Progress:
         if due or self.count == self.total:
             rate = self.count / max(elapsed, 1e-9)
             left = (self.total - self.count) / rate
-            line = f"popcode run: {self.count}/{self.total} images, {rate:.1f} img/s, {left:.0f} s left"
+            line = f"{self.label}: {self.count}/{self.total} images, {rate:.1f} img/s, {left:.0f} s left"
             print(("\r" + line) if self.tty else line, end="\n" if not self.tty or self.count == self.total else "",
                   file=sys.stderr, flush=True)
             self.last_shown = elapsed

@@ -26,6 +26,7 @@ from ..eval.pipeline.depth_poses import depth_modes
 from ..eval.pipeline.detector_boxes import with_detector_boxes
 from ..eval.pipeline.evaluate import evaluate_models
 from ..eval.pipeline.models import ARGMAX, methods_from_paths
+from ..eval.pipeline.results_matching import ResultsMatching
 from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.report import report_files, write_report
 from ..eval.reporting.sections import report_markdown
@@ -47,7 +48,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "of their top K hypotheses.")
     parser.add_argument("models", nargs="+", type=Path, metavar="MODEL",
                         help="a training checkpoint (.pt, run with torch), an ONNX model (run with the runtime) or a "
-                             "BOP19 results file (.csv, e.g. from popcode run --gt-boxes; scored rotation-only)")
+                             "BOP19 results file (.csv, e.g. from popcode run; scored rotation-only, matched to the "
+                             "instances per image and object as the BOP toolkit does: a missed instance is wrong, "
+                             "estimates beyond the instance count are ignored)")
     parser.add_argument("--split", dest="splits", action="append", required=True, type=Path, metavar="DIR",
                         help="BOP split folder with scene folders (repeatable)")
     parser.add_argument("--models-dir", type=Path, required=True,
@@ -133,8 +136,18 @@ def run(args: argparse.Namespace) -> int:
                                   top_k=args.top_k, depth=args.depth, refine=args.refine)
         written = write_report(results, args.out, bop19_csv=args.bop19_csv)
     print(report_markdown(results))
+    for result in results:
+        if result.matching is not None:
+            print(_matching_line(result.name, len(result.split.instances), result.matching))
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
+
+
+def _matching_line(name: str, instances: int, matching: ResultsMatching) -> str:
+    """What matching a results file to the split left over, so that a detector's misses and extras show."""
+    return (f"{name}: {matching.without_estimate} of {instances} instances had no estimate (scored wrong); "
+            f"estimates ignored: {matching.extra} beyond their image and object's instance count, "
+            f"{matching.without_instance} of an image and object without an instance to score")
 
 
 def _check_out_folder(out: Path) -> None:

@@ -16,6 +16,7 @@ from onnx import helper
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import write_bytes_atomic
+from popcode_runtime.model.detector_metadata import DetectorMetadata
 from popcode_runtime.model.metadata import ModelMetadata
 
 from ..data.hull import with_hull_points
@@ -87,7 +88,7 @@ def load_checkpoint_model(path: str | Path) -> tuple[torch.nn.Module, ModelMetad
     return trained.network, trained.metadata
 
 
-def save_onnx(model: onnx.ModelProto, metadata: ModelMetadata, path: Path) -> None:
+def save_onnx(model: onnx.ModelProto, metadata: ModelMetadata | DetectorMetadata, path: Path) -> None:
     """Pin the IR version onnxruntime reads, attach the metadata, check and save atomically (an interrupted
     export leaves no half-written model that a rerun would take for finished)."""
     model.ir_version = ONNX_IR_VERSION

@@ -1,4 +1,5 @@
-"""BOP pose errors, visibility and recall scores, confidence scores: pure numpy, units in every name or docstring.
+"""BOP pose errors, visibility and recall scores, confidence scores, 2-D detection scores: numpy (and pycocotools
+for detection AP, as the BOP toolkit computes it), units in every name or docstring.
 
 A leaf: it needs nothing else of the trainer, so the renderer (visibility masks) and the evaluation can both
 use it."""

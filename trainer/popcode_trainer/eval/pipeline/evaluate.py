@@ -9,7 +9,8 @@ same instances, those all of them can estimate, with the object meshes and depth
 renderers of one :class:`.split_metrics.SplitMetrics`. A split whose boxes are a
 detector's (:func:`.detector_boxes.with_detector_boxes`) is also scored per box
 IoU; with ``top_k > 1`` population codes are also scored by the best of their
-top-k hypotheses.
+top-k hypotheses. A results file's estimates are matched to the instances as
+the BOP toolkit matches them (:mod:`.results_matching`).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from .depth_poses import DepthMode, DepthPoses, check_depth_models, depth_modes,
 from .estimates import Estimates
 from .models import Method
 from .results_file import ResultsMethod
+from .results_matching import ResultsMatching, group_results, matched_errors
 from .split import EvalSplit, restrict_to_objects
 from .split_metrics import SplitMetrics
 from .translation import FullPose, full_pose
@@ -75,6 +77,7 @@ class MethodResult:
     depth_poses: tuple[DepthPoses, ...] = ()  # with depth: the 6-D poses of each depth mode, beside full_pose's
     look_alikes: dict[int, np.ndarray] = field(default_factory=dict)  # SplitMetrics.look_alikes
     decoder: str | None = None  # how the models' outputs became rotations; None: given rotations, a results file
+    matching: ResultsMatching | None = None  # a results file's: its instances without an estimate, ignored estimates
 
 
 def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: SplitMetrics) -> BestOfTopK:
@@ -93,15 +96,19 @@ def best_of_top_k(hypotheses: np.ndarray, errors: InstanceErrors, metrics: Split
 
 def evaluate_rotations(name: str, R_est: np.ndarray, metrics: SplitMetrics, model_paths: tuple[str, ...] = (),
                        model_ms_per_crop: float = float("nan"),
-                       points_mm: Mapping[int, np.ndarray] | None = None) -> MethodResult:
+                       points_mm: Mapping[int, np.ndarray] | None = None,
+                       errors: InstanceErrors | None = None) -> MethodResult:
     """Score given rotations (one per split instance): the path for precomputed estimates.
 
     With ``points_mm`` (object id -> points the runtime fits to a box) full 6-D
     poses are scored too, the translation fitted to each instance's box.
+    ``errors`` replaces the rotations' own errors where they are not what is
+    scored: a results file's, credited by the toolkit's matching (``R_est`` then
+    NaN where an instance has no estimate).
     """
     started = time.perf_counter()
     R_est = np.asarray(R_est, np.float64)
-    errors = metrics.errors(R_est)
+    errors = metrics.errors(R_est) if errors is None else errors
     per_object, groups = metrics.scores(errors)
     pose = None if points_mm is None else full_pose(R_est, metrics, points_mm)
     return MethodResult(name, metrics.split, model_paths, R_est, errors, per_object, groups, metrics.tightest(errors),
@@ -119,8 +126,10 @@ def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progre
     files only)."""
     split = metrics.split
     estimates = method.estimate(split.instances, split.models_info, progress, top_k)
+    matching = group_results(method.estimates, split.instances) if isinstance(method, ResultsMethod) else None
     result = evaluate_rotations(method.name, estimates.R_m2c, metrics, method.paths,
-                                1000.0 * estimates.seconds_per_crop, points_mm)
+                                1000.0 * estimates.seconds_per_crop, points_mm,
+                                None if matching is None else matched_errors(matching, metrics))
     best = None
     if estimates.hypotheses is not None:
         started = time.perf_counter()
@@ -131,21 +140,26 @@ def evaluate_model(method: Method | ResultsMethod, metrics: SplitMetrics, progre
                                                                         method.confidence_thresholds_deg),
                                top_k=top_k, best_of_top_k=best, score=estimates.bop19_score(),
                                image_s=estimates.image_s, depth_poses=posed,
-                               decoder=method.decoder if isinstance(method, Method) else None)
+                               decoder=method.decoder if isinstance(method, Method) else None, matching=matching)
 
 
 def confidence_evaluation(estimates: Estimates, metrics: SplitMetrics, errors: InstanceErrors,
-                          thresholds_deg: set[float | None]) -> ConfidenceEvaluation:
+                          thresholds_deg: set[float | None]) -> ConfidenceEvaluation | None:
     """The calibrated confidence when every model of the method has one (and all share a threshold), else the
-    raw score at the default threshold."""
+    raw score at the default threshold; judged on the instances with an estimate (a results file may miss some),
+    None without any."""
     split = metrics.split
-    calibrated = len(thresholds_deg) == 1 and None not in thresholds_deg and np.isfinite(estimates.confidence).all()
+    estimated = np.isfinite(estimates.R_m2c).all(axis=(1, 2))
+    if not estimated.any():
+        return None
+    confidence, score, judged = estimates.confidence[estimated], estimates.score[estimated], errors.select(estimated)
+    calibrated = len(thresholds_deg) == 1 and None not in thresholds_deg and np.isfinite(confidence).all()
     threshold = next(iter(thresholds_deg)) if calibrated else DEFAULT_THRESHOLD_DEG
-    errors_deg = rotation_errors_deg(estimates.R_m2c, np.stack([inst.R_m2c for inst in split.instances]),
-                                     errors.obj_id, split.models_info)
+    R_true = np.stack([inst.R_m2c for inst in split.instances])[estimated]
+    errors_deg = rotation_errors_deg(estimates.R_m2c[estimated], R_true, judged.obj_id, split.models_info)
     return evaluate_confidence(
-        estimates.confidence if calibrated else estimates.score, calibrated, errors_deg, threshold,
-        lambda mask: metric_scores(errors.select(mask), metrics.diameters_mm, metrics.thresholds)["MSSD"])
+        confidence if calibrated else score, calibrated, errors_deg, threshold,
+        lambda mask: metric_scores(judged.select(mask), metrics.diameters_mm, metrics.thresholds)["MSSD"])
 
 
 def _shared_split(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
@@ -153,20 +167,22 @@ def _shared_split(methods: Sequence[Method | ResultsMethod], split: EvalSplit,
     """The instances every method can estimate, so that all rows of a table score the same instances.
 
     With ``obj_ids`` every method must know each of them; without, objects some
-    method lacks are left out with a warning.
+    method lacks are left out with a warning. A results file answers for every
+    object: an instance it has no estimate of is wrong, as the BOP toolkit scores it.
     """
-    known = [method.known_objects() for method in methods]
+    models = [method for method in methods if isinstance(method, Method)]
+    known = [method.known_objects() for method in models]
     if obj_ids is not None:
         wanted = set(obj_ids)
-        for method, objects in zip(methods, known, strict=True):
+        for method, objects in zip(models, known, strict=True):
             lacking = sorted(wanted - objects)
             if lacking:
                 raise PopcodeError(f"method {method.name!r} has no model for objects {lacking} "
                                    f"(its models know {sorted(objects)})")
-    shared = set.intersection(*known) & set(split.obj_ids)
+    shared = set(split.obj_ids).intersection(*known)
     if not shared:
         raise PopcodeError(f"no object of the split ({split.obj_ids}) is known to every model: "
-                           + "; ".join(f"{m.name!r} knows {sorted(o)}" for m, o in zip(methods, known, strict=True)))
+                           + "; ".join(f"{m.name!r} knows {sorted(o)}" for m, o in zip(models, known, strict=True)))
     left_out = sorted(set(split.obj_ids) - shared)
     if left_out:
         warnings.warn(f"objects {left_out} of the split are not known to every model and are not evaluated",

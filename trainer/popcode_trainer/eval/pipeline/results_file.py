@@ -1,18 +1,19 @@
 """A BOP19 results file as a method: its estimates matched to the split's instances and scored like a model's.
 
-What ``popcode run`` writes (or any method's results) can so be scored with the
-same tables as a model run directly. Within one image and object the estimates
-are taken by descending score, at most as many as there are instances, and each
-is matched to the still unmatched instance it is closest to in rotation (up to
-the object's symmetries), as the BOP toolkit matches estimates to ground truth.
-Every instance must get an estimate: the paper's protocol scores ground-truth
-boxes (``popcode run --gt-boxes``); score detection-based results, which miss
-some instances, with the BOP toolkit.
+What ``popcode run`` writes (or any method's results: ground-truth boxes or a
+detector's, with missed instances, false positives and several estimates of
+one object in an image) is scored with the same tables as a model run
+directly, as the BOP toolkit scores it (:mod:`.results_matching`): per image
+and object the best scored estimates, at most one per instance, matched per
+metric and threshold; an instance without an estimate is wrong, the estimates
+beyond the instance count and those of an image and object without an
+instance are ignored. Each instance's row in the tables shows one estimate:
+the kept estimates, by descending score, each take the still unmatched
+instance nearest in rotation (up to the object's symmetries).
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from popcode_runtime.bop.bop19_csv import PoseEstimate, read_bop19_results
 from ...data.bop import Instance
 from ...metrics.confidence import rotation_errors_deg
 from .estimates import UNKNOWN_TIME_S, Estimates
+from .results_matching import group_results
 
 RESULTS_SUFFIX = ".csv"
 
@@ -46,41 +48,26 @@ class ResultsMethod:
     def confidence_thresholds_deg(self) -> set[float | None]:
         return {None}  # a results file's score is whatever its maker wrote: judged as a raw score
 
-    def known_objects(self) -> set[int]:
-        return {est.obj_id for est in self.estimates}
-
     def object_points(self) -> None:
         return None  # no model metadata: the 6-D scores of --translation are for model files
 
     def estimate(self, instances: Sequence[Instance], models_info: Mapping[int, Mapping[str, Any]],
                  progress: bool = True, top_k: int = 1) -> Estimates:
-        """Each instance's matched estimate (see the module docstring), with the file's score and time; an
-        instance without an estimate is an error.
+        """Each instance's estimate (see the module docstring) with the file's score and time; NaN rotation and
+        score where the instance has none.
 
         A results file lists no hypotheses: ``top_k`` is accepted and ignored.
         """
-        rows_of: dict[tuple[int, int, int], list[int]] = defaultdict(list)
-        for row, inst in enumerate(instances):
-            rows_of[(inst.scene_id, inst.im_id, inst.obj_id)].append(row)
-        estimates_of: dict[tuple[int, int, int], list[PoseEstimate]] = defaultdict(list)
-        for est in self.estimates:
-            estimates_of[(est.scene_id, est.im_id, est.obj_id)].append(est)
         R_est, score = np.full((len(instances), 3, 3), np.nan), np.full(len(instances), np.nan)
         image_s = np.full(len(instances), UNKNOWN_TIME_S)
-        for key, rows in rows_of.items():
-            candidates = sorted(estimates_of.get(key, []), key=lambda est: -est.score)[: len(rows)]
-            for est in candidates:
+        for group in group_results(self.estimates, instances).groups:
+            rows = list(group.rows)
+            for est in group.estimates:
                 errors = rotation_errors_deg(np.repeat(est.R_m2c[None], len(rows), axis=0),
                                              np.stack([instances[row].R_m2c for row in rows]),
-                                             np.full(len(rows), key[2]), models_info)
+                                             np.full(len(rows), est.obj_id), models_info)
                 row = rows.pop(int(np.argmin(errors)))
                 R_est[row], score[row], image_s[row] = est.R_m2c, est.score, est.time_s
-        missing = [i for i, inst in enumerate(instances) if np.isnan(score[i])]
-        if missing:
-            first = instances[missing[0]]
-            raise PopcodeError(f"{self.path} has no estimate for {len(missing)} of {len(instances)} instances "
-                               f"(first: scene {first.scene_id} image {first.im_id} object {first.obj_id}); "
-                               "evaluate scores ground-truth-box results (popcode run --gt-boxes)")
         return Estimates(R_est, np.full(len(instances), np.nan), score, float("nan"), image_s)
 
 

@@ -108,32 +108,37 @@ class SplitMetrics:
                 poses[obj_id] = look_alike_rotations(found, symmetry_rotations(info))
         return poses
 
-    def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None, depth: bool = True) -> InstanceErrors:
+    def errors(self, R_est: np.ndarray, t_est_mm: np.ndarray | None = None, depth: bool = True,
+               rows: np.ndarray | None = None) -> InstanceErrors:
         """Every metric's error of the estimates ``(N, 3, 3)``, one per split instance, in split order.
 
         ``t_est_mm (N, 3)`` scores full 6-D poses; without it every estimate gets
         the ground-truth translation (the paper's protocol). ``depth=False`` skips
         the depth-based errors even where the split has depth (a quick score of
-        many candidate rotations, e.g. each hypothesis rank). Instances are scored
-        in groups of one object and image size, so each group renders its depth
-        with one renderer.
+        many candidate rotations, e.g. each hypothesis rank). ``rows (N,)`` names
+        the split instance each estimate is scored against instead (repeats
+        allowed: a results file's estimates against every instance they may
+        match). Estimates are scored in groups of one object and image size, so
+        each group renders its depth with one renderer.
         """
         instances = self.split.instances
-        if np.shape(R_est) != (len(instances), 3, 3):
-            raise PopcodeError(f"predictions have shape {np.shape(R_est)}; the split has {len(instances)} "
+        rows = np.arange(len(instances)) if rows is None else np.asarray(rows, dtype=int)
+        if np.shape(R_est) != (len(rows), 3, 3):
+            raise PopcodeError(f"predictions have shape {np.shape(R_est)}; the split has {len(rows)} "
                                "instances, so (N, 3, 3) with N = that count is needed")
-        if t_est_mm is not None and np.shape(t_est_mm) != (len(instances), 3):
+        if t_est_mm is not None and np.shape(t_est_mm) != (len(rows), 3):
             raise PopcodeError(f"translations have shape {np.shape(t_est_mm)}; (N, 3) with N = "
-                               f"{len(instances)} is needed")
+                               f"{len(rows)} is needed")
         if not np.isfinite(R_est).all() or (t_est_mm is not None and not np.isfinite(t_est_mm).all()):
             raise PopcodeError("predictions contain NaN or inf")
-        keys = [(inst.obj_id, *map(int, size)) for inst, size in zip(instances, self.image_size_px, strict=True)]
+        keys = [(instances[row].obj_id, *map(int, self.image_size_px[row])) for row in rows]
         parts = []
         for key in sorted(set(keys)):
-            rows = np.array([i for i, k in enumerate(keys) if k == key])
-            t_rows = None if t_est_mm is None else np.asarray(t_est_mm, np.float64)[rows]
-            parts.append((rows, self._group_errors(rows, np.asarray(R_est, np.float64)[rows], t_rows, depth)))
-        return _merge_rows(len(instances), parts)
+            chosen = np.array([i for i, k in enumerate(keys) if k == key])
+            t_chosen = None if t_est_mm is None else np.asarray(t_est_mm, np.float64)[chosen]
+            parts.append((chosen, self._group_errors(rows[chosen], np.asarray(R_est, np.float64)[chosen], t_chosen,
+                                                     depth)))
+        return _merge_rows(len(rows), parts)
 
     def scores(self, errors: InstanceErrors) -> tuple[dict[int, dict[str, float]], dict[str, dict[str, float]]]:
         """Scores per object and per ambiguity group (the paper's Tables III and IV)."""

@@ -187,14 +187,15 @@ def bop19_estimates(result: MethodResult, t_m2c_mm: Sequence[np.ndarray],
     method's own, e.g. refined against depth): ``score`` the calibrated
     confidence (the raw score for a model without a calibrator, the file's for a results file), ``time`` the
     seconds of the method's estimates of the instance's image, the same on each of its rows (crop, network and
-    decoding, not reading the image). Given rotations know neither: score 1, time -1."""
+    decoding, not reading the image). Given rotations know neither: score 1, time -1. An instance a results file
+    has no estimate of (NaN rotation) has no line."""
     count = len(result.split.instances)
     score = np.ones(count) if result.score is None else result.score
     image_s = np.full(count, UNKNOWN_TIME_S) if result.image_s is None else result.image_s
     R_m2c = result.R_est if R_m2c is None else R_m2c
     return [PoseEstimate(inst.scene_id, inst.im_id, inst.obj_id, float(score[i]), R_m2c[i], t_m2c_mm[i],
                          float(image_s[i]))
-            for i, inst in enumerate(result.split.instances)]
+            for i, inst in enumerate(result.split.instances) if np.isfinite(R_m2c[i]).all()]
 
 
 def write_report(results: Sequence[MethodResult], out_dir: str | Path,

@@ -1,0 +1,119 @@
+"""The runtime's Detector on real ONNX graphs of known outputs: thresholds, per-object NMS, scaling to the frame,
+the frame's size and aspect, and every refusal in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+
+from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.inference.detector import Detector, detector_input
+from popcode_runtime.model.detector_metadata import DetectorMetadata
+from tests.onnx_models import fixed_detector, linear_model, save
+
+WIDTH, HEIGHT = 64, 48
+# Four places: two overlapping boxes of object 1 (NMS keeps the better), one of object 2 over the first (another
+# object: kept), one of object 1 elsewhere below the threshold.
+BOXES = np.array([[8, 8, 24, 24], [9, 9, 25, 25], [8, 8, 24, 24], [40, 20, 60, 40]], np.float32)
+SCORES = np.array([[0.9, 0.0], [0.8, 0.0], [0.0, 0.7], [0.2, 0.0]], np.float32)
+
+
+def _metadata(**changes: object) -> DetectorMetadata:
+    return DetectorMetadata(**{"obj_ids": (1, 2), "input_width": WIDTH, "input_height": HEIGHT, **changes})
+
+
+@pytest.fixture()
+def detector_path(tmp_path):
+    return save(fixed_detector(BOXES, SCORES, _metadata(), brightness_gate=True), tmp_path / "det.onnx")
+
+
+def test_threshold_and_nms_per_object(detector_path):
+    found = Detector(detector_path).detect(np.full((HEIGHT, WIDTH), 1.0, np.float32))
+    assert [(d.obj_id, d.box) for d in found] == [(1, (8.0, 8.0, 16.0, 16.0)), (2, (8.0, 8.0, 16.0, 16.0))]
+    assert found[0].score == pytest.approx(0.9) and found[1].score == pytest.approx(0.7)
+
+
+def test_thresholds_given_by_the_caller_replace_the_files(detector_path):
+    frame = np.full((HEIGHT, WIDTH), 1.0, np.float32)
+    assert len(Detector(detector_path, score_threshold=0.1).detect(frame)) == 3  # the 0.2 box too
+    assert len(Detector(detector_path, nms_iou=0.99).detect(frame)) == 3  # the two object-1 boxes both kept
+    assert len(Detector(detector_path, max_detections=1).detect(frame)) == 1
+
+
+def test_boxes_are_scaled_to_the_frame_and_clipped(detector_path):
+    found = Detector(detector_path).detect(np.full((4 * HEIGHT, 4 * WIDTH), 255, np.uint8))
+    assert found[0].box == (32.0, 32.0, 64.0, 64.0)
+    edge = Detector(save(fixed_detector(np.array([[-10, -5, 20, 30]], np.float32), np.array([[0.9, 0.0]]),
+                                        _metadata()), detector_path.parent / "edge.onnx"))
+    assert edge.detect(np.zeros((HEIGHT, WIDTH), np.uint8))[0].box == (0.0, 0.0, 20.0, 30.0)
+
+
+def test_a_frame_without_parts_gives_an_empty_list(detector_path):
+    assert Detector(detector_path).detect(np.zeros((HEIGHT, WIDTH), np.uint8)) == []
+
+
+def test_a_frame_of_another_aspect_is_refused_in_one_line(detector_path):
+    with pytest.raises(PopcodeError, match=r"the image is 64x64 but the detector takes 64x48 frames"):
+        Detector(detector_path).detect(np.zeros((64, 64), np.uint8))
+
+
+def test_detector_input_resizes_colour_and_depths_alike():
+    colour = np.zeros((96, 128, 3), np.uint16)
+    colour[..., 0] = 65535
+    frame = detector_input(colour, WIDTH, HEIGHT)
+    assert frame.shape == (HEIGHT, WIDTH) and frame.dtype == np.float32
+    assert np.allclose(frame, 0.299, atol=1e-3)
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"score_threshold": 0.0}, "score threshold must be above 0"),
+    ({"score_threshold": 1.5}, r"score threshold must lie in \[0, 1\]"),
+    ({"nms_iou": float("nan")}, "NMS IoU must be finite"),
+    ({"max_detections": 10**6}, r"max detections must lie in \[1, 1000\]"),
+    ({"obj_ids": (1, 1)}, "lists an object id twice"),
+    ({"input_width": 10}, r"input width must lie in \[32, 2048\]"),
+])
+def test_absurd_metadata_is_refused(changes, message):
+    with pytest.raises(PopcodeError, match=message):
+        _metadata(**changes)
+
+
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("score_threshold", -1.0, "score threshold"), ("nms_iou", 0.0, "NMS IoU must be above 0"),
+    ("max_detections", 0, "max detections"),
+])
+def test_absurd_thresholds_from_a_caller_are_refused(detector_path, option, value, message):
+    with pytest.raises(PopcodeError, match=message):
+        Detector(detector_path, **{option: value})
+
+
+def test_files_that_are_no_popcode_detector_are_named(tmp_path):
+    bare = save(fixed_detector(BOXES, SCORES, None), tmp_path / "bare.onnx")
+    with pytest.raises(PopcodeError, match=r"bare.onnx: not a popcode detector: its metadata has no"):
+        Detector(bare)
+    pose = save(linear_model(np.zeros(6, np.float32)), tmp_path / "pose.onnx")
+    with pytest.raises(PopcodeError, match="not a popcode detector"):
+        Detector(pose)
+    graph = fixed_detector(BOXES, SCORES, _metadata())
+    del graph.metadata_props[:]
+    onnx.helper.set_model_props(graph, _metadata(input_width=96).to_props())
+    wrong_size = save(graph, tmp_path / "size.onnx")
+    with pytest.raises(PopcodeError, match=r"must be \[1, 1, 48, 96\] as its metadata says"):
+        Detector(wrong_size)
+    three = save(fixed_detector(BOXES, np.zeros((4, 3), np.float32), _metadata()), tmp_path / "three.onnx")
+    with pytest.raises(PopcodeError, match="has 3 columns for the 2 object ids"):
+        Detector(three)
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"\x08\x07garbage")
+    with pytest.raises(PopcodeError, match="corrupt.onnx"):
+        Detector(corrupt)
+
+
+def test_metadata_round_trips():
+    metadata = _metadata(score_threshold=0.4, training={"epochs": 3})
+    assert DetectorMetadata.from_props(metadata.to_props()) == metadata
+    props = metadata.to_props()
+    props["popcode_detector.format_version"] = "2"
+    with pytest.raises(PopcodeError, match="detector format version 2 is not supported"):
+        DetectorMetadata.from_props(props)

@@ -1,0 +1,1 @@
+"""The detector: a torchvision FCOS trained from the project's renders, exported for the runtime's ``Detector``."""

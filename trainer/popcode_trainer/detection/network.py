@@ -1,0 +1,66 @@
+"""The detector's network: torchvision's FCOS (anchor-free, one box per feature-map place) over a small plain
+backbone and torchvision's feature pyramid, trained from scratch (no pretrained weights can be fetched here).
+
+FCOS rather than a two-stage or anchor-based model: nothing to tune per dataset (anchor shapes), its losses and
+target assignment are torchvision's, and its whole forward pass is a convolution graph, so the export
+(:mod:`popcode_trainer.detection.export`) is the network plus a box decoding, with thresholds and NMS left to the
+runtime.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import torch
+from torch import nn
+
+from .config import DetectorConfig
+
+ANCHOR_SIZES = ((8,), (16,), (32,))  # FCOS's size per level = its stride: P3, P4, P5
+IMAGE_MEAN, IMAGE_STD = (0.45,), (0.25,)  # grey frames in [0, 1]
+
+
+def _conv(fan_in: int, fan_out: int, stride: int) -> list[nn.Module]:
+    return [nn.Conv2d(fan_in, fan_out, 3, stride, 1, bias=False), nn.BatchNorm2d(fan_out), nn.ReLU(inplace=True)]
+
+
+class FrameBackbone(nn.Module):
+    """Five stages of two 3x3 convolutions (the first of each strided), then a feature pyramid over strides 8, 16
+    and 32: the levels FCOS reads."""
+
+    def __init__(self, widths: tuple[int, ...], fpn_channels: int) -> None:
+        from torchvision.ops import FeaturePyramidNetwork
+
+        super().__init__()
+        stages, fan_in = [], 1
+        for width in widths:
+            stages.append(nn.Sequential(*_conv(fan_in, width, 2), *_conv(width, width, 1)))
+            fan_in = width
+        self.stages = nn.ModuleList(stages)
+        self.fpn = FeaturePyramidNetwork(list(widths[2:]), fpn_channels)
+        self.out_channels = fpn_channels
+
+    def forward(self, images: torch.Tensor) -> OrderedDict[str, torch.Tensor]:
+        features, x = OrderedDict(), images
+        for index, stage in enumerate(self.stages):
+            x = stage(x)
+            if index >= 2:
+                features[f"p{index + 1}"] = x
+        return self.fpn(features)
+
+
+def build_detector(config: DetectorConfig, num_classes: int) -> nn.Module:
+    """An FCOS detector of ``num_classes`` objects for grey frames of the config's size (no resizing inside)."""
+    from torchvision.models.detection import FCOS
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.fcos import FCOSHead
+
+    torch.manual_seed(config.seed)
+    backbone = FrameBackbone(config.widths, config.fpn_channels)
+    anchors = AnchorGenerator(ANCHOR_SIZES, ((1.0,),) * len(ANCHOR_SIZES))
+    head = FCOSHead(config.fpn_channels, anchors.num_anchors_per_location()[0], num_classes, config.head_convs)
+    return FCOS(backbone, num_classes, min_size=min(config.input_width, config.input_height),
+                max_size=max(config.input_width, config.input_height), image_mean=list(IMAGE_MEAN),
+                image_std=list(IMAGE_STD), anchor_generator=anchors, head=head,
+                score_thresh=config.score_threshold, nms_thresh=config.nms_iou,
+                detections_per_img=config.max_detections)
