@@ -13,13 +13,19 @@ from .coding.population_code import CodeLayout, DecodedRotations, PopulationCode
 from .geometry.camera import parse_camera_matrix
 from .geometry.crop import crop_batch, crop_square, read_image, to_grey
 from .geometry.symmetries import SymmetryClass, symmetry_class, symmetry_rotations, symmetry_transforms
+from .inference.detector import DetectedBox, Detector
 from .inference.estimator import PoseEstimator
+from .inference.frame import FramePose, FramePoseEstimator
 from .inference.prediction import Prediction
 from .model.metadata import ModelMetadata, Representation, RotationFrame
 
 __all__ = [
     "CodeLayout",
     "DecodedRotations",
+    "DetectedBox",
+    "Detector",
+    "FramePose",
+    "FramePoseEstimator",
     "ModelMetadata",
     "PopcodeError",
     "PopulationCode",

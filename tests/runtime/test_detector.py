@@ -3,6 +3,8 @@ the frame's size and aspect, and every refusal in one line."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import onnx
 import pytest
@@ -12,6 +14,7 @@ from popcode_runtime.inference.detector import Detector, detector_input
 from popcode_runtime.model.detector_metadata import DetectorMetadata
 from tests.onnx_models import fixed_detector, linear_model, save
 
+MODELS = Path(__file__).resolve().parents[2] / "models"
 WIDTH, HEIGHT = 64, 48
 # Four places: two overlapping boxes of object 1 (NMS keeps the better), one of object 2 over the first (another
 # object: kept), one of object 1 elsewhere below the threshold.
@@ -117,3 +120,27 @@ def test_metadata_round_trips():
     props["popcode_detector.format_version"] = "2"
     with pytest.raises(PopcodeError, match="detector format version 2 is not supported"):
         DetectorMetadata.from_props(props)
+
+
+def test_predict_with_a_detector_from_the_command_line(tmp_path, capsys):
+    """The frame alone: boxes of the detector's objects go to the model; a dark frame finds nothing (exit 0)."""
+    import cv2
+
+    from popcode_runtime.commands.cli import main
+
+    detector = save(fixed_detector(BOXES, SCORES, _metadata(obj_ids=(3, 4)), brightness_gate=True),
+                    tmp_path / "det.onnx")
+    model = str(MODELS / "builtin-parts-3-6.onnx")
+    bright, dark = tmp_path / "bright.png", tmp_path / "dark.png"
+    cv2.imwrite(str(bright), np.full((HEIGHT, WIDTH), 255, np.uint8))
+    cv2.imwrite(str(dark), np.zeros((HEIGHT, WIDTH), np.uint8))
+    camera = ["--K", "60,60,31.5,23.5"]
+    assert main(["predict", model, str(bright), "--detector", str(detector), *camera]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split(" box ")[0] for line in out if " box " in line] == [
+        "object 3 detected (score 0.900) in", "object 4 detected (score 0.700) in"]
+    assert main(["predict", model, str(dark), "--detector", str(detector), *camera]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and "no parts of objects [3, 4, 5, 6] found" in captured.err
+    assert main(["predict", model, str(bright), "--detector", str(model), *camera]) == 2
+    assert "it is a popcode pose model: give it as MODEL, not as --detector" in capsys.readouterr().err

@@ -27,6 +27,7 @@ from popcode_trainer.demo.plan import StagePlan
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import run_demo
 from popcode_trainer.demo.steps import PipelineSize, in_processes, run_dir, small_config, train_and_export
+from popcode_trainer.detection.config import DetectorConfig
 from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
 from popcode_trainer.train import training_data
 from popcode_trainer.train.network import NetworkConfig
@@ -34,9 +35,13 @@ from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from tools.paths import ROOT
 
 TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
+# A detector that trains for a second and keeps its five best boxes a frame, however poor: the report's section
+# on the run's own eyes is filled either way.
+TINY_DETECTOR = DetectorConfig(input_width=128, input_height=96, widths=(4, 4, 8, 8, 8), fpn_channels=32,
+                               head_convs=1, batch_size=2, score_threshold=0.01, max_detections=5)
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
                                        batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2,
-                    train_scenes=2, scene_share=0.5)
+                    train_scenes=2, scene_share=0.5, detector_seconds=1.0, detector=TINY_DETECTOR)
 BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -74,7 +79,12 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     assert "2 cluttered bin scenes of them that make 50 % of every epoch's crops" in report  # trained on scenes
     assert "trained population_code, single_variable on crops of true boxes with" in report  # tiny: true boxes
     assert set(summary["cluttered_scores"]) == {"population_code", "single_variable",
-                                                "population_code, detector-like boxes"}
+                                                "population_code, detector-like boxes", "own detector",
+                                                "population_code, own detector"}
+    own = summary["cluttered_scores"].pop("own detector")
+    assert 0.0 <= own["detection"]["AP"] <= 1.0 and own["detection"]["detections"] <= 5 * 2
+    assert "## The run's own eyes: a detector from the same renders" in report
+    assert "| the run's own detector (every instance; a missed one is wrong) |" in report
     assert all(0.0 <= s["groups"]["All objects"]["MSSD"] <= 1.0 for s in summary["cluttered_scores"].values())
     top_k = summary["cluttered_scores"]["population_code"]["best_of_top_k"]
     assert top_k[3]["All objects"] >= top_k[1]["All objects"]
@@ -178,7 +188,7 @@ def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch:
     split = render_builtin_split(tmp_path / "split", 4, obj_ids=[3, 6], random_position=True)
     loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
     splits = calls_of(monkeypatch, training_data, "read_bop_split")
-    single_parts_only = dataclasses.replace(TINY, train_scenes=0, scene_share=0.0)
+    single_parts_only = dataclasses.replace(TINY, train_scenes=0, scene_share=0.0, detector_seconds=0.0)
     train_and_export(single_parts_only, POPCODE, [3, 6], split, tmp_path, ("int8",))
     assert [args[0] for args in loads] == [run_dir(tmp_path, POPCODE, [3, 6]) / LAST_CHECKPOINT]
     assert len(hulls) == 2

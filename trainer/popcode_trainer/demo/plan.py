@@ -15,6 +15,7 @@ import numpy as np
 from .steps import SMALL_NETWORK, PipelineSize
 
 FIRST_EPOCHS = "time the first epoch of every model"
+DETECTOR_STAGE = "train the detector"
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.008
@@ -26,6 +27,8 @@ SECONDS_PER_EVALUATED_INSTANCE = 0.05
 # added 31 + 24 s to the 151 s that scoring its 240 instances took (a busy 2-core VM), whose estimate is 48 s.
 SECONDS_PER_DEPTH_INSTANCE = 0.07
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
+SECONDS_DETECTOR_EXPORT = 15.0  # the detector's frames read, its ONNX export and parity check
+SECONDS_PER_DETECTED_SCENE = 0.6  # the own detector's boxes, the poses in them and their scoring
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 
@@ -79,6 +82,8 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
                  * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
                  for representation in size.representations for obj_ids in groups}
     stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE)]
+    if size.detector_seconds:
+        stages.append((DETECTOR_STAGE, size.detector_seconds + SECONDS_DETECTOR_EXPORT))
     if fit_epochs:
         stages.append((FIRST_EPOCHS, sum(per_epoch.values())))
     for (representation, obj_ids), seconds in per_epoch.items():
@@ -88,7 +93,9 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
     stages += [("evaluate", objects * size.test_images_per_object
                 * (methods * SECONDS_PER_EVALUATED_INSTANCE + SECONDS_PER_DEPTH_INSTANCE))]
     if size.cluttered_test_scenes:
-        stages.append(("cluttered test split", size.cluttered_test_scenes * SECONDS_PER_CLUTTERED_SCENE))
+        own_detector = SECONDS_PER_DETECTED_SCENE if size.detector_seconds else 0.0
+        stages.append(("cluttered test split",
+                       size.cluttered_test_scenes * (SECONDS_PER_CLUTTERED_SCENE + own_detector)))
     stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
     return StagePlan(stages)
 

@@ -26,6 +26,8 @@ from ..export.model_io import read_onnx_metadata
 from ..train.config import DataConfig
 from ..train.fast_path import StepPath
 from ..train.network import NetworkConfig
+from .detector_section import own_detector_markdown
+from .detector_step import DETECTIONS_FILE, DETECTOR_STAGE, OWN_DETECTOR_FOLDER, OwnDetectorResults
 from .epoch_budget import EpochFit
 from .steps import PipelineSize
 from .targets import DETECTOR_TARGET, clutter_targets, targets_markdown, targets_table
@@ -52,6 +54,7 @@ class ClutteredResults:
 
     methods: list[MethodResult]
     detector_boxes: MethodResult | None = None
+    own_detector: OwnDetectorResults | None = None  # the run's own detector, its boxes and the poses in them
 
 
 @dataclass(frozen=True)
@@ -211,6 +214,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         _targets_section(run),
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
         cluttered_markdown(run),
+        _own_detector_section(run),
         _confidence_section(run),
         f"## Runtime latency (one thread, synthetic {BENCH_IMAGE_SHAPE[1]} x {BENCH_IMAGE_SHAPE[0]} scene)\n\n"
         + latency_markdown(run.latency),
@@ -330,6 +334,18 @@ def _clutter_limit_text(run: DemoRun, detector_missed: bool) -> str:
             f"{_training_boxes_text(run.size.config.data)}.")
 
 
+def _own_detector_section(run: DemoRun) -> str:
+    """The run's own detector and the poses from its boxes, where the run trained one."""
+    if run.cluttered is None or run.cluttered.own_detector is None:
+        return ""
+    own = run.cluttered.own_detector
+    popcode = next(r for r in run.cluttered.methods if r.name == POPCODE)
+    folder = run.out_dir / OWN_DETECTOR_FOLDER
+    tables = folder / REPORT_MD if own.poses is not None else folder / DETECTIONS_FILE
+    return own_detector_markdown(own, popcode, run.cluttered.detector_boxes, run.link(tables),
+                                 run.step_seconds.get(DETECTOR_STAGE))
+
+
 def _confidence_section(run: DemoRun) -> str:
     """The confidence table and, when a model is calibrated, its reliability diagram."""
     reliability = run.out_dir / "eval" / RELIABILITY_PNG
@@ -347,6 +363,12 @@ def _cluttered_summary(cluttered: ClutteredResults | None) -> dict[str, Any]:
         detector = cluttered.detector_boxes
         summary[f"{detector.name}, detector-like boxes"] = {"groups": detector.groups,
                                                            "by_visibility": detector.by_visibility}
+    own = cluttered.own_detector
+    if own is not None:
+        summary["own detector"] = {"detection": own.detection.to_dict(), "mean_detect_ms": own.mean_detect_ms,
+                                   "detector": str(own.detector)}
+        if own.poses is not None:
+            summary[own.poses.name] = {"groups": own.poses.groups, "by_visibility": own.poses.by_visibility}
     return summary
 
 

@@ -41,6 +41,7 @@ from ..export.model_io import read_onnx_metadata
 from ..train.config import CodeConfig
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
+from .detector_step import DETECTOR_STAGE, OWN_DETECTOR_FOLDER, score_own_detector, train_demo_detector
 from .group_codes import GroupCode, choose_group_codes
 from .parts import BUILTIN, Parts, load_parts
 from .plan import FIRST_EPOCHS, SECONDS_PER_EXPORT, StagePlan, minutes_text, plan, train_stage
@@ -96,6 +97,10 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
             print(f"Checked {describe_parts(parts, codes)}", flush=True)
         with stages.stage("render"):
             train_split, test_split = render_splits(size, out_dir, parts=parts)
+        detector = None
+        if size.detector_seconds:
+            with stages.stage(DETECTOR_STAGE):
+                detector = train_demo_detector(size, train_split, out_dir, parts.obj_ids)
         epoch_fit = None
         if minutes is not None:
             with stages.stage(FIRST_EPOCHS):
@@ -116,7 +121,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         cluttered = None
         if size.cluttered_test_scenes:
             with stages.stage("cluttered test split"):
-                cluttered = evaluate_cluttered(size, models, out_dir, parts)
+                cluttered = evaluate_cluttered(size, models, out_dir, parts, detector)
         with stages.stage("latency"):
             latency = measure_latency(models, latency_iterations)
         with stages.stage("figures"):
@@ -205,10 +210,12 @@ def evaluate_clean(methods: Sequence[Method], test_split: Path) -> tuple[EvalSpl
                                   depth_methods={POPCODE})
 
 
-def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path, parts: Parts) -> ClutteredResults:
+def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path, parts: Parts,
+                       detector_path: Path | None = None) -> ClutteredResults:
     """The population code and the baseline on a cluttered split (rendered once, fixed seed): rotation metrics
     without the depth-based ones, scored per visibility bin, with the code's best of its top-k hypotheses; then
-    the population code again with detector-like boxes (:data:`DETECTOR_BOXES`)."""
+    the population code again with detector-like boxes (:data:`DETECTOR_BOXES`) and, given the run's
+    ``detector_path``, from that detector's boxes alone."""
     split_dir = parts.render_scenes(out_dir / "test_cluttered", size.cluttered_test_scenes,
                                     size.config.train.seed + CLUTTERED_SEED_OFFSET, progress=True)
     split = read_eval_split([split_dir], split_dir / BUILTIN_MODELS_FOLDER)
@@ -218,7 +225,13 @@ def evaluate_cluttered(size: PipelineSize, models: TrainedModels, out_dir: Path,
     noisy = with_detector_boxes(split, box_noise_preset(DETECTOR_BOXES), seed=size.config.train.seed)
     detector = evaluate_models([m for m in methods if m.name == POPCODE], noisy, vsd=False)
     write_report(detector, out_dir / "eval_cluttered_detector_boxes")
-    return ClutteredResults(results, detector[0])
+    own = None
+    if detector_path is not None:
+        own = score_own_detector(detector_path, models.by_representation[POPCODE], split_dir, split, out_dir,
+                                 f"{POPCODE}, own detector")
+        if own.poses is not None:
+            write_report([own.poses], out_dir / OWN_DETECTOR_FOLDER)
+    return ClutteredResults(results, detector[0], own)
 
 
 def measure_latency(models: TrainedModels, iterations: int) -> list[dict[str, Any]]:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from popcode_runtime.model.metadata import Representation
 
+from ..detection.config import DetectorConfig
 from ..train.config import Config, DataConfig
 from ..train.network import NetworkConfig
 from .report import POPCODE
@@ -22,6 +23,10 @@ SCENE_SHARE = 0.25  # of every epoch's crops from the training scenes (bench/res
 # again and lose nothing at 600 and at 2400 training scenes; at the quick budget they cost 5 points on the clean
 # split (bench/results/box-noise-training.md).
 MEDIUM_BOX_NOISE = ("detector", 0.75)
+# The demo's detector: the chosen recipe (detection.config's defaults) for a fixed share of the budget on the
+# training scenes, its epochs fitted to it (bench/results/detector-choices.md; its AP against minutes:
+# bench/results/shipped-detector.md).
+DEMO_DETECTOR = DetectorConfig(epochs=200)
 
 
 @dataclass(frozen=True)
@@ -44,25 +49,31 @@ DEMO_SIZES = {
     # Crops of detector-like boxes cost the clean split more than they gain at this budget
     # (bench/results/box-noise-training.md).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE),
+                                   cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE,
+                                   detector_seconds=150.0, detector=DEMO_DETECTOR),
                       "about 15 minutes on a 2-core CPU", minutes=12.0, epoch_bounds=(4, 40)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36,
                                                             box_noise=MEDIUM_BOX_NOISE), (POPCODE, BASELINE),
-                                    cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE),
+                                    cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE,
+                                    detector_seconds=600.0, detector=DEMO_DETECTOR),
                        "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
     # The paper's defaults (Config()), with data-loader workers for a GPU.
     "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=200, train_scenes=4000, scene_share=SCENE_SHARE),
+                                   cluttered_test_scenes=200, train_scenes=4000, scene_share=SCENE_SHARE,
+                                   detector_seconds=3600.0, detector=DEMO_DETECTOR),
                       "the paper's code, network and schedule; for a GPU"),
 }
 
 # A size no help text offers: the README's own-parts test runs the one command at it, every step in seconds
 # (its scores mean nothing).
 SMOKE_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
+SMOKE_DETECTOR = DetectorConfig(input_width=128, input_height=96, widths=(4, 4, 8, 8, 8), fpn_channels=32,
+                                head_convs=1, batch_size=2, score_threshold=0.01, max_detections=5)
 HIDDEN_SIZES = {
     "smoke": DemoSize(PipelineSize(8, 2, small_config(epochs=2, n_axes=42, n_angles=12, network=SMOKE_NETWORK,
                                                       sigma_deg=30.0, batch_size=4), (POPCODE, BASELINE),
-                                   cluttered_test_scenes=2, train_scenes=2, scene_share=0.5),
+                                   cluttered_test_scenes=2, train_scenes=2, scene_share=0.5, detector_seconds=1.0,
+                                   detector=SMOKE_DETECTOR),
                       "every step in seconds, for tests; its scores mean nothing"),
 }
 SMOKE_LATENCY_ITERATIONS = 3

@@ -17,7 +17,7 @@ import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ from popcode_runtime.geometry.symmetries import SymmetryClass, continuous_axis, 
 from popcode_runtime.model.metadata import Representation, RotationFrame
 
 from ..data.render import BUILTIN_MODELS_FOLDER
+from ..detection.config import DetectorConfig
 from ..export.confidence_fit import calibrate_checkpoint
 from ..export.model_io import load_trained_model
 from ..export.onnx_export import export_trained
@@ -70,11 +71,16 @@ class PipelineSize:
     cluttered_test_scenes: int = 0  # a second, cluttered test split (parts in a bin, occlusion, sensor effects)
     train_scenes: int = 0  # cluttered training scenes rendered beside the single-part images
     scene_share: float = 0.0  # the share of scene crops in an epoch when there are training scenes
+    detector_seconds: float = 0.0  # training time of a detector on the training scenes (0: none)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)  # with detector_seconds: its recipe
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.scene_share < 1.0 or (self.scene_share > 0) != (self.train_scenes > 0):
             raise PopcodeError(f"scene_share must lie in [0, 1) and be positive exactly when there are training "
                                f"scenes; got {self.scene_share} with {self.train_scenes} scenes")
+        if self.detector_seconds < 0 or (self.detector_seconds > 0 and not self.train_scenes):
+            raise PopcodeError(f"a detector trains on the training scenes: detector_seconds {self.detector_seconds} "
+                               f"needs train_scenes > 0, got {self.train_scenes}")
 
     def with_epochs(self, epochs: int) -> PipelineSize:
         """The same run trained for ``epochs`` epochs."""
