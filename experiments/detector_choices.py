@@ -30,6 +30,7 @@ from popcode_runtime.geometry.crop import read_image_file
 from popcode_runtime.inference.detector import Detector
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.detection_scores import detection_scores
+from tools.command import run_command
 from tools.report import machine_line, write_results
 
 NARROW = {"widths": [16, 32, 48, 64, 96], "fpn_channels": 64}
@@ -122,4 +123,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("experiments.detector_choices", main)

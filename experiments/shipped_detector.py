@@ -36,6 +36,7 @@ from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
 from popcode_trainer.eval.pipeline.models import Method, load_model
 from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
+from tools.command import run_command
 from tools.paths import RESULTS, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
 
@@ -144,4 +145,4 @@ def _markdown(payload: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_command("experiments.shipped_detector", main)

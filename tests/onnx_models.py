@@ -51,6 +51,11 @@ def linear_model(
         initializer=[numpy_helper.from_array(weight, "W"),
                      numpy_helper.from_array(np.asarray(bias, np.float32)[:dim], "B")],
     )
+    return _checked_model(graph, metadata)
+
+
+def _checked_model(graph: onnx.GraphProto, metadata: ModelMetadata | DetectorMetadata | None) -> onnx.ModelProto:
+    """The graph as a model onnxruntime reads, with the metadata's props, checked."""
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
     model.ir_version = ONNX_IR_VERSION
     if metadata is not None:
@@ -86,9 +91,4 @@ def fixed_detector(boxes: np.ndarray, scores: np.ndarray, metadata: DetectorMeta
         initializer=[numpy_helper.from_array(np.asarray(boxes, np.float32)[None], "B"),
                      numpy_helper.from_array(np.asarray(scores, np.float32)[None], "S")],
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", ONNX_OPSET)])
-    model.ir_version = ONNX_IR_VERSION
-    if metadata is not None:
-        helper.set_model_props(model, metadata.to_props())
-    onnx.checker.check_model(model)
-    return model
+    return _checked_model(graph, metadata)

@@ -27,7 +27,7 @@ from ..model.detector_metadata import (
     DETECTOR_SCORES,
     DetectorMetadata,
 )
-from ..model.engine import onnx_session
+from ..model.engine import custom_metadata, onnx_session
 
 MAX_ASPECT_CHANGE = 0.02  # a frame whose width/height differs more from the detector's is refused, not distorted
 MAX_CANDIDATES = 5000  # places above the threshold that go to NMS, best first: bounds its quadratic work
@@ -70,10 +70,8 @@ class Detector:
                  max_detections: int | None = None) -> None:
         self.model_path = path(model_path, "detector path")
         self.session = onnx_session(self.model_path, providers, threads)
-        with library_step(f"read the metadata of {self.model_path} (it must be UTF-8 JSON)"):
-            props = self.session.get_modelmeta().custom_metadata_map
         try:
-            self.metadata = DetectorMetadata.from_props(props)
+            self.metadata = DetectorMetadata.from_props(custom_metadata(self.session, self.model_path))
             self._check_signature()
         except PopcodeError as error:
             raise PopcodeError(f"{self.model_path}: {error}") from error

@@ -104,16 +104,20 @@ def check_threads(threads: int) -> int:
     return threads
 
 
+def custom_metadata(session: ort.InferenceSession, model_path: Path) -> dict[str, str]:
+    """A model file's ``metadata_props`` as onnxruntime reads them (a value that is not UTF-8 is named, not raised)."""
+    with library_step(f"read the metadata of {model_path} (it must be UTF-8 JSON)"):
+        return dict(session.get_modelmeta().custom_metadata_map)
+
+
 class OnnxEngine:
     """A popcode ONNX model file run by onnxruntime; its metadata, checked against its signature, from the file."""
 
     def __init__(self, model_path: str | Path, providers: Sequence[str] | None = None, threads: int = 0) -> None:
         self.model_path = path(model_path, "model path")
         self.session = onnx_session(self.model_path, providers, threads)
-        with library_step(f"read the metadata of {self.model_path} (it must be UTF-8 JSON)"):
-            props = self.session.get_modelmeta().custom_metadata_map
         try:
-            self.metadata = ModelMetadata.from_props(props)
+            self.metadata = ModelMetadata.from_props(custom_metadata(self.session, self.model_path))
         except PopcodeError as error:
             raise PopcodeError(f"{self.model_path}: {error}") from error
         self.max_batch: int | None = None  # set when the model's batch axis is fixed

@@ -1,0 +1,72 @@
+"""The whole frame on this CPU: the shipped detector and the shipped pose models on the sample bin frame, from
+the camera image to every part's pose, through the runtime's ``FramePoseEstimator``.
+
+    python -m bench.frame_latency [--parts 10] [--iterations 50] [--threads 1 2]
+
+Per thread count: the detector (resize, network, threshold, NMS), then the pose models on its ``--parts`` best
+boxes (crop, network, decoding, translation from the box and the confidence), median and 90th percentile over
+the iterations after a warm-up. The sample frame (``models/samples/bin.png``, 720 x 540) holds ten parts.
+Writes ``bench/results/frame-latency.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from popcode_runtime import Detector, FramePoseEstimator, PoseEstimator, read_image
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from tools.command import run_command
+from tools.paths import MODELS_DIR, RESULTS, SHIPPED_MODELS
+from tools.report import machine, machine_line, write_results
+
+DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
+SAMPLE = MODELS_DIR / "samples" / "samples.json"
+
+
+def time_frames(threads: int, parts: int, iterations: int) -> dict[str, float]:
+    """Median and 90th percentile ms of the detector, the poses and the whole frame."""
+    sample = json.loads(SAMPLE.read_text())["bin"]
+    image = read_image(SAMPLE.parent / sample["image"])
+    frames = FramePoseEstimator(Detector(DETECTOR, threads=threads, max_detections=parts),
+                                [PoseEstimator(path, threads=threads) for path in SHIPPED_MODELS])
+    detect, poses, total, found = [], [], [], []
+    for index in range(iterations + 3):
+        started = time.perf_counter()
+        estimated = frames.estimate(image, K=sample["K"])
+        took = time.perf_counter() - started
+        if index >= 3:  # warm-up
+            detect.append(1000 * frames.last_timings.detect_s)
+            poses.append(1000 * frames.last_timings.poses_s)
+            total.append(1000 * took)
+            found.append(len(estimated))
+    return {"threads": threads, "parts": float(np.median(found)),
+            **{f"{name}_{stat}": float(np.percentile(values, q)) for name, values in
+               (("detect_ms", detect), ("poses_ms", poses), ("frame_ms", total)) for stat, q in (("median", 50),
+                                                                                                ("p90", 90))}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--parts", type=int, default=10, help="poses a frame (the detector's best boxes)")
+    parser.add_argument("--iterations", type=int, default=50)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    args = parser.parse_args()
+    rows = [time_frames(threads, args.parts, args.iterations) for threads in args.threads]
+    table = markdown_table(["threads", "parts posed", "detector ms", "poses ms", "frame ms (median)",
+                            "frame ms (p90)"],
+                           [[str(r["threads"]), f"{r['parts']:.0f}", f"{r['detect_ms_median']:.1f}",
+                             f"{r['poses_ms_median']:.1f}", f"{r['frame_ms_median']:.1f}",
+                             f"{r['frame_ms_p90']:.1f}"] for r in rows])
+    markdown = "\n\n".join(["# A whole frame: the shipped detector and pose models on the sample bin frame",
+                            f"`python -m bench.frame_latency --parts {args.parts} --iterations {args.iterations}`; "
+                            "median over the iterations after three warm-up calls.", table, machine_line(machine())])
+    write_results(RESULTS, "frame-latency", {"rows": rows}, markdown)
+    print(markdown)
+
+
+if __name__ == "__main__":
+    run_command("bench.frame_latency", main)
