@@ -144,3 +144,20 @@ def test_predict_with_a_detector_from_the_command_line(tmp_path, capsys):
     assert captured.out == "" and "no parts of objects [3, 4, 5, 6] found" in captured.err
     assert main(["predict", model, str(bright), "--detector", str(model), *camera]) == 2
     assert "it is a popcode pose model: give it as MODEL, not as --detector" in capsys.readouterr().err
+
+
+def test_a_detector_of_objects_no_pose_model_knows_is_refused(tmp_path, capsys):
+    from popcode_runtime import FramePoseEstimator, PoseEstimator
+    from popcode_runtime.commands.cli import main
+
+    detector = save(fixed_detector(BOXES, SCORES, _metadata(obj_ids=(7, 8))), tmp_path / "det.onnx")
+    model = MODELS / "builtin-parts-3-6.onnx"
+    with pytest.raises(PopcodeError, match=r"the detector finds objects \[7, 8\] and the pose models know objects "
+                                           r"\[3, 4, 5, 6\]: none in common"):
+        FramePoseEstimator(Detector(detector), [PoseEstimator(model)])
+    split = tmp_path / "split"
+    (split / "000000" / "gray").mkdir(parents=True)
+    assert main(["run", str(model), "--split", str(split), "--detector", str(detector), "--out",
+                 str(tmp_path / "r.csv")]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "none in common (wrong detector or wrong models?)" in error

@@ -142,8 +142,8 @@ def test_option_mistakes_cost_one_line(argv: list[str], message: str, capsys) ->
     assert error.count("\n") == 1 and message in error
 
 
-def test_a_detector_of_objects_no_model_knows_is_refused(scenes: Path, trained: Path, tmp_path: Path,
-                                                          capsys) -> None:
+def test_boxes_of_objects_no_model_knows_are_skipped_and_a_pose_model_is_no_detector(
+        scenes: Path, trained: Path, capsys) -> None:
     other = MODELS / "builtin-parts-1-2.onnx"
     frame_estimator = FramePoseEstimator.from_files(trained / "detector.onnx", [other])
     assert frame_estimator.unknown_objects == [3, 4, 5, 6]
