@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from readme_text import README, bash_commands
 
-from popcode_runtime import Prediction
+from popcode_runtime import FramePose, Prediction
 from popcode_runtime.commands.cli import build_parser as runtime_parser
 from popcode_runtime.commands.cli import main as runtime_main
 from popcode_runtime.geometry.rotations import is_rotation
@@ -170,6 +170,7 @@ def test_python_snippet_runs(page: str, code: str, tmp_path: Path, monkeypatch: 
     with contextlib.redirect_stdout(printed):
         exec(compile(code, f"<{page}>", "exec"), namespace)  # noqa: S102 - the snippet is the repository's own text
     predictions = [value for value in namespace.values() if isinstance(value, Prediction)]
+    predictions += [value.prediction for value in namespace.values() if isinstance(value, FramePose)]
     predictions += [item for value in namespace.values() if isinstance(value, list)
                     for item in value if isinstance(item, Prediction)]
     assert predictions, f"{page}'s snippet keeps no Prediction to check"

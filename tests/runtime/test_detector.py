@@ -161,3 +161,22 @@ def test_a_detector_of_objects_no_pose_model_knows_is_refused(tmp_path, capsys):
                  str(tmp_path / "r.csv")]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "none in common (wrong detector or wrong models?)" in error
+
+
+def test_a_float_frame_resized_stays_in_range():
+    """Area averaging of float pixels at 1.0 can round a hair past it; the detector's input stays in [0, 1]."""
+    frame = np.random.default_rng(0).choice(np.float32([0.999999, 1.0]), size=(540, 720))
+    resized = detector_input(frame, 256, 192)
+    assert resized.shape == (192, 256) and resized.max() <= 1.0 and resized.min() >= 0.99
+
+
+def test_the_cap_counts_boxes_after_suppression(tmp_path):
+    """Three objects each seen at five overlapping places: a cap of three keeps one box of each, not the best
+    three places (OpenCV's own top_k cuts the candidates before suppressing them)."""
+    boxes = np.array([[x + d / 2, 8 + d / 2, x + 12 + d / 2, 20 + d / 2] for x in (2, 22, 42) for d in range(5)],
+                     np.float32)
+    scores = np.zeros((15, 1), np.float32)
+    scores[:, 0] = [0.9 - 0.01 * d - 0.2 * (x // 20) for x in (2, 22, 42) for d in range(5)]
+    detector = save(fixed_detector(boxes, scores, _metadata(obj_ids=(1,))), tmp_path / "det.onnx")
+    found = Detector(detector, max_detections=3).detect(np.zeros((HEIGHT, WIDTH), np.uint8))
+    assert [d.box[0] for d in found] == [2.0, 22.0, 42.0]

@@ -59,6 +59,8 @@ def detector_input(image: np.ndarray, width: int, height: int) -> np.ndarray:
             image = image.astype(np.float32)
         shrink = cols > width
         image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        if image.dtype == np.float32:  # an average of values in [0, 1] may round a hair past them
+            np.clip(image, 0.0, 1.0, out=image)
     return to_grey(image)
 
 
@@ -136,9 +138,9 @@ class Detector:
         xywh, classes, values = xywh[usable], classes[usable], values[usable]
         if not len(values):
             return []
-        with library_step("suppress overlapping boxes with OpenCV"):
+        with library_step("suppress overlapping boxes with OpenCV"):  # top_k 0: OpenCV's would cut the candidates
             kept = cv2.dnn.NMSBoxesBatched(xywh.tolist(), values.tolist(), classes.tolist(), self.score_threshold,
-                                           self.nms_iou, top_k=self.max_detections)
+                                           self.nms_iou)
         kept = sorted(np.asarray(kept, int).reshape(-1).tolist(), key=lambda i: -values[i])[: self.max_detections]
         return [DetectedBox(self.obj_ids[classes[i]], tuple(float(v) for v in xywh[i]), float(values[i]))
                 for i in kept]

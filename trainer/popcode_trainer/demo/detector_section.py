@@ -40,6 +40,11 @@ def own_detector_markdown(own: OwnDetectorResults, true_boxes: MethodResult, det
     if own.poses is not None:
         rows.append(_mssd_row("the run's own detector (every instance; a missed one is wrong)", own.poses,
                               true_boxes))
+    if verdict != "met":
+        lines.append("What limits it: training compute. A detector trained from scratch on two CPU cores is far from "
+                     "converged after the demo's minutes; its AP against training minutes (and the shipped "
+                     "detector's, trained for most of an hour) is in bench/results/shipped-detector.md, the "
+                     "recipes' in bench/results/detector-choices.md. `--size medium` gives it four times the time.")
     bins = list(true_boxes.by_visibility)
     lines += ["MSSD of the population code in the bin by where its boxes came from (all objects, then by visible "
               "fraction):",
