@@ -29,12 +29,13 @@ from popcode_runtime.base.checks import shown
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import read_json, write_json_atomic, write_png_atomic
 from popcode_runtime.geometry.camera import project_points
-from popcode_runtime.geometry.rotations import random_rotations, rotation_between
+from popcode_runtime.geometry.rotations import random_rotations
 
 from .bop import RENDER_MARKER, load_models_info, model_path
 from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
+from .scene_look import LightDraw, draw_lights
 from .symmetry_check import check_object_symmetries
 
 RECORDS_FOLDER = ".popcode_records"
@@ -145,7 +146,8 @@ class _SceneRenderer:
         self._transient = [(scene, scene.add(item, pose=pose))
                            for scene, mesh in zip((self._scene, self._depth.scene), self._meshes[obj_id], strict=True)
                            for item, pose in ((mesh, gl_pose(R_m2c, t_m2c_mm)), (camera, np.eye(4)))]
-        self._transient += [(self._scene, node) for node in add_random_lights(pyrender, self._scene, rng)]
+        lights = add_lights(pyrender, self._scene, draw_lights(rng, (1.0, 4.0)))
+        self._transient += [(self._scene, node) for node in lights]
         color, _ = self._renderer.render(self._scene)  # its depth is one multisample's, off the pixel centre
         return color, self._depth.render()
 
@@ -154,19 +156,10 @@ class _SceneRenderer:
         self._renderer.delete()
 
 
-def add_random_lights(pyrender: Any, scene: Any, rng: np.random.Generator,
-                      intensity_range: tuple[float, float] = (1.0, 4.0)) -> list[Any]:
-    """One to three white directional lights from the camera's side (camera at the origin); returns their nodes."""
-    nodes = []
-    for _ in range(rng.integers(1, 4)):
-        # Light travels along -z of its node: point it into the scene from the camera's side.
-        direction = rng.normal(size=3)
-        direction[2] = -abs(direction[2]) - 0.5
-        pose = np.eye(4)
-        pose[:3, :3] = rotation_between(np.array([0.0, 0.0, -1.0]), direction)
-        light = pyrender.DirectionalLight(color=np.ones(3), intensity=rng.uniform(*intensity_range))
-        nodes.append(scene.add(light, pose=pose))
-    return nodes
+def add_lights(pyrender: Any, scene: Any, lights: list[LightDraw]) -> list[Any]:
+    """White directional lights added to ``scene``; returns their nodes."""
+    return [scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=light.intensity), pose=light.pose)
+            for light in lights]
 
 
 def _scene_dir(out_dir: Path, obj_id: int) -> Path:

@@ -34,7 +34,6 @@ from tqdm import tqdm
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import write_json_atomic, write_png_atomic
 
-from .augment import procedural_texture
 from .bop import load_models_info, model_path
 from .depth_noise import apply_depth_noise, depth_noise_preset
 from .gl import CentreSampledDepth, PixelRegion, gl_pose, import_pyrender, offscreen, pyrender_camera
@@ -44,7 +43,7 @@ from .render import (
     BUILTIN_MODELS_FOLDER,
     DEPTH_SCALE_MM,
     RECORDS_FOLDER,
-    add_random_lights,
+    add_lights,
     camera_matrix,
     check_settings,
     finalize_scene,
@@ -53,12 +52,12 @@ from .render import (
 from .scene_annotation import instance_gt_info, moved_box
 from .scene_content import Layouts, SceneContent, SceneSettings
 from .scene_layout import model_to_camera
+from .scene_look import MaterialDraw, SceneLook, draw_scene_look
 from .sensor import apply_sensor_effects, sensor_preset
 
 IMAGES_PER_SCENE_FOLDER = 1000
 MAX_CAMERA_TRIES = 10
 MARGIN_PX = 2  # around the projected mesh: far more than OpenGL's rounding of vertex positions
-SCENE_LIGHT_INTENSITY = (0.6, 2.5)  # a lit floor and walls add light: dimmer lamps than single objects get
 
 
 def _textured_quad(pyrender: Any, side_mm: float, texture_rgb: np.ndarray, repeats: float) -> Any:
@@ -74,18 +73,9 @@ def _textured_quad(pyrender: Any, side_mm: float, texture_rgb: np.ndarray, repea
     return pyrender.Mesh([primitive])
 
 
-def _random_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
-    """A procedural texture between two random colours, ``(size, size, 3)`` uint8."""
-    weight = np.clip(procedural_texture(rng, size), 0.0, 1.0)[..., None]
-    colours = rng.uniform(0.05, 0.95, size=(2, 3))
-    return np.round(255 * (weight * colours[0] + (1 - weight) * colours[1])).astype(np.uint8)
-
-
-def _random_material(pyrender: Any, rng: np.random.Generator) -> Any:
-    """Mostly grey plastic or metal like T-LESS parts, sometimes coloured."""
-    colour = np.full(3, rng.uniform(0.3, 0.9)) if rng.random() < 0.6 else rng.uniform(0.15, 0.9, size=3)
-    return pyrender.MetallicRoughnessMaterial(baseColorFactor=[*colour, 1.0], metallicFactor=rng.uniform(0.0, 0.5),
-                                              roughnessFactor=rng.uniform(0.3, 0.9))
+def _material(pyrender: Any, draw: MaterialDraw) -> Any:
+    return pyrender.MetallicRoughnessMaterial(baseColorFactor=[*draw.colour, 1.0], metallicFactor=draw.metallic,
+                                              roughnessFactor=draw.roughness)
 
 
 def _depth_mesh(pyrender: Any, mesh: trimesh.Trimesh) -> Any:
@@ -109,39 +99,37 @@ class _SceneRenderer:
         self._wide_depth = CentreSampledDepth(self._offscreen, 3 * width, 3 * height)
         self._near_far_mm = (1.0, 2.0)  # of the current image
 
-    def render(self, content: SceneContent, meshes: dict[int, trimesh.Trimesh], K: np.ndarray,
-               rng: np.random.Generator
+    def render(self, content: SceneContent, look: SceneLook, meshes: dict[int, trimesh.Trimesh], K: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, PixelRegion]], list[tuple[int, list]]]:
         """Colour ``(H, W, 3)`` uint8, scene depth [mm], each target's depth alone [mm] in the region of
         the image that it can cover (nothing outside), and its whole silhouette's pixel count and box
         (from a 3x larger image when the border cuts it)."""
         pyrender = self.pyrender
         meshes = {**meshes, **content.distractor_meshes}
-        colour_scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=np.full(3, rng.uniform(0.05, 0.3)))
+        colour_scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=np.full(3, look.ambient))
         depth_scene = pyrender.Scene()
         poses_c = []  # (trimesh, GL pose) of everything but the ground
         for placed in [*content.targets, *content.distractors]:
             R_m2c, t_m2c_mm = model_to_camera(placed, content.R_w2c, content.t_w2c_mm)
             poses_c.append((meshes[placed.key], gl_pose(R_m2c, t_m2c_mm)))
-        wall_material = _random_material(pyrender, rng)
+        materials = [_material(pyrender, draw) for draw in look.objects]
+        wall_material = _material(pyrender, look.wall)
         world_gl = gl_pose(content.R_w2c, content.t_w2c_mm)
         for wall in content.walls:
             poses_c.append((wall, world_gl))
         target_nodes = []
         for index, (mesh, pose) in enumerate(poses_c):
-            material = wall_material if index >= len(content.targets) + len(content.distractors) else \
-                _random_material(pyrender, rng)
+            material = materials[index] if index < len(materials) else wall_material
             colour_scene.add(pyrender.Mesh.from_trimesh(mesh, material=material, smooth=False), pose=pose)
             node = depth_scene.add(_depth_mesh(pyrender, mesh), pose=pose)
             if index < len(content.targets):
                 target_nodes.append(node)
-        texture = _random_texture(rng)
         ground = trimesh.creation.box(extents=[content.ground_side_mm, content.ground_side_mm, 1.0],
                                       transform=trimesh.transformations.translation_matrix([0.0, 0.0, -0.5]))
-        colour_scene.add(_textured_quad(pyrender, content.ground_side_mm, texture, rng.uniform(2.0, 8.0)),
+        colour_scene.add(_textured_quad(pyrender, content.ground_side_mm, look.ground_texture, look.ground_repeats),
                          pose=world_gl)
         depth_scene.add(_depth_mesh(pyrender, ground), pose=world_gl)
-        add_random_lights(pyrender, colour_scene, rng, SCENE_LIGHT_INTENSITY)
+        add_lights(pyrender, colour_scene, look.lights)
         corners_c = _corners_in_camera(content, meshes, poses_c)
         near_mm, far_mm = max(corners_c.min(), 1.0), corners_c.max()
         self._near_far_mm = (near_mm, far_mm)
@@ -245,7 +233,8 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
     K = camera_matrix(settings.width, settings.height)
     for _ in range(MAX_CAMERA_TRIES):  # a draw that shows no target (rare) is drawn again
         content = layouts.draw(rng, K)
-        colour, depth_scene_mm, alone_mm, whole = renderer.render(content, meshes, K, rng)
+        look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
+        colour, depth_scene_mm, alone_mm, whole = renderer.render(content, look, meshes, K)
         results = [instance_gt_info(alone, depth_scene_mm, K, settings.visib_delta_mm, count, box, region)
                    for (alone, region), (count, box) in zip(alone_mm, whole, strict=True)]
         if any(info["px_count_visib"] for _, _, info in results):
