@@ -14,6 +14,7 @@ from . import __version__
 
 COMMAND_MODULES: tuple[str, ...] = (
     "render",
+    "path_trace",
     "preview",
     "train",
     "export",
