@@ -41,7 +41,7 @@ TINY_DETECTOR = DetectorConfig(input_width=128, input_height=96, widths=(4, 4, 8
                                head_convs=1, batch_size=2, score_threshold=0.01, max_detections=5)
 TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
                                        batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2,
-                    train_scenes=2, scene_share=0.5, detector_seconds=1.0, detector=TINY_DETECTOR)
+                    train_scenes=2, scene_share=0.5, detector_seconds=1.0, detector=TINY_DETECTOR, path_traced_images=1)
 BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -85,6 +85,11 @@ def test_report_links_exist_and_tables_are_complete(demo_run: tuple[Path, dict])
     assert 0.0 <= own["detection"]["AP"] <= 1.0 and own["detection"]["detections"] <= 5 * 2
     assert "## The run's own eyes: a detector from the same renders" in report
     assert "| the run's own detector (every instance; a missed one is wrong) |" in report
+    # the first test image of every part path traced: scored on both looks, the difference reported
+    traced = summary["path_traced_scores"]
+    assert traced["images"] == 6 and traced["rendered"].keys() == traced["path_traced"].keys()
+    assert "## What to expect on a real camera: path-traced test images" in report and "| difference |" in report
+    assert len(list((out / "test_path_traced").glob("*/gray/*.png"))) == 6
     assert all(0.0 <= s["groups"]["All objects"]["MSSD"] <= 1.0 for s in summary["cluttered_scores"].values())
     top_k = summary["cluttered_scores"]["population_code"]["best_of_top_k"]
     assert top_k[3]["All objects"] >= top_k[1]["All objects"]

@@ -52,6 +52,8 @@ class Augmentation:
         if not 0.0 <= self.occlusion_p <= 1.0 or not 0.0 < self.occlusion_max_fraction <= 1.0:
             raise PopcodeError(f"occlusion_p must lie in [0, 1] and occlusion_max_fraction in (0, 1], got "
                                f"{self.occlusion_p}, {self.occlusion_max_fraction}")
+        if not 0.0 <= self.noise_sigma <= 1.0 or not 0.0 <= self.noise_p <= 1.0:
+            raise PopcodeError(f"noise_sigma and noise_p must lie in [0, 1], got {self.noise_sigma} and {self.noise_p}")
 
     def draw(self, rng: np.random.Generator, rendered: bool) -> AugmentationDraw:
         """Decide what fires for one sample; brightness, background and occlusion only for rendered images."""

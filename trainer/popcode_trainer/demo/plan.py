@@ -16,6 +16,7 @@ from .steps import SMALL_NETWORK, PipelineSize
 
 FIRST_EPOCHS = "time the first epoch of every model"
 DETECTOR_STAGE = "train the detector"
+PATH_TRACED_STAGE = "path-traced test images"
 # Seconds per unit on the 2-core CPU this project is developed on (small network, 642 x 36 code); the
 # plan rescales its estimate by how long the finished steps really took, so other machines converge.
 SECONDS_PER_RENDERED_IMAGE = 0.008
@@ -29,6 +30,7 @@ SECONDS_PER_DEPTH_INSTANCE = 0.07
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 SECONDS_DETECTOR_EXPORT = 15.0  # the detector's frames read, its ONNX export and parity check
 SECONDS_PER_DETECTED_SCENE = 0.6  # the own detector's boxes, the poses in them and their scoring
+SECONDS_PER_TRACED_IMAGE = 0.25  # 128 x 128 at 32 samples a pixel (0.15 s), scored on both looks
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 
@@ -96,6 +98,8 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
         own_detector = SECONDS_PER_DETECTED_SCENE if size.detector_seconds else 0.0
         stages.append(("cluttered test split",
                        size.cluttered_test_scenes * (SECONDS_PER_CLUTTERED_SCENE + own_detector)))
+    if size.path_traced_images:
+        stages.append((PATH_TRACED_STAGE, objects * size.path_traced_images * SECONDS_PER_TRACED_IMAGE))
     stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
     return StagePlan(stages)
 

@@ -29,6 +29,8 @@ from ..train.network import NetworkConfig
 from .detector_section import own_detector_markdown
 from .detector_step import DETECTIONS_FILE, DETECTOR_STAGE, OWN_DETECTOR_FOLDER, OwnDetectorResults
 from .epoch_budget import EpochFit
+from .path_traced_section import path_traced_markdown, path_traced_summary
+from .path_traced_step import TRACED_FOLDER, PathTracedResults
 from .steps import PipelineSize
 from .targets import DETECTOR_TARGET, clutter_targets, targets_markdown, targets_table
 
@@ -77,6 +79,7 @@ class DemoRun:
     objects_option: str = ""  # the `popcode-train demo` option that selects those parts (empty: the built-in ones)
     code_notes: tuple[str, ...] = ()  # per object group, the code it trained with and why (demo.group_codes)
     render_note: str = ""  # how the single-part renders frame the parts, where not as the renderer does by default
+    path_traced: PathTracedResults | None = None  # the first test images path traced, where the size asks for it
 
     @property
     def seconds(self) -> float:
@@ -215,6 +218,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
         cluttered_markdown(run),
         _own_detector_section(run),
+        _path_traced_section(run),
         _confidence_section(run),
         f"## Runtime latency (one thread, synthetic {BENCH_IMAGE_SHAPE[1]} x {BENCH_IMAGE_SHAPE[0]} scene)\n\n"
         + latency_markdown(run.latency),
@@ -346,6 +350,13 @@ def _own_detector_section(run: DemoRun) -> str:
                                  run.step_seconds.get(DETECTOR_STAGE))
 
 
+def _path_traced_section(run: DemoRun) -> str:
+    if run.path_traced is None:
+        return ""
+    tables = run.out_dir / f"eval_{TRACED_FOLDER}" / REPORT_MD
+    return path_traced_markdown(run.path_traced, run.link(tables))
+
+
 def _confidence_section(run: DemoRun) -> str:
     """The confidence table and, when a model is calibrated, its reliability diagram."""
     reliability = run.out_dir / "eval" / RELIABILITY_PNG
@@ -386,6 +397,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
         "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,
         "confidence": {r.name: r.confidence.to_dict() for r in run.results if r.confidence is not None},
         "cluttered_scores": _cluttered_summary(run.cluttered),
+        "path_traced_scores": path_traced_summary(run.path_traced),
         "models": {name: [str(p) for p in paths] for name, paths in run.models.by_representation.items()},
         "quantised_models": [str(p) for p in run.models.quantised],
         "figures": {title: [str(p) for p in paths] for title, paths in run.figures.items()},

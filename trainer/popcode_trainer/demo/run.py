@@ -44,10 +44,19 @@ from . import epoch_budget
 from .detector_step import DETECTOR_STAGE, OWN_DETECTOR_FOLDER, score_own_detector, train_demo_detector
 from .group_codes import GroupCode, choose_group_codes
 from .parts import BUILTIN, Parts, load_parts
-from .plan import FIRST_EPOCHS, SECONDS_PER_EXPORT, StagePlan, minutes_text, plan, train_stage
+from .path_traced_step import score_path_traced
+from .plan import FIRST_EPOCHS, PATH_TRACED_STAGE, SECONDS_PER_EXPORT, StagePlan, minutes_text, plan, train_stage
 from .report import POPCODE, QUANTISATION, ClutteredResults, DemoRun, TrainedModels, write_outputs
 from .sizes import BASELINE, DEMO_SIZES, HIDDEN_SIZES, DemoSize
-from .steps import PipelineSize, object_groups, render_splits, run_dir, train_and_export, train_first_epoch
+from .steps import (
+    TEST_SEED_OFFSET,
+    PipelineSize,
+    object_groups,
+    render_splits,
+    run_dir,
+    train_and_export,
+    train_first_epoch,
+)
 
 CLUTTERED_SEED_OFFSET = 2000  # training renders use the seed, the clean test split seed + 1000
 LATENCY_BATCHES = (1, 8)
@@ -122,6 +131,12 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
         if size.cluttered_test_scenes:
             with stages.stage("cluttered test split"):
                 cluttered = evaluate_cluttered(size, models, out_dir, parts, detector)
+        path_traced = None
+        if size.path_traced_images:
+            with stages.stage(PATH_TRACED_STAGE):
+                path_traced = score_path_traced([m for m in demo_methods(models) if m.name == POPCODE], parts,
+                                                size.path_traced_images, size.config.train.seed + TEST_SEED_OFFSET,
+                                                out_dir)
         with stages.stage("latency"):
             latency = measure_latency(models, latency_iterations)
         with stages.stage("figures"):
@@ -129,7 +144,7 @@ def run_demo(size_name: str, out_dir: str | Path, size: PipelineSize | None = No
             figures = draw_figures(results, split, models, run_dirs, out_dir / "figures")
         run = DemoRun(size_name, size, groups, out_dir, models, split, results, latency, figures, dict(stages.done),
                       cluttered, epoch_fit, parts.describe(), parts.objects_option(), tuple(g.note for g in codes),
-                      parts.fill_range()[1])
+                      parts.fill_range()[1], path_traced)
         summary = write_outputs(run)
         print(f"\ndone in {minutes_text(time.perf_counter() - started)}; report: {summary['report']}", flush=True)
         return summary

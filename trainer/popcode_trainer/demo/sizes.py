@@ -50,17 +50,17 @@ DEMO_SIZES = {
     # (bench/results/box-noise-training.md).
     "quick": DemoSize(PipelineSize(2000, 40, small_config(epochs=10, n_axes=642, n_angles=36), (POPCODE, BASELINE),
                                    cluttered_test_scenes=40, train_scenes=150, scene_share=SCENE_SHARE,
-                                   detector_seconds=150.0, detector=DEMO_DETECTOR),
+                                   detector_seconds=150.0, detector=DEMO_DETECTOR, path_traced_images=10),
                       "about 15 minutes on a 2-core CPU", minutes=12.0, epoch_bounds=(4, 40)),
     "medium": DemoSize(PipelineSize(4000, 100, small_config(epochs=10, n_axes=642, n_angles=36,
                                                             box_noise=MEDIUM_BOX_NOISE), (POPCODE, BASELINE),
                                     cluttered_test_scenes=100, train_scenes=800, scene_share=SCENE_SHARE,
-                                    detector_seconds=600.0, detector=DEMO_DETECTOR),
+                                    detector_seconds=600.0, detector=DEMO_DETECTOR, path_traced_images=40),
                        "four times quick's time budget: about an hour", minutes=54.0, epoch_bounds=(5, 100)),
     # The paper's defaults (Config()), with data-loader workers for a GPU.
     "paper": DemoSize(PipelineSize(8000, 200, Config(data=DataConfig(num_workers=8)), (POPCODE, BASELINE),
                                    cluttered_test_scenes=200, train_scenes=4000, scene_share=SCENE_SHARE,
-                                   detector_seconds=3600.0, detector=DEMO_DETECTOR),
+                                   detector_seconds=3600.0, detector=DEMO_DETECTOR, path_traced_images=100),
                       "the paper's code, network and schedule; for a GPU"),
 }
 
@@ -73,7 +73,7 @@ HIDDEN_SIZES = {
     "smoke": DemoSize(PipelineSize(8, 2, small_config(epochs=2, n_axes=42, n_angles=12, network=SMOKE_NETWORK,
                                                       sigma_deg=30.0, batch_size=4), (POPCODE, BASELINE),
                                    cluttered_test_scenes=2, train_scenes=2, scene_share=0.5, detector_seconds=1.0,
-                                   detector=SMOKE_DETECTOR),
+                                   detector=SMOKE_DETECTOR, path_traced_images=1),
                       "every step in seconds, for tests; its scores mean nothing"),
 }
 SMOKE_LATENCY_ITERATIONS = 3

@@ -48,6 +48,7 @@ RENDER_PROCESSES = 8  # at most this many shards of a split rendered side by sid
 GPU_LOADER_WORKERS = 8  # 14 trained no faster on a 16-core H100 machine (bench/results/shipped-models.md)
 MIN_IMAGES_PER_PROCESS_START = 400  # a process starts in seconds (spawn, imports): smaller splits render in this one
 IMAGES_PER_SCENE = 25  # a 720 x 540 scene costs about as much as this many 128 x 128 single-part images
+TEST_SEED_OFFSET = 1000  # the clean test split renders with seed + 1000
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
@@ -73,11 +74,15 @@ class PipelineSize:
     scene_share: float = 0.0  # the share of scene crops in an epoch when there are training scenes
     detector_seconds: float = 0.0  # training time of a detector on the training scenes (0: none)
     detector: DetectorConfig = field(default_factory=DetectorConfig)  # with detector_seconds: its recipe
+    path_traced_images: int = 0  # per object: the first test images path traced and scored too (0: none)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.scene_share < 1.0 or (self.scene_share > 0) != (self.train_scenes > 0):
             raise PopcodeError(f"scene_share must lie in [0, 1) and be positive exactly when there are training "
                                f"scenes; got {self.scene_share} with {self.train_scenes} scenes")
+        if not 0 <= self.path_traced_images <= self.test_images_per_object:
+            raise PopcodeError(f"path_traced_images must lie in [0, test_images_per_object], got "
+                               f"{self.path_traced_images}")
         if self.detector_seconds < 0 or (self.detector_seconds > 0 and not self.train_scenes):
             raise PopcodeError(f"a detector trains on the training scenes: detector_seconds {self.detector_seconds} "
                                f"needs train_scenes > 0, got {self.train_scenes}")
@@ -134,7 +139,7 @@ def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True,
         in_processes(partial(parts.render_scenes, scene_split_of(train_split), size.train_scenes,
                              seed + TRAIN_SCENES_SEED_OFFSET), progress,
                      _render_processes(size.train_scenes * IMAGES_PER_SCENE))
-    test_split = parts.render_split(out_dir / "test", size.test_images_per_object, seed + 1000, progress)
+    test_split = parts.render_split(out_dir / "test", size.test_images_per_object, seed + TEST_SEED_OFFSET, progress)
     return train_split, test_split
 
 

@@ -60,6 +60,8 @@ class DataConfig:
     val_fraction: float = 0.1
     augment: bool = True
     occlusion_p: float = 0.0  # rendered crops: probability of an occluder over part of the object (not the paper's)
+    noise_sigma: float = 0.02  # Gaussian grain on crops (intensities in [0, 1]), the paper's strength ...
+    noise_p: float = 0.5  # ... and probability; stronger grain is a lever against the renderer's clean look
     background: str = "auto"  # "auto": pasted behind single-object renders, scenes keep their own clutter
     box_noise: str = "none"  # training crops from detector-like boxes: a preset of data.box_noise
     box_noise_p: float = 1.0  # the share of training crops cut from such a box (the rest: the true box)

@@ -103,7 +103,8 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
                                           code.sigma_from_symmetries, cfg.loss)
     train, val = split.train, split.val
     data = config.data
-    augmentation = Augmentation(occlusion_p=data.occlusion_p) if data.augment else None
+    augmentation = Augmentation(noise_sigma=data.noise_sigma, noise_p=data.noise_p,
+                                occlusion_p=data.occlusion_p) if data.augment else None
     size = data.crop_size
     cache = Path(data.cache_dir) if data.cache_dir else Path(cfg.out_dir) / CROP_CACHE_FOLDER
     return TrainingData(

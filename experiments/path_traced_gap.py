@@ -1,0 +1,148 @@
+"""What the rasteriser's look costs: models scored on validation splits and on the same splits path traced.
+
+    python -m experiments.path_traced_gap [--method NAME=MODEL[,MODEL...] ...] [--work runs/path_traced]
+        [--images 20] [--scenes 20] [--samples 32] [--name path-traced-gap]
+
+Renders the project's validation splits (clean single parts, seed 5000; a bin with the industrial camera, seed
+4000: no recipe is reported on a test split), path traces them (``popcode-train path-trace``: same scenes,
+poses and sensor draw, physically based metals, plastics and lights), and scores each method on all four with
+``popcode-train evaluate`` (ground-truth boxes, instances at least 10 % visible, argmax). Since the ground truth
+is shared, every instance is scored twice: the drop is paired, with a bootstrap 95 % interval over instances.
+The default method is the shipped models. ``--work`` keeps the splits and scores: a rerun resumes.
+Results: ``bench/results/<name>.{json,md}``, with the machine and the path tracer's seconds an image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from popcode_trainer.cli import main as trainer
+from popcode_trainer.data.bop import load_models_info
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.metrics.recall import Thresholds
+from tools.command import run_command
+from tools.paths import RESULTS, ROOT, SHIPPED_MODELS
+from tools.report import machine, machine_line, write_results
+
+SHIPPED = "shipped=" + ",".join(str(path.relative_to(ROOT)) for path in SHIPPED_MODELS)
+SPLITS = {  # name: render options of the validation split
+    "clean": ["--images", "{images}", "--seed", "5000"],
+    "bin": ["--scenes", "{scenes}", "--seed", "4000", "--sensor", "industrial"],
+}
+LOOKS = ("rendered", "path_traced")
+MIN_VISIB_FRACT = "0.1"
+BOOTSTRAP_DRAWS = 2000
+
+
+def _run(argv: list[str]) -> None:
+    if trainer(argv) != 0:
+        raise SystemExit(f"popcode-train {' '.join(argv)} failed")
+
+
+def prepare_splits(work: Path, images: int, scenes: int, samples: int) -> dict[str, float]:
+    """Render and path trace each validation split (resumes); returns the path tracer's seconds an image."""
+    seconds = {}
+    for split, options in SPLITS.items():
+        rendered, traced = work / f"{split}_rendered", work / f"{split}_path_traced"
+        _run(["render", "--objects", "builtin", "--out", str(rendered), "--quiet",
+              *[option.format(images=images, scenes=scenes) for option in options]])
+        start = time.perf_counter()
+        before = len(list(traced.glob("*/.popcode_records/*.json")))
+        _run(["path-trace", "--split", str(rendered), "--out", str(traced), "--samples", str(samples), "--quiet"])
+        traced_now = len(list(traced.glob("*/.popcode_records/*.json"))) - before
+        if traced_now:
+            seconds[split] = (time.perf_counter() - start) / traced_now
+    return seconds
+
+
+def instance_scores(work: Path, split: str, look: str, method: str, models: Sequence[str | Path],
+                    obj_ids: Sequence[int] = ()) -> dict[tuple, float]:
+    """Each instance's MSSD score (the share of BOP's thresholds its error is below) of ``obj_ids`` (default:
+    the models'), keyed by its identity; scored once into ``work/scores`` (delete it to score again)."""
+    out = work / "scores" / f"{method}_{split}_{look}"
+    errors = out / f"errors_{method}.csv"
+    if not errors.is_file():
+        _run(["evaluate", "--split", str(work / f"{split}_{look}"),
+              "--models-dir", str(work / f"{split}_rendered" / "models"), "--min-visib-fract", MIN_VISIB_FRACT,
+              "--no-vsd", "--out", str(out), "--overwrite", *(["--obj-ids", *map(str, obj_ids)] if obj_ids else []),
+              *[option for _ in models for option in ("--name", method)], *map(str, models)])
+    diameters = {obj_id: float(info["diameter"]) for obj_id, info in
+                 load_models_info(work / f"{split}_rendered" / "models").items()}
+    fractions = np.asarray(Thresholds().mssd_fractions)
+    scores = {}
+    with errors.open() as handle:
+        for row in csv.DictReader(handle):
+            key = (int(row["scene_id"]), int(row["im_id"]), int(row["gt_index"]))
+            scores[key] = float((float(row["mssd_mm"]) / diameters[int(row["obj_id"])] < fractions).mean())
+    return scores
+
+
+def paired_drop(rendered: dict[tuple, float], traced: dict[tuple, float], seed: int = 0) -> dict[str, Any]:
+    """Both looks' MSSD (%), the drop and its bootstrap 95 % interval over the instances both scored."""
+    if rendered.keys() != traced.keys():
+        raise SystemExit("the two looks were scored on different instances: the splits are not paired")
+    keys = sorted(rendered)
+    a, b = np.array([rendered[k] for k in keys]), np.array([traced[k] for k in keys])
+    draws = np.random.default_rng(seed).integers(len(keys), size=(BOOTSTRAP_DRAWS, len(keys)))
+    drops = 100.0 * (b[draws].mean(axis=1) - a[draws].mean(axis=1))
+    return {"instances": len(keys), "rendered": 100.0 * a.mean(), "path_traced": 100.0 * b.mean(),
+            "drop": 100.0 * (b.mean() - a.mean()),
+            "drop_interval": [float(np.percentile(drops, 2.5)), float(np.percentile(drops, 97.5))]}
+
+
+def parse_method(text: str) -> tuple[str, list[str]]:
+    name, _, models = text.partition("=")
+    if not name or not models:
+        raise SystemExit(f"--method {text!r}: give NAME=MODEL[,MODEL...]")
+    return name, models.split(",")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--method", action="append", help=f"NAME=MODEL[,MODEL...] (default {SHIPPED})")
+    parser.add_argument("--work", type=Path, default=Path("runs/path_traced"))
+    parser.add_argument("--images", type=int, default=20, help="clean images a part")
+    parser.add_argument("--scenes", type=int, default=20, help="bin scenes")
+    parser.add_argument("--samples", type=int, default=32, help="path tracer's samples a pixel")
+    parser.add_argument("--name", default="path-traced-gap")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    methods = dict(parse_method(text) for text in (args.method or [SHIPPED]))
+    seconds = prepare_splits(args.work, args.images, args.scenes, args.samples)
+    results: dict[str, dict[str, Any]] = {}
+    for method, models in methods.items():
+        results[method] = {split: paired_drop(*(instance_scores(args.work, split, look, method, models)
+                                                for look in LOOKS)) for split in SPLITS}
+    rows = [[method, split, str(result["instances"]), f"{result['rendered']:.1f}", f"{result['path_traced']:.1f}",
+             f"{result['drop']:+.1f} [{result['drop_interval'][0]:+.1f}, {result['drop_interval'][1]:+.1f}]"]
+            for method, by_split in results.items() for split, result in by_split.items()]
+    description = machine()
+    markdown = "\n".join([
+        f"# {args.name}: validation splits rendered and path traced",
+        "",
+        "`" + " ".join(["python -m experiments.path_traced_gap", *(sys.argv[1:] if argv is None else argv)]) + "`",
+        "",
+        markdown_table(["method", "split", "instances", "rendered MSSD %", "path-traced MSSD %",
+                        "paired drop (95 % interval)"], rows),
+        "",
+        f"Path tracer: {json.dumps({k: round(v, 2) for k, v in seconds.items()})} seconds an image in this run "
+        f"(empty: traced before). {machine_line(description)}",
+    ])
+    write_results(args.out, args.name, {"methods": methods, "results": results, "path_trace_seconds": seconds,
+                                        "samples": args.samples, "images": args.images, "scenes": args.scenes},
+                  markdown)
+    print(markdown)
+    return 0
+
+
+if __name__ == "__main__":
+    run_command("path_traced_gap", main)
