@@ -241,6 +241,12 @@ def test_occlusion_is_off_by_default_and_hides_part_of_the_object_when_on(split)
         Augmentation(occlusion_p=1.5)
 
 
+@pytest.mark.parametrize("settings", [{"noise_sigma": -0.1}, {"noise_sigma": float("nan")}, {"noise_p": 1.5}])
+def test_grain_out_of_range_is_refused(settings: dict) -> None:
+    with pytest.raises(PopcodeError, match="noise_sigma and noise_p must lie in"):
+        Augmentation(**settings)
+
+
 def test_noise_is_gaussian_with_the_configured_sigma_and_differs_per_crop(split) -> None:
     only_noise = Augmentation(brightness_p=0.0, background_p=0.0, noise_p=1.0, noise_sigma=0.05, shift_p=0.0)
     nothing = dataclasses.replace(only_noise, noise_p=0.0)

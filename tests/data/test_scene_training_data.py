@@ -62,9 +62,11 @@ def test_scenes_keep_their_clutter_and_single_renders_get_a_background(scenes: P
 
 def test_split_weights_set_each_splits_share_of_an_epoch(scenes: Path, builtin_split: Path, tmp_path: Path) -> None:
     models_dir = scenes / BUILTIN_MODELS_FOLDER
-    config = _config([builtin_split, scenes], models_dir, tmp_path / "run", split_weights=[1.0, 3.0])
+    config = _config([builtin_split, scenes], models_dir, tmp_path / "run", split_weights=[1.0, 3.0],
+                     noise_sigma=0.07, noise_p=0.9)
     data = build_training_data(config, progress=False)
     dataset = data.train_set
+    assert (dataset.augmentation.noise_sigma, dataset.augmentation.noise_p) == (0.07, 0.9)  # the config's grain
     from_scenes = np.array([dataset.instances[dataset.instance_index(p)].cluttered for p in range(len(dataset))])
     n = len(dataset)
     assert abs(from_scenes.mean() - 0.75) <= 4 * np.sqrt(0.75 * 0.25 / n)

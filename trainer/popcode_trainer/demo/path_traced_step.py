@@ -2,7 +2,7 @@
 metals, plastics and lights) and scored beside the same images as the rasteriser drew them.
 
 The models never saw a path-traced image, so the drop between the two is what the rasteriser's look costs
-them (for the shipped models, on larger validation splits: bench/results/path-traced-gap.md). Without the
+them (for the shipped models, on larger validation splits: bench/results/path-traced.md). Without the
 optional Mitsuba extra the step says what to install and the report says it was skipped.
 """
 
