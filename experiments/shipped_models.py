@@ -3,7 +3,7 @@ fitted to a time budget, exported as the demo exports them (ONNX fp32, static in
 
     python -m experiments.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
         [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--scene-share S] [--network NAME]
-        [--render-only]
+        [--traced-images N --traced-share S] [--render-only]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -16,7 +16,9 @@ arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` chang
 check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
 budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
 detector-like boxes; ``--scene-share`` the share of an epoch's crops cut from the training scenes;
-``--network`` trains another of :data:`tools.recipes.NETWORKS` (the trunk's width).
+``--network`` trains another of :data:`tools.recipes.NETWORKS` (the trunk's width); ``--traced-images`` path
+traces that many further single-part images a part (``popcode-train path-trace``) and ``--traced-share`` gives
+them that share of every epoch's crops (bench/results/path-traced.md).
 ``--render-only`` renders the data and stops: variants trained side by side on one GPU (its eager step leaves it
 mostly idle) then each get an ``--out`` holding links to these splits. Rerunning with the same ``--out``
 resumes, as the demo does. ``--compile on`` compiles the step (on a GPU with CUDA graphs: the eager step of

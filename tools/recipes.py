@@ -55,6 +55,10 @@ def shipped_arguments(argv: Sequence[str] | None,
                         help="share of an epoch's crops cut from the training scenes instead of the medium size's")
     parser.add_argument("--network", choices=list(NETWORKS),
                         help="the network to train instead of the medium size's (tools.recipes.NETWORKS)")
+    parser.add_argument("--traced-images", type=int, default=0, metavar="N",
+                        help="single-part training images a part path traced (popcode-train path-trace; default 0)")
+    parser.add_argument("--traced-share", type=float, default=0.0, metavar="S",
+                        help="share of an epoch's crops from the path-traced images (with --traced-images)")
     parser.add_argument("--render-only", action="store_true", help="render the data into --out and stop")
     args = parser.parse_args(argv)
     if not args.minutes > 0:
@@ -79,5 +83,6 @@ def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
     size = replace(demo.pipeline, representations=(POPCODE,), config=config,
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
                    train_scenes=args.scenes or demo.pipeline.train_scenes,
-                   scene_share=demo.pipeline.scene_share if args.scene_share is None else args.scene_share)
+                   scene_share=demo.pipeline.scene_share if args.scene_share is None else args.scene_share,
+                   traced_train_images=args.traced_images, traced_share=args.traced_share)
     return demo, size

@@ -14,9 +14,18 @@ import numpy as np
 import pytest
 from hostile_cases import error_lines
 
+from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.cli import main as trainer
 from popcode_trainer.data.path_trace import PathTraceSettings
 from popcode_trainer.data.path_traced_split import path_trace_split
+from popcode_trainer.demo.steps import (
+    PipelineSize,
+    render_splits,
+    scene_split_of,
+    small_config,
+    traced_split_of,
+    training_config,
+)
 
 SAMPLES = ["--samples", "4"]
 
@@ -164,3 +173,19 @@ def test_a_missing_renderer_says_what_to_install(rendered: dict[str, Path], tmp_
     line = _refusal(["path-trace", "--split", str(rendered["clean"]), "--out", str(tmp_path / "out"), "--quiet"],
                     monkeypatch)
     assert "pip install 'popcode-trainer[pathtrace]'" in line
+
+
+def test_a_run_trains_on_a_share_of_path_traced_images(tmp_path: Path) -> None:
+    """``traced_train_images`` renders further single parts and path traces them beside the training split;
+    ``traced_share`` is their share of every epoch's crops, beside the scenes'."""
+    size = PipelineSize(2, 1, small_config(epochs=1, n_axes=42, n_angles=12), ("population_code",),
+                        train_scenes=1, scene_share=0.25, traced_train_images=1, traced_share=0.25)
+    train_split, _ = render_splits(size, tmp_path, progress=False)
+    traced = traced_split_of(train_split)
+    assert len(list(traced.glob("*/gray/*.png"))) == 6
+    assert json.loads((traced / "popcode_render.json").read_text())["path_traced"]["seed"] == 1  # not validation's
+    config = training_config(size, "population_code", [1, 2], train_split, tmp_path / "run")
+    assert config.data.splits == (str(train_split), str(traced), str(scene_split_of(train_split)))
+    assert config.data.split_weights == (0.5, 0.25, 0.25)
+    with pytest.raises(PopcodeError, match="traced_share must lie in"):
+        PipelineSize(2, 1, size.config, traced_train_images=1, traced_share=0.0)

@@ -30,7 +30,7 @@ SECONDS_PER_DEPTH_INSTANCE = 0.07
 SECONDS_PER_CLUTTERED_SCENE = 1.0  # rendering (0.3 s) and scoring its ~6.5 instances with two methods
 SECONDS_DETECTOR_EXPORT = 15.0  # the detector's frames read, its ONNX export and parity check
 SECONDS_PER_DETECTED_SCENE = 0.6  # the own detector's boxes, the poses in them and their scoring
-SECONDS_PER_TRACED_IMAGE = 0.25  # 128 x 128 at 32 samples a pixel (0.15 s), scored on both looks
+SECONDS_PER_TRACED_IMAGE = 0.2  # 128 x 128 at 32 samples a pixel (bench/results/path-traced.md)
 SECONDS_LATENCY = 10.0
 SECONDS_FIGURES = 10.0
 
@@ -83,7 +83,9 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
     per_epoch = {(representation, tuple(obj_ids)): len(obj_ids) * size.train_images_per_object
                  * SECONDS_PER_TRAINING_SAMPLE * max(1.0, width ** (1 / 3))
                  for representation in size.representations for obj_ids in groups}
-    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE)]
+    traced = objects * size.traced_train_images * (SECONDS_PER_RENDERED_IMAGE + SECONDS_PER_TRACED_IMAGE)
+    stages = [("render", images * SECONDS_PER_RENDERED_IMAGE + size.train_scenes * SECONDS_PER_TRAINING_SCENE
+               + traced)]
     if size.detector_seconds:
         stages.append((DETECTOR_STAGE, size.detector_seconds + SECONDS_DETECTOR_EXPORT))
     if fit_epochs:
@@ -99,7 +101,8 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
         stages.append(("cluttered test split",
                        size.cluttered_test_scenes * (SECONDS_PER_CLUTTERED_SCENE + own_detector)))
     if size.path_traced_images:
-        stages.append((PATH_TRACED_STAGE, objects * size.path_traced_images * SECONDS_PER_TRACED_IMAGE))
+        stages.append((PATH_TRACED_STAGE, objects * size.path_traced_images
+                       * (SECONDS_PER_TRACED_IMAGE + 2 * SECONDS_PER_EVALUATED_INSTANCE)))
     stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
     return StagePlan(stages)
 

@@ -30,6 +30,8 @@ from popcode_runtime.coding.population_code import PAPER_SIGMA_DEG
 from popcode_runtime.geometry.symmetries import SymmetryClass, continuous_axis, symmetry_class
 from popcode_runtime.model.metadata import Representation, RotationFrame
 
+from ..data.path_trace import PathTraceSettings
+from ..data.path_traced_split import path_trace_split
 from ..data.render import BUILTIN_MODELS_FOLDER
 from ..detection.config import DetectorConfig
 from ..export.confidence_fit import calibrate_checkpoint
@@ -50,6 +52,9 @@ MIN_IMAGES_PER_PROCESS_START = 400  # a process starts in seconds (spawn, import
 IMAGES_PER_SCENE = 25  # a 720 x 540 scene costs about as much as this many 128 x 128 single-part images
 TEST_SEED_OFFSET = 1000  # the clean test split renders with seed + 1000
 TRAIN_SCENES_SEED_OFFSET = 3000  # the clean test split renders with seed + 1000, the cluttered one seed + 2000
+# Single parts path traced for training: seed + 7000 (4000 to 6002 are the experiments' validation and test seeds),
+# their materials and lights drawn with path-trace seed 1 (the validation splits' are drawn with 0).
+TRACED_TRAIN_SEED_OFFSET, TRACED_TRAIN_LOOK_SEED = 7000, 1
 ALL_REPRESENTATIONS = (Representation.POPULATION_CODE, Representation.SINGLE_VARIABLE,
                        Representation.ONE_HOT, Representation.MULTI_HYPOTHESIS)
 
@@ -75,11 +80,18 @@ class PipelineSize:
     detector_seconds: float = 0.0  # training time of a detector on the training scenes (0: none)
     detector: DetectorConfig = field(default_factory=DetectorConfig)  # with detector_seconds: its recipe
     path_traced_images: int = 0  # per object: the first test images path traced and scored too (0: none)
+    traced_train_images: int = 0  # per object: single-part training images path traced (0: none) ...
+    traced_share: float = 0.0  # ... and their share of every epoch's crops (bench/results/path-traced.md)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.scene_share < 1.0 or (self.scene_share > 0) != (self.train_scenes > 0):
             raise PopcodeError(f"scene_share must lie in [0, 1) and be positive exactly when there are training "
                                f"scenes; got {self.scene_share} with {self.train_scenes} scenes")
+        if self.traced_train_images < 0 or (self.traced_share > 0) != (self.traced_train_images > 0) or \
+                not 0.0 <= self.traced_share < 1.0 - self.scene_share:
+            raise PopcodeError(f"traced_share must lie in [0, 1 - scene_share) and be positive exactly when there are "
+                               f"path-traced training images; got {self.traced_share} with "
+                               f"{self.traced_train_images} images and scene_share {self.scene_share}")
         if not 0 <= self.path_traced_images <= self.test_images_per_object:
             raise PopcodeError(f"path_traced_images must lie in [0, test_images_per_object], got "
                                f"{self.path_traced_images}")
@@ -126,6 +138,11 @@ def scene_split_of(train_split: Path) -> Path:
     return train_split.with_name(f"{train_split.name}_scenes")
 
 
+def traced_split_of(train_split: Path) -> Path:
+    """Where the path-traced training images of a run lie, beside its single-part training split."""
+    return train_split.with_name(f"{train_split.name}_path_traced")
+
+
 def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True,
                   parts: Parts | None = None) -> tuple[Path, Path]:
     """The training split (and its scenes, :func:`scene_split_of`) and a separate test split (other seed), all
@@ -139,6 +156,11 @@ def render_splits(size: PipelineSize, out_dir: Path, progress: bool = True,
         in_processes(partial(parts.render_scenes, scene_split_of(train_split), size.train_scenes,
                              seed + TRAIN_SCENES_SEED_OFFSET), progress,
                      _render_processes(size.train_scenes * IMAGES_PER_SCENE))
+    if size.traced_train_images:
+        source = parts.render_split(train_split.with_name(f"{train_split.name}_for_tracing"), size.traced_train_images,
+                                    seed + TRACED_TRAIN_SEED_OFFSET, progress)
+        path_trace_split(source, traced_split_of(train_split), PathTraceSettings(seed=TRACED_TRAIN_LOOK_SEED),
+                         progress=progress)
     test_split = parts.render_split(out_dir / "test", size.test_images_per_object, seed + TEST_SEED_OFFSET, progress)
     return train_split, test_split
 
@@ -188,11 +210,16 @@ def training_config(size: PipelineSize, representation: str, obj_ids: Sequence[i
     the run caches its crops beside the training split, so the models of one object group decode them once.
     """
     loss = size.config.train.loss if representation == Representation.POPULATION_CODE else TrainConfig.loss
-    splits, weights = (str(split),), ()
-    if size.train_scenes:
-        splits, weights = (*splits, str(scene_split_of(split))), (1.0 - size.scene_share, size.scene_share)
+    splits, weights = [str(split)], [1.0 - size.scene_share - size.traced_share]
+    for folder, share in ((traced_split_of(split), size.traced_share), (scene_split_of(split), size.scene_share)):
+        if share:
+            splits.append(str(folder))
+            weights.append(share)
+    if len(splits) == 1:
+        weights = []
     config = replace(size.config, code=code or size.config.code,
-                     data=replace(size.config.data, splits=splits, split_weights=weights, obj_ids=tuple(obj_ids),
+                     data=replace(size.config.data, splits=tuple(splits), split_weights=tuple(weights),
+                                  obj_ids=tuple(obj_ids),
                                   models_dir=str(split / BUILTIN_MODELS_FOLDER),
                                   num_workers=loader_workers(size.config),
                                   cache_dir=str(split.parent / CROP_CACHE_FOLDER)),
