@@ -9,7 +9,8 @@ the path-traced frame gets the same noise, blur and exposure draw. Only the part
 lights are new (:mod:`.path_trace`, seeded by :attr:`.PathTraceSettings.seed`).
 
 The ground truth is geometry and stays: depth, masks, records and scene tables are copied, so scores on
-the two splits are paired instance by instance. An image counts as done once its record is copied (last,
+the two splits are paired instance by instance (a sensor preset's depth keeps the holes it has where the
+rasterised image was dark). An image counts as done once its record is copied (last,
 atomically); a rerun renders what is missing. An image that cannot be rendered stops the run, named.
 """
 
