@@ -33,9 +33,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from experiments.path_traced_gap import LOOKS, SPLITS, instance_scores
+from experiments.path_traced_gap import LOOKS, SPLITS, instance_scores, paired
 from popcode_runtime.base.files import read_json, write_json_atomic
 from popcode_trainer.cli import main as trainer
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER, render_builtin_split
@@ -55,7 +53,6 @@ TRACED_SEED = 7  # of the single parts path traced for training: no validation i
 TRACED_SHARE = 0.25  # of every epoch's crops, taken from the single parts' share
 SCENE_SAMPLES = 8  # a 720 x 540 scene path traces in seconds at 8 samples a pixel, not half a minute at 32
 GRAIN = {"noise_sigma": 0.06, "noise_p": 0.8}
-BOOTSTRAP_DRAWS = 2000
 TRACE_SECONDS = "path_trace_seconds.json"  # in --work: what tracing the training splits cost
 
 
@@ -119,13 +116,10 @@ def train_lever(lever: str, splits: dict[str, Any], work: Path, crop_updates: in
     return {"epochs": epochs, "epoch_crops": len(data.train_set), **training_so_far(run_dir)}
 
 
-def paired_gain(reference: dict[tuple, float], lever: dict[tuple, float], seed: int = 0) -> dict[str, Any]:
-    keys = sorted(reference)
-    a, b = np.array([reference[k] for k in keys]), np.array([lever[k] for k in keys])
-    draws = np.random.default_rng(seed).integers(len(keys), size=(BOOTSTRAP_DRAWS, len(keys)))
-    gains = 100.0 * (b[draws].mean(axis=1) - a[draws].mean(axis=1))
-    return {"mssd": 100.0 * b.mean(), "gain": 100.0 * (b.mean() - a.mean()),
-            "gain_interval": [float(np.percentile(gains, 2.5)), float(np.percentile(gains, 97.5))]}
+def paired_gain(reference: dict[tuple, float], lever: dict[tuple, float]) -> dict[str, Any]:
+    result = paired(reference, lever)
+    return {"mssd": 100.0 * result.second, "gain": 100.0 * result.difference,
+            "gain_interval": [100.0 * v for v in result.interval]}
 
 
 def _cell(result: dict[str, Any], reference: bool) -> str:
@@ -182,4 +176,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("look_levers", main)
+    run_command("experiments.look_levers", main)

@@ -28,7 +28,7 @@ import numpy as np
 from popcode_trainer.cli import main as trainer
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.metrics.recall import Thresholds
+from popcode_trainer.metrics.paired import PairedDifference, instance_mssd_scores, paired_difference
 from tools.command import run_command
 from tools.paths import RESULTS, ROOT, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
@@ -40,7 +40,6 @@ SPLITS = {  # name: render options of the validation split
 }
 LOOKS = ("rendered", "path_traced")
 MIN_VISIB_FRACT = "0.1"
-BOOTSTRAP_DRAWS = 2000
 
 
 def _run(argv: list[str]) -> None:
@@ -77,26 +76,27 @@ def instance_scores(work: Path, split: str, look: str, method: str, models: Sequ
               *[option for _ in models for option in ("--name", method)], *map(str, models)])
     diameters = {obj_id: float(info["diameter"]) for obj_id, info in
                  load_models_info(work / f"{split}_rendered" / "models").items()}
-    fractions = np.asarray(Thresholds().mssd_fractions)
-    scores = {}
     with errors.open() as handle:
-        for row in csv.DictReader(handle):
-            key = (int(row["scene_id"]), int(row["im_id"]), int(row["gt_index"]))
-            scores[key] = float((float(row["mssd_mm"]) / diameters[int(row["obj_id"])] < fractions).mean())
-    return scores
+        rows = list(csv.DictReader(handle))
+    scores = instance_mssd_scores(np.array([float(row["mssd_mm"]) for row in rows]),
+                                  np.array([int(row["obj_id"]) for row in rows]), diameters)
+    return {(int(row["scene_id"]), int(row["im_id"]), int(row["gt_index"])): float(score)
+            for row, score in zip(rows, scores, strict=True)}
 
 
-def paired_drop(rendered: dict[tuple, float], traced: dict[tuple, float], seed: int = 0) -> dict[str, Any]:
+def paired(first: dict[tuple, float], second: dict[tuple, float]) -> PairedDifference:
+    """``second`` against ``first`` over the instances both scored (the same ones: the splits are paired)."""
+    if first.keys() != second.keys():
+        raise SystemExit("the two were scored on different instances: the splits are not paired")
+    keys = sorted(first)
+    return paired_difference(np.array([first[k] for k in keys]), np.array([second[k] for k in keys]))
+
+
+def paired_drop(rendered: dict[tuple, float], traced: dict[tuple, float]) -> dict[str, Any]:
     """Both looks' MSSD (%), the drop and its bootstrap 95 % interval over the instances both scored."""
-    if rendered.keys() != traced.keys():
-        raise SystemExit("the two looks were scored on different instances: the splits are not paired")
-    keys = sorted(rendered)
-    a, b = np.array([rendered[k] for k in keys]), np.array([traced[k] for k in keys])
-    draws = np.random.default_rng(seed).integers(len(keys), size=(BOOTSTRAP_DRAWS, len(keys)))
-    drops = 100.0 * (b[draws].mean(axis=1) - a[draws].mean(axis=1))
-    return {"instances": len(keys), "rendered": 100.0 * a.mean(), "path_traced": 100.0 * b.mean(),
-            "drop": 100.0 * (b.mean() - a.mean()),
-            "drop_interval": [float(np.percentile(drops, 2.5)), float(np.percentile(drops, 97.5))]}
+    result = paired(rendered, traced)
+    return {"instances": result.instances, "rendered": 100.0 * result.first, "path_traced": 100.0 * result.second,
+            "drop": 100.0 * result.difference, "drop_interval": [100.0 * v for v in result.interval]}
 
 
 def parse_method(text: str) -> tuple[str, list[str]]:
@@ -145,4 +145,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    run_command("path_traced_gap", main)
+    run_command("experiments.path_traced_gap", main)

@@ -15,7 +15,7 @@ from tools.recipes import NETWORKS, shipped_arguments, shipped_size
 
 def _args(**changes: object) -> argparse.Namespace:
     values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None,
-              "scene_share": None, "network": None}
+              "scene_share": None, "network": None, "traced_images": 0, "traced_share": 0.0}
     return argparse.Namespace(**{**values, **changes})
 
 
@@ -42,6 +42,14 @@ def test_a_scene_share_changes_the_mix_alone() -> None:
     _, size = shipped_size(_args(scene_share=0.5))
     assert size.scene_share == 0.5 != medium.scene_share
     assert (size.config, size.train_scenes) == (medium.config, medium.train_scenes)
+
+
+def test_path_traced_images_and_their_share_reach_the_size_alone() -> None:
+    medium = DEMO_SIZES["medium"].pipeline
+    _, size = shipped_size(_args(traced_images=500, traced_share=0.25))
+    assert (size.traced_train_images, size.traced_share) == (500, 0.25)
+    assert (medium.traced_train_images, medium.traced_share) == (0, 0.0)
+    assert (size.config, size.scene_share) == (medium.config, medium.scene_share)
 
 
 def test_a_named_network_replaces_the_recipe_network_alone() -> None:

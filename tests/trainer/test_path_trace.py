@@ -100,11 +100,13 @@ def test_an_interrupted_trace_resumes_with_what_is_missing(rendered: dict[str, P
     out = tmp_path / "resumed"
     settings = PathTraceSettings(samples=2)
     assert path_trace_split(rendered["bin"], out, settings, progress=False).images == 3
-    first = (out / "000000" / "gray" / "000001.png").read_bytes()
+    image = out / "000000" / "gray" / "000001.png"
+    first = cv2.imread(str(image), cv2.IMREAD_GRAYSCALE).astype(np.float32)
     (out / "000000" / ".popcode_records" / "000001.json").unlink()  # as if stopped before its record was written
     again = path_trace_split(rendered["bin"], out, settings, progress=False)
-    assert again.images == 1
-    assert (out / "000000" / "gray" / "000001.png").read_bytes() == first  # the same seeds trace the same image
+    assert again.images == 1, again
+    retraced = cv2.imread(str(image), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    assert np.abs(retraced - first).mean() < 1.0  # the same seeds: the same scene, lights and grain
     assert json.loads((out / "000000" / "scene_gt.json").read_text()).keys() == {"0", "1", "2"}
 
 
@@ -172,7 +174,7 @@ def test_a_missing_renderer_says_what_to_install(rendered: dict[str, Path], tmp_
     monkeypatch.setitem(sys.modules, "mitsuba", None)  # import mitsuba raises ImportError
     line = _refusal(["path-trace", "--split", str(rendered["clean"]), "--out", str(tmp_path / "out"), "--quiet"],
                     monkeypatch)
-    assert "pip install 'popcode-trainer[pathtrace]'" in line
+    assert "pip install mitsuba" in line and "'.[pathtrace]'" in line
 
 
 def test_a_run_trains_on_a_share_of_path_traced_images(tmp_path: Path) -> None:

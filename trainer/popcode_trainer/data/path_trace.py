@@ -4,7 +4,7 @@ The rasteriser (:mod:`.render`, :mod:`.scene_render`) draws flat Lambert-like sh
 material; a camera sees highlights on rough aluminium, soft shadows and light bounced between parts.
 This module renders a list of meshes posed in the OpenCV camera frame (millimetres) with Mitsuba's path
 tracer, so that a split can be seen as a physically based renderer sees it (:mod:`.path_traced_split`).
-Mitsuba is an optional trainer extra (``pip install 'popcode-trainer[pathtrace]'``), never a runtime one.
+Mitsuba is an optional trainer extra (``pip install '.[pathtrace]'``), never a runtime one.
 
 The ``scalar_rgb`` variant is used: Dr.Jit's LLVM variant aborted the process on this machine's LLVM 15
 (an instruction it could not select), and an abort cannot be caught (``bench/results/path-traced.md``).
@@ -22,7 +22,7 @@ import trimesh
 from popcode_runtime.base.errors import PopcodeError
 
 MITSUBA_VARIANT = "scalar_rgb"
-INSTALL_HINT = "pip install 'popcode-trainer[pathtrace]' (or pip install mitsuba)"
+INSTALL_HINT = "pip install mitsuba (the trainer's extra: pip install '.[pathtrace]' in the repository)"
 PART_MATERIALS = ("aluminium", "steel", "grey plastic", "black plastic")  # drawn with equal odds
 MAX_SAMPLES = 4096  # per pixel: beyond it an image takes hours on a CPU
 

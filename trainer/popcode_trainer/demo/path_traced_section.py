@@ -22,6 +22,12 @@ def path_traced_markdown(results: PathTracedResults, link: str) -> str:
             for look, result in (("rendered (as trained)", rendered), ("path traced", traced))]
     rows.append(["difference", *(f"{100 * (traced.groups['All objects'][m] - rendered.groups['All objects'][m]):+.1f}"
                                  for m in metrics)])
+    interval = ""
+    if results.mssd is not None:
+        low, high = results.mssd.interval
+        interval = (f" The MSSD difference, instance by instance, lies within [{100 * low:+.1f}, {100 * high:+.1f}] "
+                    f"with 95 % confidence (bootstrap over the {results.mssd.instances} instances): a difference "
+                    "inside it is noise of the few images drawn.")
     per_object = ", ".join(f"{obj_id}: {100 * rendered.per_object[obj_id]['MSSD']:.0f} → "
                            f"{100 * traced.per_object[obj_id]['MSSD']:.0f}" for obj_id in sorted(rendered.per_object))
     return "\n\n".join([
@@ -33,7 +39,7 @@ def path_traced_markdown(results: PathTracedResults, link: str) -> str:
         f"what a real camera costs. Tables: [{link}]({link}). The shipped models on larger validation splits, and "
         f"what closes the gap: {GAP_RESULTS}.",
         markdown_table(["images", *metrics], rows),
-        f"MSSD per object, rendered → path traced: {per_object}.",
+        f"MSSD per object, rendered → path traced: {per_object}.{interval}",
     ])
 
 
@@ -42,4 +48,5 @@ def path_traced_summary(results: PathTracedResults | None) -> dict[str, Any]:
         return {}
     if results.rendered is None or results.path_traced is None:
         return {"skipped": results.skipped}
-    return {"images": results.images, "rendered": results.rendered.groups, "path_traced": results.path_traced.groups}
+    return {"images": results.images, "rendered": results.rendered.groups, "path_traced": results.path_traced.groups,
+            "mssd_difference": results.mssd.to_dict() if results.mssd else None}

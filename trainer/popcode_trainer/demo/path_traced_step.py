@@ -12,6 +12,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from popcode_runtime.base.errors import PopcodeError
 
 from ..data.path_trace import PathTraceSettings, import_mitsuba
@@ -21,6 +23,7 @@ from ..eval.pipeline.evaluate import MethodResult, evaluate_models
 from ..eval.pipeline.models import Method
 from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.report import write_report
+from ..metrics.paired import PairedDifference, instance_mssd_scores, paired_difference
 from .parts import Parts
 
 RENDERED_FOLDER, TRACED_FOLDER = "test_for_tracing", "test_path_traced"
@@ -33,6 +36,7 @@ class PathTracedResults:
     images: int
     rendered: MethodResult | None = None
     path_traced: MethodResult | None = None
+    mssd: PairedDifference | None = None  # path traced against rendered, instance by instance
     skipped: str = ""  # why, when it was
 
 
@@ -54,4 +58,10 @@ def score_path_traced(methods: Sequence[Method], parts: Parts, images_per_object
         results = evaluate_models(methods, split, vsd=False, progress=False)
         write_report(results, out_dir / f"eval_{folder.name}")
         scores.append(results[0])
-    return PathTracedResults(images_per_object * len(parts.obj_ids), *scores)
+    return PathTracedResults(images_per_object * len(parts.obj_ids), *scores,
+                             mssd=paired_difference(*(_mssd_scores(result) for result in scores)))
+
+
+def _mssd_scores(result: MethodResult) -> np.ndarray:
+    diameters = {obj_id: float(info["diameter"]) for obj_id, info in result.split.models_info.items()}
+    return instance_mssd_scores(result.errors.mssd_mm, result.errors.obj_id, diameters, result.thresholds)
