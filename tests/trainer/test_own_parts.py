@@ -124,6 +124,9 @@ def test_one_command(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
         assert "- object 2: axis-only code, 42 axes, sigma 30 deg (the size's settings" in text
         assert "- object 1: full code 42 x 12" in text
         assert "Object 1 reaches 0.65 of its diameter from its origin" in text  # rendered further away
+    assert "Every model started from random weights: no pretrained start is shipped for this network shape" in report
+    assert set(summary["first_weights"]) == {"population_code_1", "population_code_2", "single_variable_1",
+                                             "single_variable_2"}
     assert f"popcode-train demo --size smoke --objects {models} --out DIR" in card
     lines = [line.split() for line in report.splitlines() if line.startswith("popcode predict ")]
     assert runtime_main([str(out / w) if (out / w).is_file() else w for w in lines[0][1:]]) == 0

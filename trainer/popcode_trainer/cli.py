@@ -17,6 +17,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "path_trace",
     "preview",
     "train",
+    "pretrain",
     "export",
     "evaluate",
     "detections",

@@ -15,6 +15,7 @@ from ..demo.report import REPORT_FILE
 from ..demo.run import describe_parts, prepare_parts, run_demo
 from ..demo.sizes import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
 from ..train.config import MAX_EPOCHS
+from ..train.pretrained import NONE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -44,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="fit the epochs so the whole demo takes about M minutes on this machine "
                              "(every model trains one epoch, then as many as fit)")
     parser.add_argument("--images", type=int, metavar="N", help="training images per object instead of the size's")
+    parser.add_argument("--from-scratch", action="store_true",
+                        help="start every model from random weights, not from the shipped pretrained start of its "
+                             "network (popcode-train pretrain)")
     parser.set_defaults(handler=run)
 
 
@@ -67,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         minutes = args.minutes
     if args.images is not None:
         size = dataclasses.replace(size, train_images_per_object=args.images)
+    if args.from_scratch:
+        size = size.with_init(NONE)
     latency_iterations = SMOKE_LATENCY_ITERATIONS if args.size in HIDDEN_SIZES else 50
     run_demo(args.size, args.out, size, latency_iterations=latency_iterations, minutes=minutes, objects=args.objects)
     return 0

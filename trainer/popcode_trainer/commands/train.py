@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 from ..train.config import load_config
 from ..train.loop import run_lock, train
+from ..train.pretrained import resolve_start
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,11 +21,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="override one setting, e.g. --set train.lr=1e-3 (repeatable; value in TOML syntax)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in train.out_dir from its last checkpoint")
+    parser.add_argument("--from-scratch", action="store_true",
+                        help="start from random weights (same as --set train.init='\"none\"'), not from the "
+                             "shipped pretrained start of the network (train.init 'auto', the default)")
     parser.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config, args.overrides)
+    config = load_config(args.config, [*args.overrides, *(['train.init="none"'] if args.from_scratch else [])])
+    if not args.resume:  # a start that does not fit is refused before the data are read
+        resolve_start(config.train.init, replace(config.network, input_size=config.data.crop_size))
     from ..train.training_data import build_training_data, read_training_split  # once the config is valid
 
     split = read_training_split(config)  # the data checked before the run folder is made

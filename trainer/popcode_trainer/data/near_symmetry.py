@@ -33,6 +33,10 @@ SAME_ROTATION = 1e-6  # largest element difference of two rotation matrices that
 MAX_LOOK_ALIKE_POSES = 1000  # look-alike axes a little off the declared ones would generate ever more poses
 
 
+class LookAlikeWarning(UserWarning):
+    """A part nearly has a symmetry it does not declare (a pretraining on look-alike parts made so silences it)."""
+
+
 @dataclass(frozen=True)
 class LookAlike:
     """An n-fold rotation that nearly maps the mesh onto itself."""

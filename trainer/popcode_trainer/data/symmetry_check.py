@@ -33,7 +33,7 @@ from popcode_runtime.geometry.symmetries import continuous_symmetries, discrete_
 
 from .bop import model_path
 from .meshes import load_mesh
-from .near_symmetry import LookAlike, look_alike_symmetries
+from .near_symmetry import LookAlike, LookAlikeWarning, look_alike_symmetries
 from .surface_sample import PERCENTILE, SurfaceSample, diameter_mm, surface_distance, surface_sample
 
 TOLERANCE = 0.02  # of the diameter: the percentile distance a true symmetry stays under
@@ -223,7 +223,7 @@ def check_object_symmetries(mesh_path: str | Path, info: Mapping[str, Any], obj_
         check_symmetries(mesh, info, name, sample)
         look_alikes = _passed[content] = tuple(look_alike_symmetries(sample, info, _anchors_mm(info, diameter)))
     for look_alike in look_alikes:
-        warnings.warn(look_alike.describe(f"object {obj_id}"), stacklevel=2)
+        warnings.warn(look_alike.describe(f"object {obj_id}"), LookAlikeWarning, stacklevel=2)
     _checked[key] = look_alikes
     return look_alikes
 

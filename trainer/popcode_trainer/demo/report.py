@@ -29,8 +29,10 @@ from ..train.network import NetworkConfig
 from .detector_section import own_detector_markdown
 from .detector_step import DETECTIONS_FILE, DETECTOR_STAGE, OWN_DETECTOR_FOLDER, OwnDetectorResults
 from .epoch_budget import EpochFit
+from .look_alike_section import look_alike_markdown
 from .path_traced_section import path_traced_markdown, path_traced_summary
 from .path_traced_step import TRACED_FOLDER, PathTracedResults
+from .start_section import first_weights, first_weights_text
 from .steps import PipelineSize
 from .targets import DETECTOR_TARGET, clutter_targets, targets_markdown, targets_table
 
@@ -204,7 +206,8 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"with the same network, data and budget ({_epochs_text(run)}; objects pooled as {run.groups}), "
         f"exported ONNX (float and {QUANTISATION}) and scored every model through the runtime with the BOP "
         f"metrics. Took {run.seconds / 60:.1f} min on {machine['cpu']} ({machine['cores']} cores)"
-        f"{_step_path_text(example_metadata.training)}." + (f" {run.render_note}" if run.render_note else ""),
+        f"{_step_path_text(example_metadata.training)}." + (f" {run.render_note}" if run.render_note else "")
+        + f" {first_weights_text(_run_dirs(run))}",
         "\n".join(_code_lines(run)),
         "## Models\n\n" + "\n".join(model_lines)
         + f"\n\nModel card: [{run.link(model_card)}]({run.link(model_card)}). Try one with the runtime alone:\n\n"
@@ -215,6 +218,7 @@ def report_markdown(run: DemoRun, model_card: Path) -> str:
         f"Full tables, per object and per metric: [{run.link(eval_report)}]({run.link(eval_report)})\n\n"
         + _demote_headings(ambiguity_markdown({r.name: r.groups for r in run.results})),
         _targets_section(run),
+        _look_alike_section(run),
         _demote_headings("\n\n".join(full_pose_markdown(run.results))),
         cluttered_markdown(run),
         _own_detector_section(run),
@@ -265,6 +269,16 @@ def _targets_section(run: DemoRun) -> str:
     by_name = {r.name: r for r in run.results}
     run_dirs = [path.parent for path in run.models.by_representation[POPCODE]]
     return targets_markdown(by_name[POPCODE], by_name.get(Representation.SINGLE_VARIABLE), run_dirs)
+
+
+def _look_alike_section(run: DemoRun) -> str:
+    clean = next(r for r in run.results if r.name == POPCODE)
+    cluttered = next((r for r in run.cluttered.methods if r.name == POPCODE), None) if run.cluttered else None
+    return look_alike_markdown(clean, cluttered)
+
+
+def _run_dirs(run: DemoRun) -> list[Path]:
+    return [path.parent for paths in run.models.by_representation.values() for path in paths]
 
 
 def _epochs_text(run: DemoRun) -> str:
@@ -393,6 +407,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
         "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
         "objects": run.parts, "group_codes": list(run.code_notes),
         "epoch_fit": asdict(run.epoch_fit) if run.epoch_fit else None,
+        "first_weights": first_weights(_run_dirs(run)),
         "wall_seconds": run.seconds, "machine": machine_description(), "step_seconds": run.step_seconds,
         "scores": {r.name: r.groups for r in run.results}, "latency": run.latency,
         "confidence": {r.name: r.confidence.to_dict() for r in run.results if r.confidence is not None},

@@ -103,6 +103,10 @@ class PipelineSize:
         """The same run trained for ``epochs`` epochs."""
         return replace(self, config=replace(self.config, train=replace(self.config.train, epochs=epochs)))
 
+    def with_init(self, init: str) -> PipelineSize:
+        """The same run, its models starting from ``init`` (``train.init``: "auto", "none" or a start file)."""
+        return replace(self, config=replace(self.config, train=replace(self.config.train, init=init)))
+
 
 # A network of a few per cent of the paper's width that trains in minutes on two CPU cores: residual
 # blocks beat the paper's layout shrunk to this width, at fewer MACs (bench/results/recipe.md); an MLP of

@@ -99,6 +99,9 @@ class TrainConfig:
     amp: bool = True  # mixed precision; used on CUDA only
     precision: str = "auto"  # CPU: "auto" (bf16 where the CPU has it natively), "fp32", "bf16" (fast_path.py)
     compile: str = "auto"  # "auto" (where it pays), "on", "off": torch.compile of the step (fast_path.py)
+    # the first weights: "auto" (the shipped pretrained start of this network shape, if any), "none" (random) or a
+    # start file of popcode-train pretrain (train/pretrained.py)
+    init: str = "auto"
 
 
 @dataclass(frozen=True)

@@ -26,15 +26,16 @@ from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import write_json_atomic
 from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.model.metadata import RotationFrame
 
-from . import allocator, checkpoint, distributed, fast_path
+from . import allocator, checkpoint, distributed, fast_path, pretrained
 from .config import Config
 from .epoch_record import EpochRecord, truncate_metrics
 from .network import NetworkConfig, build_network, feature_side
 from .representations import InstanceLike, OutputRepresentation
-from .run_files import LAST_CHECKPOINT, METRICS_FILE, RUN_LOCK, EpochMetrics
+from .run_files import LAST_CHECKPOINT, METRICS_FILE, RUN_LOCK, START_FILE, EpochMetrics
 from .schedule import learning_rate
 
 
@@ -225,8 +226,15 @@ def _start(config: Config, trainee: _Trainee, resume: bool, context: distributed
     if (out_dir / LAST_CHECKPOINT).exists():
         raise PopcodeError(f"{out_dir} already holds a run; continue it with train --resume, or train into another "
                            "folder (--set train.out_dir=DIR)")
+    start, line = pretrained.resolve_start(config.train.init, trainee.net_config)
+    if start is not None:
+        pretrained.apply_start(trainee.model, start, trainee.net_config)
     if context.is_main:
         (out_dir / METRICS_FILE).unlink(missing_ok=True)  # rows of a run killed before its first checkpoint
+        write_json_atomic(out_dir / START_FILE, {"init": config.train.init, "start": line,
+                                                 "path": None if start is None else str(start.path),
+                                                 "card": None if start is None else start.card})
+        tqdm.write(f"first weights: {line}")
     return 0, math.inf
 
 

@@ -20,6 +20,7 @@ BEST_CHECKPOINT = "best.pt"  # the epoch with the lowest validation error
 METRICS_FILE = "metrics.csv"  # one row per epoch (EpochMetrics)
 MODEL_FILE = "model.onnx"  # the exported float model; quantised ones beside it as model.<kind>.onnx
 CROP_CACHE_FOLDER = "crop_cache"  # the decoded training crops (data.crop_cache); safe to delete
+START_FILE = "start.json"  # which first weights the run took (train.pretrained): random or a pretrained start
 RUN_LOCK = "train.lock"  # held while a process trains into the folder (train.loop.run_lock); left by a killed one
 
 
