@@ -2,16 +2,17 @@
 and the look-alike part's right-pose share.
 
     python -m experiments.pretrained_start --start runs/pretrain/pretrained-start.pt [--epochs 3 6 12]
-        [--images 2000] [--scenes 150] [--representations population_code] [--work runs/pretrained_start]
-        [--name pretrained-start]
+        [--parts validation|builtin] [--images 2000] [--scenes 150] [--representations population_code]
+        [--arms scratch pretrained] [--work runs/pretrained_start] [--name pretrained-start]
 
-The validation parts of ``tools.own_parts`` that share the full code (all but the stepped shaft, whose continuous
-symmetry takes the axis-only code) are rendered as the quick demo renders a user's parts (``--images`` single-part
-images a part, seed 0, and ``--scenes`` bin scenes, seed 3000) and scored on a clean validation split (seed 5000,
-40 images a part) and a bin one (seed 4000, 40 scenes). Each arm trains the quick demo's recipe
-(``small_config``: 642 x 36 code, batch 32, anneal, a quarter of the crops from the scenes) for each of ``--epochs``,
-a run per budget (the anneal depends on the run's length): ``scratch`` from random weights, ``pretrained`` from
-``--start``. ``--work`` keeps splits and runs: a rerun resumes. Results: ``bench/results/<name>.{json,md}``.
+The ``--parts`` that share the full code (the validation parts of ``tools.own_parts`` but the stepped shaft, whose
+continuous symmetry takes the axis-only code; or the built-in parts 3-6) are rendered as the quick demo renders a
+user's parts (``--images`` single-part images a part, seed 0, and ``--scenes`` bin scenes, seed 3000) and scored
+on a clean validation split (seed 5000, 40 images a part) and a bin one (seed 4000, 40 scenes). Each arm trains the
+quick demo's recipe (``small_config``: 642 x 36 code, batch 32, anneal, a quarter of the crops from the scenes) for
+each of ``--epochs``, a run per budget (the anneal depends on the run's length): ``scratch`` from random weights,
+``pretrained`` from ``--start``, ``pretrained-slow-trunk`` from it with the start's weights at 0.3 of the rate. ``--work`` keeps splits and runs: a rerun resumes. Results:
+``bench/results/<name>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import numpy as np
 from popcode_runtime.base.files import read_json, write_json_atomic
 from popcode_runtime.model.metadata import Representation
 from popcode_trainer.data.near_symmetry import LookAlikeWarning
+from popcode_trainer.data.objects import BUILTIN_PARTS
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.demo.parts import Parts, load_parts
 from popcode_trainer.demo.sizes import SCENE_SHARE
@@ -53,12 +55,16 @@ from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
 
 VALIDATION_IMAGES, VALIDATION_SCENES = 40, 40
-ARMS = ("scratch", "pretrained")
+# arm -> whether it takes the start, and the rate of the start's weights as a share of the recipe's (train.init_lr_scale)
+ARMS = {"scratch": (False, 1.0), "pretrained": (True, 1.0), "pretrained-slow-trunk": (True, 0.3)}
 
 
-def render(work: Path, images: int, scenes: int) -> tuple[Parts, dict[str, Path]]:
-    """The full-code validation parts and their training and validation splits."""
-    full_code = [part for part in VALIDATION_PARTS if "symmetries_continuous" not in part.symmetries]
+PART_SETS = {"validation": VALIDATION_PARTS, "builtin": BUILTIN_PARTS}
+
+
+def render(work: Path, part_set: str, images: int, scenes: int) -> tuple[Parts, dict[str, Path]]:
+    """The full-code parts of ``part_set`` and their training and validation splits."""
+    full_code = [part for part in PART_SETS[part_set] if "symmetries_continuous" not in part.symmetries]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LookAlikeWarning)  # the chamfered flange is the look-alike part, on purpose
         parts = load_parts(write_models(full_code, work / "parts"))
@@ -86,7 +92,8 @@ def point(work: Path, parts: Parts, splits: dict[str, Path], arm: str, start: Pa
     if done.is_file():
         return read_json(done)
     run_dir = work / "runs" / name
-    base = small_config(epochs, 642, 36, init=NONE if arm == "scratch" else str(start))
+    takes_start, lr_scale = ARMS[arm]
+    base = small_config(epochs, 642, 36, init=str(start) if takes_start else NONE, init_lr_scale=lr_scale)
     base = replace(base, train=replace(base.train, representation=representation,
                                        loss=base.train.loss if representation == Representation.POPULATION_CODE
                                        else "mse"))
@@ -110,7 +117,7 @@ def point(work: Path, parts: Parts, splits: dict[str, Path], arm: str, start: Pa
 
 
 def to_markdown(points: Sequence[dict[str, Any]], start_text: str, args: argparse.Namespace) -> str:
-    names = {str(p.obj_id): p.name for p in VALIDATION_PARTS}
+    names = {str(p.obj_id): p.name for p in PART_SETS[args.parts]}
     parts = list(points[0]["clean_per_part"])
     header = ["arm", "method", "epochs", "training s", "clean MSSD", "bin MSSD",
               *(f"clean {names[p]}" for p in parts), "look-alike right share (clean / bin)"]
@@ -123,9 +130,9 @@ def to_markdown(points: Sequence[dict[str, Any]], start_text: str, args: argpars
                      f"{100 * p['clean_mssd']:.1f}", f"{100 * p['bin_mssd']:.1f}",
                      *(f"{100 * p['clean_per_part'][k]:.1f}" for k in parts), "; ".join(shares) or "–"])
     return "\n".join([
-        "# Pretrained start against random weights (validation parts)", "",
+        f"# Pretrained start against random weights ({args.parts} parts)", "",
         f"`python -m experiments.pretrained_start {' '.join(args.argv)}`", "",
-        f"Start: {start_text}. Parts: the validation parts of `tools.own_parts` that take the full code "
+        f"Start: {start_text}. Parts: the {args.parts} parts that take the full code "
         f"({', '.join(names[p] for p in parts)}); {args.images} training images a part and {args.scenes} bin scenes; "
         f"scored on {VALIDATION_IMAGES} clean images a part (seed {CLEAN_VALIDATION_SEED}) and {VALIDATION_SCENES} "
         f"bin scenes (seed {CLUTTERED_VALIDATION_SEED}). The look-alike share: of the estimates within 15 deg of the "
@@ -137,16 +144,17 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--start", type=Path, required=True, help="a start of popcode-train pretrain")
     parser.add_argument("--epochs", type=int, nargs="+", default=[3, 6, 12])
+    parser.add_argument("--parts", choices=list(PART_SETS), default="validation")
     parser.add_argument("--images", type=int, default=2000)
     parser.add_argument("--scenes", type=int, default=150)
     parser.add_argument("--representations", nargs="+", default=[Representation.POPULATION_CODE])
-    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
+    parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=["scratch", "pretrained"])
     parser.add_argument("--work", type=Path, default=Path("runs/pretrained_start"))
     parser.add_argument("--name", default="pretrained-start")
     args = parser.parse_args(argv)
     args.argv = list(argv) if argv is not None else sys.argv[1:]
     start = read_start(args.start)
-    parts, splits = render(args.work, args.images, args.scenes)
+    parts, splits = render(args.work, args.parts, args.images, args.scenes)
     points = [point(args.work, parts, splits, arm, args.start, epochs, representation)
               for representation in args.representations for epochs in args.epochs for arm in args.arms]
     write_results(RESULTS, args.name, {"start": start.card, "points": points},

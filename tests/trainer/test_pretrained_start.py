@@ -120,3 +120,19 @@ def test_training_starts_from_the_start_and_records_it(tmp_path: Path) -> None:
             torch.testing.assert_close(trained[name], tensor.detach(), atol=1e-6, rtol=0, msg=name)
     record = read_json(tmp_path / "run" / START_FILE)
     assert record["path"] == str(path) and record["card"] == CARD and str(path) in record["start"]
+
+
+def test_a_start_learns_at_its_own_rate_when_asked(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path / "run", epochs=1, init="", init_lr_scale=0.25, lr=1e-3)
+    representation = tiny_representation(config)
+    path, _ = _start(tmp_path, network_config(config, representation))
+    config = dataclasses.replace(config, train=dataclasses.replace(config.train, init=str(path)))
+    train(config, representation, *tiny_data(representation))
+    groups = checkpoint.load(tmp_path / "run" / LAST_CHECKPOINT)["optimizer"]["param_groups"]
+    assert [group["lr_scale"] for group in groups] == [0.25, 1.0]
+    assert groups[0]["lr"] == pytest.approx(0.25 * groups[1]["lr"])
+    scratch = dataclasses.replace(config, train=dataclasses.replace(config.train, init="none",
+                                                                    out_dir=str(tmp_path / "scratch")))
+    train(scratch, representation, *tiny_data(representation))  # no start: every weight at the run's rate
+    groups = checkpoint.load(tmp_path / "scratch" / LAST_CHECKPOINT)["optimizer"]["param_groups"]
+    assert [group["lr_scale"] for group in groups] == [1.0, 1.0]

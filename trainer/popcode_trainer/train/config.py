@@ -102,6 +102,8 @@ class TrainConfig:
     # the first weights: "auto" (the shipped pretrained start of this network shape, if any), "none" (random) or a
     # start file of popcode-train pretrain (train/pretrained.py)
     init: str = "auto"
+    # with a pretrained start: the rate of the weights it filled (features, hidden) as a share of lr (1: the same)
+    init_lr_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -237,6 +239,8 @@ def _check_choices(config: Config) -> None:
                            f"limits), got {config.data.crop_size}")
     if config.train.lr <= 0:
         raise PopcodeError("train.lr must be positive")
+    if not 0.0 < config.train.init_lr_scale <= 1.0:  # NaN too
+        raise PopcodeError(f"train.init_lr_scale must lie in (0, 1], got {config.train.init_lr_scale}")
     if not 0.0 <= config.train.warmup_epochs <= config.train.epochs:
         raise PopcodeError(f"train.warmup_epochs must lie in [0, train.epochs = {config.train.epochs}], got "
                            f"{config.train.warmup_epochs}")

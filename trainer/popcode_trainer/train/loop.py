@@ -199,7 +199,9 @@ def _set_up(config: Config, representation: OutputRepresentation, crops: int, ra
     model = build_network(net_config).to(context.device)
     if path.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    optimizer = fast_path.adam(model.parameters(), cfg.lr, context.device)
+    # two groups only where the start's weights get their own rate: a run of one group resumes as it was saved
+    parameters = pretrained.parameter_groups(model) if cfg.init_lr_scale != 1.0 else model.parameters()
+    optimizer = fast_path.adam(parameters, cfg.lr, context.device)
     use_amp = cfg.amp and context.device.type == "cuda"
     scaler = torch.amp.GradScaler(context.device.type, enabled=use_amp)
     return _Trainee(net_config, model, optimizer, scaler, use_amp, path, memory_kept)
@@ -229,6 +231,8 @@ def _start(config: Config, trainee: _Trainee, resume: bool, context: distributed
     start, line = pretrained.resolve_start(config.train.init, trainee.net_config)
     if start is not None:
         pretrained.apply_start(trainee.model, start, trainee.net_config)
+        if config.train.init_lr_scale != 1.0:
+            trainee.optimizer.param_groups[0]["lr_scale"] = config.train.init_lr_scale
     if context.is_main:
         (out_dir / METRICS_FILE).unlink(missing_ok=True)  # rows of a run killed before its first checkpoint
         write_json_atomic(out_dir / START_FILE, {"init": config.train.init, "start": line,
@@ -257,8 +261,9 @@ def _train_epoch(config: Config, representation: OutputRepresentation, trainee: 
     for step, batch in enumerate(bar):
         image = fast_path.to_layout(batch["image"].to(context.device, non_blocking=True), forward.path)
         target = batch["target"].to(context.device, non_blocking=True)
+        step_rate = learning_rate(cfg.lr, cfg.schedule, epoch + step / steps, cfg.epochs, cfg.warmup_epochs)
         for group in trainee.optimizer.param_groups:
-            group["lr"] = learning_rate(cfg.lr, cfg.schedule, epoch + step / steps, cfg.epochs, cfg.warmup_epochs)
+            group["lr"] = step_rate * group.get("lr_scale", 1.0)
         with fast_path.autocast(forward.path, context.device, trainee.use_amp):
             output = forward(image)
         loss = representation.loss(output.float(), target, (epoch + step / steps) / cfg.epochs)

@@ -118,6 +118,14 @@ def apply_start(model: nn.Module, start: PretrainedStart, config: NetworkConfig)
     return len(expected)
 
 
+def parameter_groups(model: nn.Module) -> list[dict[str, Any]]:
+    """The optimizer's two groups when a start's weights may learn at their own rate: the weights a start fills
+    (``lr_scale`` set when one is taken), then the rest (``lr_scale`` 1)."""
+    transferred = [p for name, p in model.named_parameters() if name.split(".")[0] in TRANSFERRED_MODULES]
+    rest = [p for name, p in model.named_parameters() if name.split(".")[0] not in TRANSFERRED_MODULES]
+    return [{"params": transferred, "lr_scale": 1.0}, {"params": rest, "lr_scale": 1.0}]
+
+
 def resolve_start(init: str, config: NetworkConfig) -> tuple[PretrainedStart | None, str]:
     """The start ``train.init`` names for a network of ``config``, and one line saying which start a run takes."""
     if init == NONE:
