@@ -11,8 +11,8 @@ user's parts (``--images`` single-part images a part, seed 0, and ``--scenes`` b
 on a clean validation split (seed 5000, 40 images a part) and a bin one (seed 4000, 40 scenes). Each arm trains the
 quick demo's recipe (``small_config``: 642 x 36 code, batch 32, anneal, a quarter of the crops from the scenes) for
 each of ``--epochs``, a run per budget (the anneal depends on the run's length): ``scratch`` from random weights,
-``pretrained`` from ``--start``, ``pretrained-slow-trunk`` from it with the start's weights at 0.3 of the rate. ``--work`` keeps splits and runs: a rerun resumes. Results:
-``bench/results/<name>.{json,md}``.
+``pretrained`` from ``--start``, ``pretrained-slow-trunk`` from it with the start's weights at 0.3 of the rate.
+``--work`` keeps splits and runs: a rerun resumes. Results: ``bench/results/<name>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
 
 VALIDATION_IMAGES, VALIDATION_SCENES = 40, 40
-# arm -> whether it takes the start, and the rate of the start's weights as a share of the recipe's (train.init_lr_scale)
+# arm -> whether it takes the start, and the rate of the start's weights as a share of the recipe's (init_lr_scale)
 ARMS = {"scratch": (False, 1.0), "pretrained": (True, 1.0), "pretrained-slow-trunk": (True, 0.3)}
 
 
