@@ -48,8 +48,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull
 
-from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
-from popcode_trainer.data.objects import Z_AXIS, model_info, revolve, rotation_4x4
+from popcode_trainer.data.objects import Z_AXIS, revolve, rotation_4x4, write_models_folder
 from popcode_trainer.data.solids import about_z, circle, flips, placed, polar, slab
 from tools.command import run_command
 
@@ -195,15 +194,7 @@ def build_own_part(part: OwnPart) -> trimesh.Trimesh:
 def write_models(parts: Sequence[OwnPart], out_dir: str | Path) -> Path:
     """Write each of ``parts`` as ``obj_XXXXXX.ply`` plus ``models_info.json`` (the built-in parts' format,
     ``popcode_trainer.data.objects.write_builtin_models``); returns the folder."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    models_info = {}
-    for part in parts:
-        mesh = build_own_part(part)
-        write_bytes_atomic(out_dir / f"obj_{part.obj_id:06d}.ply", mesh.export(file_type="ply", encoding="binary"))
-        models_info[str(part.obj_id)] = model_info(mesh, part.symmetries)
-    write_json_atomic(out_dir / "models_info.json", models_info)
-    return out_dir
+    return write_models_folder({part.obj_id: (build_own_part(part), part.symmetries) for part in parts}, out_dir)
 
 
 PART_SETS = {"validation": VALIDATION_PARTS, "tuning": TUNING_PARTS}

@@ -32,9 +32,9 @@ import numpy as np
 import trimesh
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.base.files import read_json, write_bytes_atomic, write_json_atomic
+from popcode_runtime.base.files import read_json, write_json_atomic
 
-from .objects import Z_AXIS, model_info, revolve
+from .objects import Z_AXIS, revolve, write_models_folder
 from .solids import CIRCLE_SECTIONS, TriangulationError, about_z, circle, flips, placed, polar, slab
 
 KINDS = ("discrete", "none", "look_alike", "continuous")
@@ -57,7 +57,6 @@ class GeneratedPart:
     kind: str  # one of KINDS
     mesh: trimesh.Trimesh
     symmetries: dict[str, Any]
-    parameters: dict[str, float]
 
 
 class _NoRoomError(Exception):
@@ -268,8 +267,7 @@ def generate_parts(count: int, seed: int, kinds: Sequence[str] = KINDS, first_id
         kind = str(rng.choice(list(kinds), p=weights / weights.sum()))
         family, solids, symmetries = _drawn(rng, kind)
         mesh = _centred(solids, on_z_axis=family in ("bolted_plate", "pinned_body", "channel"))
-        parameters = {"diameter_mm": float(np.linalg.norm(mesh.extents))}
-        parts.append(GeneratedPart(first_id + index, family, kind, mesh, symmetries, parameters))
+        parts.append(GeneratedPart(first_id + index, family, kind, mesh, symmetries))
     return parts
 
 
@@ -278,14 +276,8 @@ def write_generated_models(parts: Sequence[GeneratedPart], out_dir: str | Path) 
     --objects`` read) and :data:`GENERATED_LIST` (family and kind of each); returns the folder."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    models_info, listing = {}, {}
-    for part in parts:
-        write_bytes_atomic(out_dir / f"obj_{part.obj_id:06d}.ply", part.mesh.export(file_type="ply", encoding="binary"))
-        models_info[str(part.obj_id)] = model_info(part.mesh, part.symmetries)
-        listing[str(part.obj_id)] = {"family": part.family, "kind": part.kind}
-    write_json_atomic(out_dir / GENERATED_LIST, listing)
-    write_json_atomic(out_dir / "models_info.json", models_info)  # last: a folder with it is complete
-    return out_dir
+    write_json_atomic(out_dir / GENERATED_LIST, {str(p.obj_id): {"family": p.family, "kind": p.kind} for p in parts})
+    return write_models_folder({p.obj_id: (p.mesh, p.symmetries) for p in parts}, out_dir)
 
 
 def kinds_of(models_dir: Path) -> dict[int, str]:

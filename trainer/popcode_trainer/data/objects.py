@@ -7,7 +7,7 @@ tests check that each one really maps the mesh onto itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -168,6 +168,18 @@ def _extremes(points: np.ndarray, directions: np.ndarray) -> np.ndarray:
         support = directions[start:start + step].astype(np.float32) @ transposed  # (step, P)
         found += [support.argmax(axis=1), support.argmin(axis=1)]
     return np.unique(np.concatenate(found))
+
+
+def write_models_folder(parts: Mapping[int, tuple[trimesh.Trimesh, dict[str, Any]]], out_dir: str | Path) -> Path:
+    """A BOP models folder of parts made in code (id -> mesh in mm and its symmetries): each ``obj_XXXXXX.ply``, then
+    ``models_info.json`` (last: a folder that has it is complete); returns the folder."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for obj_id, (mesh, _) in parts.items():
+        write_bytes_atomic(out_dir / f"obj_{obj_id:06d}.ply", mesh.export(file_type="ply", encoding="binary"))
+    write_bytes_atomic(out_dir / "models_info.json", json_bytes({str(obj_id): model_info(mesh, symmetries)
+                                                                 for obj_id, (mesh, symmetries) in parts.items()}))
+    return out_dir
 
 
 def write_builtin_models(out_dir: str | Path) -> Path:
