@@ -9,6 +9,7 @@ import pytest
 
 from popcode_runtime.base.files import read_json
 from popcode_trainer.cli import main
+from popcode_trainer.commands import demo as demo_command
 from popcode_trainer.data.generated_parts import kinds_of
 from popcode_trainer.demo.steps import SMALL_NETWORK
 from popcode_trainer.train import pretrained
@@ -62,3 +63,20 @@ def test_bad_options_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[s
     err = capsys.readouterr().err
     assert option in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("options", "init"), [([], "auto"), (["--from-scratch"], "none")])
+def test_demo_starts_from_the_shipped_start_unless_told(options: list[str], init: str,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    seen = []
+    monkeypatch.setattr(demo_command, "run_demo", lambda name, out, size, **kwargs: seen.append(size))
+    assert main(["demo", "--out", "unused", *options]) == 0
+    assert seen[0].config.train.init == init
+
+
+def test_train_refuses_a_start_of_another_network_before_reading_data(pretrained_run: Path, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    start = pretrained_run / "pretrained-start.pt"
+    assert main(["train", "--set", f'train.init="{start}"', "--set", f'data.splits=["{tmp_path / "none"}"]']) == 2
+    err = capsys.readouterr().err.strip()
+    assert "was pretrained for another network (network.conv_channels" in err and len(err.splitlines()) == 1
