@@ -5,10 +5,12 @@ and the look-alike part's right-pose share.
         [--parts validation|builtin] [--images 2000] [--scenes 150] [--representations population_code]
         [--arms scratch pretrained] [--work runs/pretrained_start] [--name pretrained-start]
 
-The ``--parts`` that share the full code (the validation parts of ``tools.own_parts`` but the stepped shaft, whose
-continuous symmetry takes the axis-only code; or the built-in parts 3-6) are rendered as the quick demo renders a
-user's parts (``--images`` single-part images a part, seed 0, and ``--scenes`` bin scenes, seed 3000) and scored
-on a clean validation split (seed 5000, 40 images a part) and a bin one (seed 4000, 40 scenes). Each arm trains the
+Of the ``--parts`` (the validation parts of ``tools.own_parts``, or the built-in ones), the largest group that the
+demo trains as one model on the quick size's 642 x 36 grid (validation: the flange, bracket, look-alike flange and
+rod, not the 12-fold gear, which gets a finer grid, nor the shaft's axis-only code; built-in: parts 3-6) is
+rendered as the quick demo renders a user's parts (``--images`` single-part images a part, seed 0, and
+``--scenes`` bin scenes, seed 3000) and scored on a clean validation split (seed 5000, 40 images a part) and a bin
+one (seed 4000, 40 scenes). Each arm trains the
 quick demo's recipe (``small_config``: 642 x 36 code, batch 32, anneal, a quarter of the crops from the scenes) for
 each of ``--epochs``, a run per budget (the anneal depends on the run's length): ``scratch`` from random weights,
 ``pretrained`` from ``--start``, ``pretrained-slow-trunk`` from it with the start's weights at 0.3 of the rate.
@@ -33,11 +35,13 @@ from popcode_trainer.data.near_symmetry import LookAlikeWarning
 from popcode_trainer.data.objects import BUILTIN_PARTS
 from popcode_trainer.data.render import BUILTIN_MODELS_FOLDER
 from popcode_trainer.demo.parts import Parts, load_parts
+from popcode_trainer.demo.run import prepare_parts
 from popcode_trainer.demo.sizes import SCENE_SHARE
 from popcode_trainer.demo.steps import TRAIN_SCENES_SEED_OFFSET, small_config
 from popcode_trainer.eval.pipeline.evaluate import MethodResult
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.look_alike_share import look_alike_shares
+from popcode_trainer.train.config import CodeConfig
 from popcode_trainer.train.pretrained import NONE, describe, read_start
 from popcode_trainer.train.training_data import build_training_data
 from tools.command import run_command
@@ -55,6 +59,7 @@ from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
 
 VALIDATION_IMAGES, VALIDATION_SCENES = 40, 40
+QUICK_CODE = small_config(1, 642, 36).code  # the quick demo's grid; a group the demo moves to a finer one is left out
 # arm -> whether it takes the start, and the rate of the start's weights as a share of the recipe's (init_lr_scale)
 ARMS = {"scratch": (False, 1.0), "pretrained": (True, 1.0), "pretrained-slow-trunk": (True, 0.3)}
 
@@ -62,18 +67,29 @@ ARMS = {"scratch": (False, 1.0), "pretrained": (True, 1.0), "pretrained-slow-tru
 PART_SETS = {"validation": VALIDATION_PARTS, "builtin": BUILTIN_PARTS}
 
 
-def render(work: Path, part_set: str, images: int, scenes: int) -> tuple[Parts, dict[str, Path]]:
-    """The full-code parts of ``part_set`` and their training and validation splits."""
-    full_code = [part for part in PART_SETS[part_set] if "symmetries_continuous" not in part.symmetries]
+def _group(part_set: str, work: Path) -> tuple[list[Any], CodeConfig]:
+    """The largest group of ``part_set`` that the demo trains on the quick size's own grid, and its code."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LookAlikeWarning)
+        _, codes = prepare_parts(write_models(PART_SETS[part_set], work / "all_parts"), QUICK_CODE)
+    on_grid = [g for g in codes if (g.code.n_axes, g.code.n_angles) == (QUICK_CODE.n_axes, QUICK_CODE.n_angles)]
+    group = max(on_grid, key=lambda g: len(g.obj_ids))
+    return [part for part in PART_SETS[part_set] if part.obj_id in group.obj_ids], group.code
+
+
+def render(work: Path, part_set: str, images: int, scenes: int) -> tuple[Parts, CodeConfig, dict[str, Path]]:
+    """The largest group of ``part_set`` on the quick grid (as the demo groups and codes them), its code, and its
+    training and validation splits."""
+    chosen, code = _group(part_set, work)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LookAlikeWarning)  # the chamfered flange is the look-alike part, on purpose
-        parts = load_parts(write_models(full_code, work / "parts"))
+        parts = load_parts(write_models(chosen, work / "parts"))
         splits = {"train": parts.render_split(work / "train", images, TRAIN_SEED, True),
                   "train_scenes": parts.render_scenes(work / "train_scenes", scenes,
                                                       TRAIN_SEED + TRAIN_SCENES_SEED_OFFSET, True),
                   "clean": parts.render_split(work / "val_clean", VALIDATION_IMAGES, CLEAN_VALIDATION_SEED, True),
                   "bin": parts.render_scenes(work / "val_bin", VALIDATION_SCENES, CLUTTERED_VALIDATION_SEED, True)}
-    return parts, splits
+    return parts, code, splits
 
 
 def _shares(result: MethodResult) -> dict[str, Any]:
@@ -84,7 +100,7 @@ def _shares(result: MethodResult) -> dict[str, Any]:
             for s in shares}
 
 
-def point(work: Path, parts: Parts, splits: dict[str, Path], arm: str, start: Path, epochs: int,
+def point(work: Path, parts: Parts, code: CodeConfig, splits: dict[str, Path], arm: str, start: Path, epochs: int,
           representation: str) -> dict[str, Any]:
     """One arm trained for ``epochs`` (resumed) and scored; kept in ``work/points`` once done."""
     name = f"{arm}_{representation}_{epochs}"
@@ -94,6 +110,7 @@ def point(work: Path, parts: Parts, splits: dict[str, Path], arm: str, start: Pa
     run_dir = work / "runs" / name
     takes_start, lr_scale = ARMS[arm]
     base = small_config(epochs, 642, 36, init=str(start) if takes_start else NONE, init_lr_scale=lr_scale)
+    base = replace(base, code=code)
     base = replace(base, train=replace(base.train, representation=representation,
                                        loss=base.train.loss if representation == Representation.POPULATION_CODE
                                        else "mse"))
@@ -154,8 +171,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     args = parser.parse_args(argv)
     args.argv = list(argv) if argv is not None else sys.argv[1:]
     start = read_start(args.start)
-    parts, splits = render(args.work, args.parts, args.images, args.scenes)
-    points = [point(args.work, parts, splits, arm, args.start, epochs, representation)
+    parts, code, splits = render(args.work, args.parts, args.images, args.scenes)
+    points = [point(args.work, parts, code, splits, arm, args.start, epochs, representation)
               for representation in args.representations for epochs in args.epochs for arm in args.arms]
     write_results(RESULTS, args.name, {"start": start.card, "points": points},
                   to_markdown(points, f"`{args.start.name}` ({describe(start)})", args))
