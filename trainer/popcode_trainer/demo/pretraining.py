@@ -10,7 +10,6 @@ and recipe (its epochs fitted to ``minutes`` after the first, or given), and wri
 
 from __future__ import annotations
 
-import platform
 import time
 import warnings
 from collections import Counter
@@ -20,8 +19,11 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import read_json, write_json_atomic
+from popcode_runtime.inference.benchmark import machine_description
 from popcode_runtime.model.metadata import Representation
 
 from ..data.generated_parts import generate_parts, kinds_of, write_generated_models
@@ -148,7 +150,7 @@ def card(size: PretrainSize, parts: Parts, config: Config, started: float) -> di
             "wall_minutes_this_call": round((time.perf_counter() - started) / 60.0, 1),
             "val_error_median_deg": round(float(metrics["val_error_median_deg"][-1]), 2),
             "commit": checkpoint.git_revision(), "date": time.strftime("%Y-%m-%d"),
-            "machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}"}
+            "machine": {**machine_description(), "torch": torch.__version__}}
 
 
 def pretrain(size: PretrainSize, out_dir: Path, progress: bool = True) -> Path:
