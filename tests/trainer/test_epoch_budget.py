@@ -19,9 +19,9 @@ from popcode_trainer.demo.plan import SECONDS_PER_EXPORT, StagePlan
 from popcode_trainer.demo.run import fit_epochs
 from popcode_trainer.demo.sizes import DEMO_SIZES
 from popcode_trainer.demo.steps import PipelineSize, run_dir, small_config, train_and_export, train_first_epoch
-from popcode_trainer.train import fast_path
+from popcode_trainer.train import fast_path, pretrained
 from popcode_trainer.train.checkpoint import load
-from popcode_trainer.train.network import NetworkConfig
+from popcode_trainer.train.network import NetworkConfig, build_network
 from popcode_trainer.train.run_files import LAST_CHECKPOINT, METRICS_FILE
 
 TINY = PipelineSize(8, 2, small_config(epochs=3, n_axes=42, n_angles=12, sigma_deg=30.0, batch_size=4,
@@ -77,7 +77,7 @@ def test_a_folder_fitted_for_other_models_is_refused_not_resumed(tmp_path: Path)
 def test_a_compile_is_paid_once_not_per_epoch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A first epoch that compiled the step: its compile is left out of an epoch's cost (the resume, in the same
     process, finds the compile caches warm); metrics of an older trainer have no compile."""
-    demo = replace(DEMO_SIZES["quick"], minutes=10.0, epoch_bounds=(4, 1000))
+    demo = replace(DEMO_SIZES["quick"], minutes=10.0, epoch_bounds=(4, 1000), fine_tune_epoch_bounds=None)
     size = replace(demo.pipeline, representations=("population_code",))
     groups = [GroupCode((1, 2), size.config.code, 20.0, "")]
 
@@ -146,3 +146,17 @@ def test_first_epoch_resumed_equals_one_run(tmp_path: Path, schedule: str, equal
     assert all(same) if equal else not all(same)
     with open(fitted / METRICS_FILE, newline="") as handle:
         assert [int(row["epoch"]) for row in csv.DictReader(handle)] == [1, 2, 3]
+
+
+def test_a_fine_tune_from_the_shipped_start_may_fit_fewer_epochs(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The quick size's floor is lower where its models take a pretrained start (they converge faster); without one
+    (none shipped for the network, or --from-scratch) the size's own bounds hold."""
+    demo = DEMO_SIZES["quick"]
+    assert demo.fine_tune_epoch_bounds is not None and demo.fine_tune_epoch_bounds[0] < demo.epoch_bounds[0]
+    monkeypatch.setattr(pretrained, "SHIPPED_DIR", tmp_path)  # nothing shipped here
+    assert run.epoch_bounds(demo, demo.pipeline) == demo.epoch_bounds
+    network = replace(demo.pipeline.config.network, input_size=demo.pipeline.config.data.crop_size)
+    pretrained.write_start(build_network(network), network, pretrained.shipped_path(network), {"parts": 1})
+    assert run.epoch_bounds(demo, demo.pipeline) == demo.fine_tune_epoch_bounds
+    assert run.epoch_bounds(demo, demo.pipeline.with_init("none")) == demo.epoch_bounds

@@ -39,6 +39,7 @@ from ..eval.reporting.overview_figures import metrics_files_of, plot_crop_grid, 
 from ..eval.reporting.report import write_report
 from ..export.model_io import read_onnx_metadata
 from ..train.config import CodeConfig
+from ..train.pretrained import resolve_start
 from ..train.schedule import first_epoch_rate_is_fixed
 from . import epoch_budget
 from .detector_step import DETECTOR_STAGE, OWN_DETECTOR_FOLDER, score_own_detector, train_demo_detector
@@ -161,7 +162,8 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], t
     if earlier is not None:  # started by a version that grouped the parts otherwise
         raise PopcodeError(f"{out_dir} was started with other models ({', '.join(sorted(earlier.first_epoch_seconds))}"
                            f"; now {', '.join(sorted(names))}): use another --out, or delete it to start over")
-    if not first_epoch_rate_is_fixed(size.config.train.schedule, demo.epoch_bounds[0]):
+    bounds = epoch_bounds(demo, size)
+    if not first_epoch_rate_is_fixed(size.config.train.schedule, bounds[0]):
         raise PopcodeError(f"fitting the epochs to a time budget needs a schedule whose first epoch does not depend "
                            f"on the run's length (constant, anneal), not {size.config.train.schedule!r}: pass --epochs")
     first = {}
@@ -173,10 +175,19 @@ def fit_epochs(size: PipelineSize, demo: DemoSize, codes: Sequence[GroupCode], t
     training = [train_stage(r, g.obj_ids) for r in size.representations for g in codes]
     exports = stages.scale * SECONDS_PER_EXPORT * len(training)
     other_steps = stages.remaining_s(after=[FIRST_EPOCHS, *training]) + exports
-    result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps,
-                              demo.epoch_bounds)
+    result = epoch_budget.fit(first, 60.0 * demo.minutes, 60.0 * demo.minutes - elapsed_s - other_steps, bounds)
     epoch_budget.save(result, out_dir)
     return result
+
+
+def epoch_bounds(demo: DemoSize, size: PipelineSize) -> tuple[int, int]:
+    """The bounds of the fitted epochs: the size's, or its fine-tune bounds where the models take a pretrained
+    start (``train.init``, :mod:`popcode_trainer.train.pretrained`)."""
+    if demo.fine_tune_epoch_bounds is None:
+        return demo.epoch_bounds
+    start, _ = resolve_start(size.config.train.init, replace(size.config.network,
+                                                             input_size=size.config.data.crop_size))
+    return demo.epoch_bounds if start is None else demo.fine_tune_epoch_bounds
 
 
 def train_models(size: PipelineSize, codes: Sequence[GroupCode], train_split: Path, out_dir: Path,
