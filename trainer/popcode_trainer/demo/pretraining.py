@@ -150,7 +150,7 @@ def card(size: PretrainSize, parts: Parts, config: Config, started: float) -> di
             "wall_minutes_this_call": round((time.perf_counter() - started) / 60.0, 1),
             "val_error_median_deg": round(float(metrics["val_error_median_deg"][-1]), 2),
             "commit": checkpoint.git_revision(), "date": time.strftime("%Y-%m-%d"),
-            "machine": {**machine_description(), "torch": torch.__version__}}
+            "machine": {**machine_description(), "torch": str(torch.__version__)}}
 
 
 def pretrain(size: PretrainSize, out_dir: Path, progress: bool = True) -> Path:
