@@ -74,7 +74,12 @@ def test_axis_ends_have_the_axis_colours_and_far_pixels_are_untouched() -> None:
     below = int(max(y + h, ends[:, 1].max())) + 10
     left = int(min(x, ends[:, 0].min())) - 10
     above = int(min(y, ends[:, 1].min())) - 10
-    untouched = [picture[:, :left], picture[below:], picture[int(y):, right:], picture[:above, 420:]]  # label: above
+    # the label's band lies above the box's top-left corner, as wide as its widest line in the picture's font size
+    scale = float(np.clip(min(picture.shape[:2]) / 900, 0.3, 1.2))
+    label_right = int(x) + max(cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0]
+                               for line in estimate_label(prediction(R, t_mm=T_MM))) + 10
+    untouched = [picture[:, :left], picture[below:], picture[int(y):, right:],
+                 picture[:above, max(right, label_right):]]
     assert all((part == 128).all() for part in untouched)
     assert (picture != 128).any(axis=2).sum() > 300  # something was drawn
 
