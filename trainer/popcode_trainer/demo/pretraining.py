@@ -40,6 +40,7 @@ from . import epoch_budget
 from .parts import Parts, load_parts
 from .steps import (
     IMAGES_PER_SCENE,
+    SMALL_NETWORK,
     TRAIN_SCENES_SEED_OFFSET,
     PipelineSize,
     _render_processes,
@@ -63,14 +64,13 @@ class PretrainSize:
     scenes: int = 300
     n_axes: int = 642
     n_angles: int = 36
-    network: NetworkConfig | None = None  # None: the demo's network (steps.SMALL_NETWORK)
+    network: NetworkConfig = SMALL_NETWORK  # the demo's: its models take the start
     epochs: int | None = None  # None: fitted to minutes
     minutes: float = 60.0
     seed: int = 0
 
     def pipeline(self, epochs: int) -> PipelineSize:
-        config = small_config(epochs, self.n_axes, self.n_angles, init=NONE,
-                              **({} if self.network is None else {"network": self.network}))
+        config = small_config(epochs, self.n_axes, self.n_angles, network=self.network, init=NONE)
         return PipelineSize(self.images_per_part, 0, config, (Representation.POPULATION_CODE,),
                             train_scenes=self.scenes, scene_share=SCENE_SHARE if self.scenes else 0.0)
 
