@@ -64,15 +64,17 @@ def prepare_splits(work: Path, images: int, scenes: int, samples: int) -> dict[s
 
 
 def instance_scores(work: Path, split: str, look: str, method: str, models: Sequence[str | Path],
-                    obj_ids: Sequence[int] = ()) -> dict[tuple, float]:
+                    obj_ids: Sequence[int] = (), options: Sequence[str] = ()) -> dict[tuple, float]:
     """Each instance's MSSD score (the share of BOP's thresholds its error is below) of ``obj_ids`` (default:
-    the models'), keyed by its identity; scored once into ``work/scores`` (delete it to score again)."""
+    the models'), keyed by its identity, with more ``evaluate`` options (e.g. detector-like boxes); scored once
+    into ``work/scores`` (delete it to score again)."""
     out = work / "scores" / f"{method}_{split}_{look}"
     errors = out / f"errors_{method}.csv"
     if not errors.is_file():
         _run(["evaluate", "--split", str(work / f"{split}_{look}"),
               "--models-dir", str(work / f"{split}_rendered" / "models"), "--min-visib-fract", MIN_VISIB_FRACT,
-              "--no-vsd", "--out", str(out), "--overwrite", *(["--obj-ids", *map(str, obj_ids)] if obj_ids else []),
+              "--no-vsd", "--out", str(out), "--overwrite", *options,
+              *(["--obj-ids", *map(str, obj_ids)] if obj_ids else []),
               *[option for _ in models for option in ("--name", method)], *map(str, models)])
     diameters = {obj_id: float(info["diameter"]) for obj_id, info in
                  load_models_info(work / f"{split}_rendered" / "models").items()}

@@ -19,6 +19,7 @@ from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.inference.frame import FramePoseEstimator
 from popcode_trainer.cli import main as trainer
+from popcode_trainer.detection.loop import fitted_epochs
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 POSE_MODEL = MODELS / "builtin-parts-3-6.onnx"
@@ -45,6 +46,16 @@ def trained(scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert trainer(["train-detector", "--split", str(scenes), "--out", str(run), "--quiet", *SMALL,
                     "--set", "detector.epochs=3"]) == 0
     return run
+
+
+def test_a_slow_first_epoch_is_corrected_by_the_second() -> None:
+    """The budget's epochs come from the fastest epoch timed, counting the time already spent."""
+    assert fitted_epochs(150.0, [15.0], 200) == 10
+    assert fitted_epochs(150.0, [15.0, 2.0], 200) == 68  # 2 done, 133 s left at 2 s an epoch
+    assert fitted_epochs(150.0, [2.0, 15.0], 200) == 68  # a slow second epoch does not shorten the run
+    assert fitted_epochs(150.0, [15.0, 2.0], 40) == 40  # the config's epochs stay the most
+    assert fitted_epochs(10.0, [15.0, 2.0], 200) == 2  # an overrun budget ends with the epochs done
+    assert fitted_epochs(1.0, [15.0], 200) == 1
 
 
 def test_training_resumes_and_exports_a_detector_the_runtime_reads(trained: Path) -> None:

@@ -279,6 +279,28 @@ def test_nbits8_fp16_is_the_smallest_near_float_copy(tmp_path: Path) -> None:
     PoseEstimator(both)  # the runtime accepts it
 
 
+def test_int8_nbits8_runs_the_trunk_in_int8_and_the_output_layer_in_8_bit_blocks(tmp_path: Path) -> None:
+    """int8-nbits8: every conv and hidden layer fused into an integer kernel, the output layer's MatMul as 8-bit
+    blocks on int8 activations; it agrees with float on the crops it was calibrated on and keeps the metadata."""
+    config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 8), squeeze_channels=4, hidden=(32, 32, 32))
+    torch.manual_seed(0)
+    metadata = ModelMetadata(representation=Representation.POPULATION_CODE,
+                             code=CodeLayout(n_axes=42, n_angles=12, sigma_deg=30.0), objects={1: {"diameter": 100.0}})
+    float_path = export_onnx(PopcodeNet(config).eval(), metadata, tmp_path / "model.onnx")
+    crops = np.stack([draw(np.linalg.qr(np.random.default_rng(i).normal(size=(3, 3)))[0])[None] for i in range(8)])
+    mixed = quantise(float_path, "int8-nbits8", metadata, calibration=crops)
+    assert mixed == quantised_path(float_path, "int8-nbits8")
+    assert _nbits_accuracy_levels(mixed) == [NBITS_INT8_COMPUTE]
+    running = optimised_op_types(mixed, tmp_path / "optimised.onnx")
+    assert running.count("QLinearConv") == 4 and running.count("MatMulNBits") == 1
+    assert not {"Conv", "FusedConv", "ConvInteger", "MatMul", "FusedGemm", "Gemm"} & set(running)
+    agreement = compare(mixed, OnnxEngine(mixed)(crops), OnnxEngine(float_path)(crops), metadata)
+    assert agreement.argmax_agreement == agreement.pose_agreement == 1.0
+    assert read_onnx_metadata(mixed) == read_onnx_metadata(float_path)
+    with pytest.raises(PopcodeError, match="int8-nbits8 quantisation needs calibration crops"):
+        quantise(float_path, "int8-nbits8", metadata)
+
+
 def test_residual_trunk_exports_and_quantises_statically(tmp_path: Path) -> None:
     """The residual trunk's graph: onnxruntime matches torch, and int8 runs every conv as QLinearConv."""
     config = NetworkConfig(output_dim=42 * 12, conv_channels=(8, 8, 16), squeeze_channels=4, hidden=(32, 32, 32),

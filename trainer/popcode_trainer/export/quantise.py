@@ -17,13 +17,14 @@ from popcode_runtime.model.metadata import INPUT_NAME, ModelMetadata
 
 from .model_io import save_onnx
 
-QUANTISATIONS = ("int8", "nbits4", "nbits8", "fp16", "nbits8-fp16")
+QUANTISATIONS = ("int8", "int8-nbits8", "nbits4", "nbits8", "fp16", "nbits8-fp16")
 NBITS_BLOCK_SIZE = 32
 # onnxruntime's MatMulNBits accuracy level 4: int8 activations in its integer kernels. At the default level the
 # 8-bit output layer ran 3.5-4.5x slower than float on an AVX-512 EPYC, at the same agreement with float
 # (bench/results/network-width.md).
 NBITS_INT8_COMPUTE = 4
 INT8_OP_TYPES = ("Conv", "Gemm", "MatMul")
+TRUNK_OP_TYPES = ("Conv", "Gemm")  # int8-nbits8: the trunk and hidden layers; the output layer is a MatMul
 
 
 class _Calibration(CalibrationDataReader):
@@ -56,19 +57,20 @@ def _inline_identity_initializers(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-def _quantise_int8(float_path: Path, calibration: np.ndarray) -> onnx.ModelProto:
-    """Static QDQ int8 of every Conv, Gemm and MatMul, ranges calibrated on ``calibration`` crops.
+def _quantise_int8(model: onnx.ModelProto, calibration: np.ndarray,
+                   op_types: tuple[str, ...] = INT8_OP_TYPES) -> onnx.ModelProto:
+    """Static QDQ int8 of every node of ``op_types``, ranges calibrated on ``calibration`` crops.
 
     ``quantize_static`` writes its file in a scratch folder: only :func:`save_onnx`'s atomic
     rename puts a model at its final name.
     """
     with tempfile.TemporaryDirectory() as folder:
         inlined, out_path = Path(folder) / "inlined.onnx", Path(folder) / "int8.onnx"
-        onnx.save(_inline_identity_initializers(onnx.load(str(float_path))), str(inlined))
+        onnx.save(_inline_identity_initializers(model), str(inlined))
         logging.disable(logging.WARNING)  # "consider pre-processing": done above, nothing left to act on
         try:
             quantize_static(inlined, out_path, _Calibration(calibration), quant_format=QuantFormat.QDQ,
-                            op_types_to_quantize=list(INT8_OP_TYPES), per_channel=True, reduce_range=True,
+                            op_types_to_quantize=list(op_types), per_channel=True, reduce_range=True,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
         finally:
             logging.disable(logging.NOTSET)
@@ -130,6 +132,10 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     come from ``calibration`` crops (required). The contrast normalisation
     stays float. Chosen as the fastest variant that keeps the argmax of fp32
     (measured: bench/results/quantisation.md).
+    int8-nbits8: the output layer as nbits8 (below), then static int8 of
+    every Conv and Gemm as int8 does: the trunk at int8's speed, the large
+    output layer on 8-bit blocks of 32 with a scale each instead of one range
+    per output.
     nbits4/nbits8: ``MatMulNBits`` (blocks of 32, computed on int8
     activations: :data:`NBITS_INT8_COMPUTE`) on the MatMul nodes, i.e. the
     large output layer; the rest stays float.
@@ -144,10 +150,12 @@ def quantise(float_path: Path, kind: str, metadata: ModelMetadata, calibration: 
     if kind not in QUANTISATIONS:
         raise PopcodeError(f"unknown quantisation {kind!r}; choose from {list(QUANTISATIONS)}")
     out_path = quantised_path(float_path, kind)
+    if kind.startswith("int8") and (calibration is None or len(calibration) == 0):
+        raise PopcodeError(f"{kind} quantisation needs calibration crops float32 [N, 1, S, S] (N >= 1)")
     if kind == "int8":
-        if calibration is None or len(calibration) == 0:
-            raise PopcodeError("int8 quantisation needs calibration crops float32 [N, 1, S, S] (N >= 1)")
-        quantised = _quantise_int8(float_path, calibration)
+        quantised = _quantise_int8(onnx.load(str(float_path)), calibration)
+    elif kind == "int8-nbits8":
+        quantised = _quantise_int8(_nbits_matmuls(onnx.load(str(float_path)), 8), calibration, TRUNK_OP_TYPES)
     elif kind == "fp16":
         quantised = _half_weights(onnx.load(str(float_path)))
     else:
