@@ -24,7 +24,7 @@ from popcode_runtime.base.output_lock import OutputLock
 from ..train.checkpoint import load, restore_rng_state, rng_state, save_atomic
 from .config import DetectorConfig
 from .frames import FrameSet, collate, held_out, read_frames
-from .network import build_detector
+from .network import apply_detector_start, build_detector
 
 CHECKPOINT = "detector.pt"
 METRICS = "metrics.csv"
@@ -96,8 +96,13 @@ def _epoch_loss(model: torch.nn.Module, loader: DataLoader, optimizer: torch.opt
 
 
 def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir: str | Path,
-                   config: DetectorConfig, seconds: float | None = None, progress: bool = True) -> DetectorRun:
+                   config: DetectorConfig, seconds: float | None = None, progress: bool = True,
+                   start: tuple[str, dict[str, torch.Tensor]] | None = None) -> DetectorRun:
     """Train (or resume) a detector of ``obj_ids`` on the scene ``splits`` into ``out_dir``.
+
+    ``start``: (where from, weights) of another detector of this network
+    (:func:`~popcode_trainer.detection.network.transferable_weights`) that a new run starts from instead of
+    random weights; a resumed run ignores it.
 
     ``seconds``: fit the epochs so that training takes about that long (within 1 and ``config.epochs``): from the
     first epoch's time, then again after the second from the faster of the two (:func:`fitted_epochs`). A run
@@ -117,6 +122,8 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
         train_set = FrameSet(train_frames, config, augment=True, progress=progress)
         val_set = FrameSet(val_frames, config, augment=False, progress=progress)
         model = build_detector(config, len(obj_ids))
+        if start is not None and state is None:
+            apply_detector_start(model, start[1], start[0])
         optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         start = 0
         if state is not None:

@@ -14,8 +14,11 @@ from collections import OrderedDict
 import torch
 from torch import nn
 
+from popcode_runtime.base.errors import PopcodeError
+
 from .config import DetectorConfig
 
+CLASS_LOGITS = "head.classification_head.cls_logits."  # the one layer tied to a detector's own objects
 ANCHOR_SIZES = ((8,), (16,), (32,))  # FCOS's size per level = its stride: P3, P4, P5
 IMAGE_MEAN, IMAGE_STD = (0.45,), (0.25,)  # grey frames in [0, 1]
 
@@ -64,3 +67,27 @@ def build_detector(config: DetectorConfig, num_classes: int) -> nn.Module:
                 image_std=list(IMAGE_STD), anchor_generator=anchors, head=head,
                 score_thresh=config.score_threshold, nms_thresh=config.nms_iou,
                 detections_per_img=config.max_detections)
+
+
+def transferable_weights(model: nn.Module) -> dict[str, torch.Tensor]:
+    """A detector's weights that another detector of the same network but other objects can start from: all but
+    the classification logits."""
+    return {name: tensor.detach().cpu().clone() for name, tensor in model.state_dict().items()
+            if not name.startswith(CLASS_LOGITS)}
+
+
+def apply_detector_start(model: nn.Module, weights: dict[str, torch.Tensor], source: str) -> int:
+    """Copy a start's weights (:func:`transferable_weights` of another detector) into ``model``; returns how many
+    tensors were copied. A start of another network is refused in one line, naming a tensor that differs."""
+    own = model.state_dict()
+    expected = {name for name in own if not name.startswith(CLASS_LOGITS)}
+    if set(weights) != expected:
+        differing = sorted(set(weights) ^ expected)[0]
+        raise PopcodeError(f"{source} is a start of another detector network ({differing} is in one and not the "
+                           "other): give a start of this network or none")
+    for name in expected:
+        if weights[name].shape != own[name].shape:
+            raise PopcodeError(f"{source} is a start of another detector network ({name} is "
+                               f"{tuple(weights[name].shape)} there, {tuple(own[name].shape)} here)")
+    model.load_state_dict(weights, strict=False)
+    return len(expected)

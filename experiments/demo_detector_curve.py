@@ -1,0 +1,102 @@
+"""What limits the quick demo's detector: its minutes or its scenes. AP on the cluttered validation split of
+detectors trained as the demo trains one (its recipe, its training scenes' seed and camera), for several time
+budgets and numbers of training scenes.
+
+    python -m experiments.demo_detector_curve [--work runs/demo_detector_curve] [--runs 150:2.5 150:10 600:10]
+        [--validation-scenes 60] [--name demo-detector-curve]
+
+Each ``SCENES:MINUTES`` run renders (once) that many training scenes as the demo does (seed 3000, industrial
+camera) and trains ``popcode_trainer.demo.sizes.DEMO_DETECTOR`` on them with its epochs fitted to the minutes, as
+``train_demo_detector`` does; the quick demo is ``150:2.5``. Every detector is scored on the validation bin split
+(seed 4000, industrial, as ``experiments.shipped_detector``'s) with the BOP toolkit's COCO AP. Run it alone: the
+epochs are fitted to this machine's speed. ``--work`` keeps scenes and runs: a rerun scores what is there.
+Results: ``bench/results/<name>.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.shipped_detector import _render
+from popcode_runtime.bop.split import split_images
+from popcode_runtime.commands.detect import detect_split
+from popcode_runtime.inference.detector import Detector
+from popcode_trainer.demo.sizes import DEMO_DETECTOR
+from popcode_trainer.detection.export import export_detector
+from popcode_trainer.detection.loop import train_detector
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.metrics.detection_scores import detection_scores
+from tools.command import run_command
+from tools.paths import RESULTS
+from tools.report import machine, machine_line, write_results
+
+TRAIN_SEED, VALIDATION_SEED = 3000, 4000  # the demo's training scenes; the project's cluttered validation seed
+
+
+def parse_run(text: str) -> tuple[int, float]:
+    scenes, _, minutes = text.partition(":")
+    try:
+        return int(scenes), float(minutes)
+    except ValueError:
+        raise SystemExit(f"--runs {text!r}: give SCENES:MINUTES, e.g. 150:2.5") from None
+
+
+def trained_detector(work: Path, scenes: int, minutes: float) -> tuple[Path, dict[str, float]]:
+    """Train (or find) the detector of ``scenes`` training scenes and ``minutes``; its file and its epochs and
+    training seconds."""
+    split = _render(work / f"train_{scenes}", scenes, TRAIN_SEED, "industrial")
+    folder = work / f"run_{scenes}_{minutes:g}min"
+    run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, DEMO_DETECTOR, seconds=60.0 * minutes)
+    with (folder / "metrics.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    return (export_detector(run.checkpoint, folder / "detector.onnx"),
+            {"epochs": len(rows), "training_s": sum(float(row["seconds"]) for row in rows),
+             "first_epoch_s": float(rows[0]["seconds"]), "last_val_loss": float(rows[-1]["val_loss"]),
+             "best_val_loss": min(float(row["val_loss"]) for row in rows)})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", type=Path, default=Path("runs/demo_detector_curve"))
+    parser.add_argument("--runs", nargs="+", default=["150:2.5", "150:10", "600:10"], metavar="SCENES:MINUTES")
+    parser.add_argument("--validation-scenes", type=int, default=60)
+    parser.add_argument("--name", default="demo-detector-curve")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    validation = _render(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
+    records: list[dict[str, Any]] = []
+    for scenes, minutes in map(parse_run, args.runs):
+        detector, training = trained_detector(args.work, scenes, minutes)
+        scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
+                                                           progress=False))
+        records.append({"scenes": scenes, "minutes": minutes, **training, "AP": scores.coco["AP"],
+                        "AP50": scores.coco["AP50"], "AP75": scores.coco["AP75"],
+                        "recall_30": scores.recall_goal.recall})
+    rows = [[r["scenes"], f"{r['minutes']:g}", r["epochs"], f"{r['training_s'] / 60:.1f}", f"{r['first_epoch_s']:.1f}",
+             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}", f"{100 * r['AP']:.1f}", f"{100 * r['AP50']:.1f}",
+             f"{100 * r['AP75']:.1f}", f"{100 * r['recall_30']:.1f}"] for r in records]
+    markdown = "\n".join([
+        f"# {args.name}: the demo's detector by training scenes and minutes",
+        "",
+        "`" + " ".join(["python -m experiments.demo_detector_curve", *(sys.argv[1:] if argv is None else argv)]) + "`",
+        "",
+        f"Validation bin split: seed {VALIDATION_SEED}, {args.validation_scenes} scenes, industrial camera; COCO AP "
+        "on amodal boxes as the BOP toolkit scores 2-D detection.",
+        "",
+        markdown_table(["training scenes", "budget min", "epochs", "training min", "first epoch s",
+                        "validation loss best / last", "AP", "AP50", "AP75", "recall ≥ 30 % visible"], rows),
+        "",
+        machine_line(machine()),
+    ])
+    write_results(args.out, args.name, {"runs": records, "validation_scenes": args.validation_scenes}, markdown)
+    print(markdown)
+    return 0
+
+
+if __name__ == "__main__":
+    run_command("experiments.demo_detector_curve", main)

@@ -1,0 +1,113 @@
+"""Does a detector pretrained on many generated parts give the demo's detector a head start? AP on the cluttered
+validation split of the demo's detector (its recipe, scenes and minutes) from random weights and from that start.
+
+    python -m experiments.detector_start --parts DIR --parts-scenes DIR [DIR ...] [--work runs/detector_start]
+        [--pretrain-epochs 60] [--demo-scenes DIR] [--minutes 2.5] [--validation-scenes 60]
+
+The start: ``DEMO_DETECTOR`` trained for ``--pretrain-epochs`` on bin scenes of generated parts (each part its own
+class; rendered by ``popcode-train render --objects`` from the parts ``popcode-train pretrain`` generates), all of
+its weights but the classification logits (``detection.network.transferable_weights``). Then the demo's detector
+(``--demo-scenes``: the demo's training scenes of the built-in parts, seed 3000, industrial camera; ``--minutes``:
+its budget, epochs fitted) twice, from random weights and from the start, each scored on the validation bin split
+(seed 4000, industrial) with the BOP toolkit's COCO AP. Run it alone: the epochs are fitted to this machine's
+speed. ``--work`` keeps runs: a rerun scores what is there. Results: ``bench/results/detector-start.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from experiments.shipped_detector import _render
+from popcode_runtime.bop.split import split_images
+from popcode_runtime.commands.detect import detect_split
+from popcode_runtime.inference.detector import Detector
+from popcode_trainer.data.bop import load_models_info
+from popcode_trainer.demo.sizes import DEMO_DETECTOR
+from popcode_trainer.detection.export import export_detector
+from popcode_trainer.detection.loop import train_detector
+from popcode_trainer.detection.network import build_detector, transferable_weights
+from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.metrics.detection_scores import detection_scores
+from popcode_trainer.train.checkpoint import load
+from tools.command import run_command
+from tools.paths import RESULTS
+from tools.report import machine, machine_line, write_results
+
+VALIDATION_SEED = 4000
+
+
+def _training(folder: Path) -> dict[str, float]:
+    with (folder / "metrics.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    return {"epochs": len(rows), "training_s": sum(float(row["seconds"]) for row in rows),
+            "best_val_loss": min(float(row["val_loss"]) for row in rows), "last_val_loss": float(rows[-1]["val_loss"])}
+
+
+def pretrained_start(work: Path, parts: Path, scenes: Sequence[Path], epochs: int
+                     ) -> tuple[str, dict[str, Any], dict[str, Any]]:
+    """Train (or resume) the detector of every generated part; its transferable weights and its training."""
+    obj_ids = sorted(load_models_info(parts))
+    folder = work / "pretrain"
+    run = train_detector(scenes, obj_ids, folder, replace(DEMO_DETECTOR, epochs=epochs))
+    model = build_detector(run.config, len(obj_ids))
+    model.load_state_dict(load(run.checkpoint)["model"])
+    return str(run.checkpoint), transferable_weights(model), {"parts": len(obj_ids), **_training(folder)}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--parts", type=Path, required=True, help="models folder of the generated parts")
+    parser.add_argument("--parts-scenes", type=Path, nargs="+", required=True, help="bin scenes of generated parts")
+    parser.add_argument("--work", type=Path, default=Path("runs/detector_start"))
+    parser.add_argument("--pretrain-epochs", type=int, default=60)
+    parser.add_argument("--demo-scenes", type=Path, required=True, help="the demo's training scenes")
+    parser.add_argument("--minutes", type=float, default=2.5, help="the demo detector's budget")
+    parser.add_argument("--validation-scenes", type=int, default=60)
+    parser.add_argument("--name", default="detector-start")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    validation = _render(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
+    source, weights, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes,
+                                                        args.pretrain_epochs)
+    records = []
+    for arm, start in (("random weights", None), ("pretrained start", (source, weights))):
+        folder = args.work / arm.replace(" ", "_")
+        run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder, DEMO_DETECTOR,
+                             seconds=60.0 * args.minutes, start=start)
+        detector = export_detector(run.checkpoint, folder / "detector.onnx")
+        scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
+                                                           progress=False))
+        records.append({"arm": arm, **_training(folder), "AP": scores.coco["AP"], "AP50": scores.coco["AP50"],
+                        "AP75": scores.coco["AP75"], "recall_30": scores.recall_goal.recall})
+    rows = [[r["arm"], r["epochs"], f"{r['training_s'] / 60:.1f}",
+             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}",
+             *[f"{100 * r[key]:.1f}" for key in ("AP", "AP50", "AP75", "recall_30")]] for r in records]
+    markdown = "\n".join([
+        f"# {args.name}: the demo's detector from random weights and from a start pretrained on generated parts",
+        "",
+        "`" + " ".join(["python -m experiments.detector_start", *(sys.argv[1:] if argv is None else argv)]) + "`",
+        "",
+        f"Start: {pretraining['parts']} generated parts, {pretraining['epochs']} epochs, "
+        f"{pretraining['training_s'] / 60:.1f} training minutes, validation loss best / last "
+        f"{pretraining['best_val_loss']:.3f} / {pretraining['last_val_loss']:.3f}. Validation bin split: seed "
+        f"{VALIDATION_SEED}, {args.validation_scenes} scenes, industrial camera; COCO AP on amodal boxes.",
+        "",
+        markdown_table(["demo detector", "epochs", "training min", "validation loss best / last", "AP", "AP50",
+                        "AP75", "recall ≥ 30 % visible"], rows),
+        "",
+        machine_line(machine()),
+    ])
+    write_results(args.out, args.name, {"pretraining": pretraining, "runs": records,
+                                        "arguments": {k: str(v) for k, v in vars(args).items()}}, markdown)
+    print(markdown)
+    return 0
+
+
+if __name__ == "__main__":
+    run_command("experiments.detector_start", main)
