@@ -6,7 +6,8 @@ budgets and numbers of training scenes.
         [--validation-scenes 60] [--name demo-detector-curve]
 
 Each ``SCENES:MINUTES`` run renders (once) that many training scenes as the demo does (seed 3000, industrial
-camera) and trains ``popcode_trainer.demo.sizes.DEMO_DETECTOR`` on them with its epochs fitted to the minutes, as
+camera) and trains ``popcode_trainer.demo.sizes.DEMO_DETECTOR`` on them from random weights (the start a demo
+takes since is measured in ``experiments.detector_start``) with its epochs fitted to the minutes, as
 ``train_demo_detector`` does; the quick demo is ``150:2.5``. Every detector is scored on the validation bin split
 (seed 4000, industrial, as ``experiments.shipped_detector``'s) with the BOP toolkit's COCO AP. Run it alone: the
 epochs are fitted to this machine's speed. ``--work`` keeps scenes and runs: a rerun scores what is there.
@@ -19,6 +20,7 @@ import argparse
 import csv
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +53,8 @@ def trained_detector(work: Path, scenes: int, minutes: float) -> tuple[Path, dic
     training seconds."""
     split = _render(work / f"train_{scenes}", scenes, TRAIN_SEED, "industrial")
     folder = work / f"run_{scenes}_{minutes:g}min"
-    run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, DEMO_DETECTOR, seconds=60.0 * minutes)
+    run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init="none"),
+                         seconds=60.0 * minutes)
     with (folder / "metrics.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     return (export_detector(run.checkpoint, folder / "detector.onnx"),

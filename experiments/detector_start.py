@@ -2,39 +2,47 @@
 validation split of the demo's detector (its recipe, scenes and minutes) from random weights and from that start.
 
     python -m experiments.detector_start --parts DIR --parts-scenes DIR [DIR ...] [--work runs/detector_start]
-        [--pretrain-epochs 60] [--demo-scenes DIR] [--minutes 2.5] [--validation-scenes 60]
+        [--pretrain-epochs 60] [--demo-scenes DIR] [--minutes 2.5] [--validation-scenes 60] [--ship]
 
 The start: ``DEMO_DETECTOR`` trained for ``--pretrain-epochs`` on bin scenes of generated parts (each part its own
 class; rendered by ``popcode-train render --objects`` from the parts ``popcode-train pretrain`` generates), all of
-its weights but the classification logits (``detection.network.transferable_weights``). Then the demo's detector
-(``--demo-scenes``: the demo's training scenes of the built-in parts, seed 3000, industrial camera; ``--minutes``:
-its budget, epochs fitted) twice, from random weights and from the start, each scored on the validation bin split
-(seed 4000, industrial) with the BOP toolkit's COCO AP. Run it alone: the epochs are fitted to this machine's
-speed. ``--work`` keeps runs: a rerun scores what is there. Results: ``bench/results/detector-start.{json,md}``.
+its weights but the classification logits, written as a detector start (``detection.start``) with its card
+(``WORK/detector-start.pt``; ``--ship`` copies it to ``models/``, where ``detector.init = "auto"`` finds it). Then
+the demo's detector (``--demo-scenes``: the demo's training scenes of the built-in parts, seed 3000, industrial
+camera; ``--minutes``: its budget, epochs fitted) twice, from random weights (``detector.init = "none"``) and from
+the start, each scored on the validation bin split (seed 4000, industrial) with the BOP toolkit's COCO AP. Run it
+alone: the epochs are fitted to this machine's speed. ``--work`` keeps runs: a rerun scores what is there. Results:
+``bench/results/detector-start.{json,md}``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import shutil
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from experiments.shipped_detector import _render
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
+from popcode_runtime.inference.benchmark import machine_description
 from popcode_runtime.inference.detector import Detector
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.demo.sizes import DEMO_DETECTOR
 from popcode_trainer.detection.export import export_detector
 from popcode_trainer.detection.loop import train_detector
-from popcode_trainer.detection.network import build_detector, transferable_weights
+from popcode_trainer.detection.network import build_detector
+from popcode_trainer.detection.start import shipped_detector_start, write_detector_start
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.detection_scores import detection_scores
-from popcode_trainer.train.checkpoint import load
+from popcode_trainer.train.checkpoint import git_revision, load
 from tools.command import run_command
 from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
@@ -49,15 +57,18 @@ def _training(folder: Path) -> dict[str, float]:
             "best_val_loss": min(float(row["val_loss"]) for row in rows), "last_val_loss": float(rows[-1]["val_loss"])}
 
 
-def pretrained_start(work: Path, parts: Path, scenes: Sequence[Path], epochs: int
-                     ) -> tuple[str, dict[str, Any], dict[str, Any]]:
-    """Train (or resume) the detector of every generated part; its transferable weights and its training."""
+def pretrained_start(work: Path, parts: Path, scenes: Sequence[Path], epochs: int) -> tuple[Path, dict[str, Any]]:
+    """Train (or resume) the detector of every generated part from random weights and write its start with a card;
+    the start file and the card."""
     obj_ids = sorted(load_models_info(parts))
     folder = work / "pretrain"
-    run = train_detector(scenes, obj_ids, folder, replace(DEMO_DETECTOR, epochs=epochs))
+    run = train_detector(scenes, obj_ids, folder, replace(DEMO_DETECTOR, epochs=epochs, init="none"))
     model = build_detector(run.config, len(obj_ids))
     model.load_state_dict(load(run.checkpoint)["model"])
-    return str(run.checkpoint), transferable_weights(model), {"parts": len(obj_ids), **_training(folder)}
+    card = {"parts": len(obj_ids), "scenes": sum(len(split_images(split)) for split in scenes), **_training(folder),
+            "command": "python -m experiments.detector_start", "commit": git_revision(),
+            "date": time.strftime("%Y-%m-%d"), "machine": {**machine_description(), "torch": str(torch.__version__)}}
+    return write_detector_start(model, run.config, work / "detector-start.pt", card), card
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -69,17 +80,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--demo-scenes", type=Path, required=True, help="the demo's training scenes")
     parser.add_argument("--minutes", type=float, default=2.5, help="the demo detector's budget")
     parser.add_argument("--validation-scenes", type=int, default=60)
+    parser.add_argument("--ship", action="store_true", help="copy the start into models/ (the shipped start)")
     parser.add_argument("--name", default="detector-start")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     validation = _render(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
-    source, weights, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes,
-                                                        args.pretrain_epochs)
+    start, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes, args.pretrain_epochs)
+    if args.ship:
+        shutil.copyfile(start, shipped_detector_start(DEMO_DETECTOR))
     records = []
-    for arm, start in (("random weights", None), ("pretrained start", (source, weights))):
+    for arm, init in (("random weights", "none"), ("pretrained start", str(start))):
         folder = args.work / arm.replace(" ", "_")
-        run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder, DEMO_DETECTOR,
-                             seconds=60.0 * args.minutes, start=start)
+        run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init=init),
+                             seconds=60.0 * args.minutes)
         detector = export_detector(run.checkpoint, folder / "detector.onnx")
         scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
                                                            progress=False))

@@ -10,6 +10,7 @@ from popcode_runtime.base.files import require_folder
 
 from ..detection.config import DetectorConfig
 from ..train.config import parse_override
+from ..train.pretrained import NONE
 
 DETECTOR_FILE = "detector.onnx"
 
@@ -17,8 +18,10 @@ DETECTOR_FILE = "detector.onnx"
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train-detector", help="train a detector of the parts on BOP scene splits and export it",
-        description="Train torchvision's FCOS from scratch on the images and boxes of BOP scene splits (what "
-                    "popcode-train render --scenes writes), holding out a share of the images for a validation "
+        description="Train torchvision's FCOS on the images and boxes of BOP scene splits (what popcode-train "
+                    "render --scenes writes), from the shipped detector start of its network shape where there is "
+                    "one (detector.init; --from-scratch: random weights), holding out a share of the images for a "
+                    "validation "
                     f"loss; checkpoint after each epoch (rerun the same command to resume) and write "
                     f"OUT/{DETECTOR_FILE} for popcode detect, popcode run --detector and popcode predict --detector.")
     parser.add_argument("--split", action="append", required=True, type=Path, metavar="DIR",
@@ -33,23 +36,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--minutes", type=float, metavar="M",
                         help="fit the epochs to about M minutes of training from the first epoch's time "
                              "(at most detector.epochs)")
+    parser.add_argument("--from-scratch", action="store_true",
+                        help="random first weights (detector.init 'none') instead of the shipped detector start")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(handler=run)
 
 
-def detector_config(overrides: list[str]) -> DetectorConfig:
-    """The default config with ``--set detector.KEY=VALUE`` overrides, checked."""
+def detector_config(overrides: list[str], from_scratch: bool = False) -> DetectorConfig:
+    """The default config with ``--set detector.KEY=VALUE`` overrides (and ``--from-scratch``), checked."""
     values = {}
     for text in overrides:
         section, key, value = parse_override(text)
         if section != "detector":
             raise PopcodeError(f"train-detector settings are detector.KEY=VALUE, got {text!r}")
         values[key] = value
+    if from_scratch:
+        values["init"] = NONE
     return DetectorConfig().with_overrides(values)
 
 
 def run(args: argparse.Namespace) -> int:
-    config = detector_config(args.overrides)
+    config = detector_config(args.overrides, args.from_scratch)
     if args.minutes is not None and not 0 < args.minutes <= 100_000:
         raise PopcodeError(f"--minutes must lie in (0, 100000], got {args.minutes}")
     for split in args.split:
@@ -63,5 +70,5 @@ def run(args: argparse.Namespace) -> int:
                          seconds=None if args.minutes is None else 60.0 * args.minutes, progress=not args.quiet)
     path = export_detector(run.checkpoint, args.out / DETECTOR_FILE)
     print(f"wrote {path}: objects {list(run.obj_ids)}, {run.config.epochs} epochs, input "
-          f"{run.config.input_width}x{run.config.input_height}")
+          f"{run.config.input_width}x{run.config.input_height}, first weights from {run.start}")
     return 0

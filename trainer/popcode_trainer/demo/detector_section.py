@@ -22,10 +22,11 @@ def own_detector_markdown(own: OwnDetectorResults, true_boxes: MethodResult, det
     scores = own.detection
     coco = scores.coco
     trained = f" trained for {seconds / 60:.1f} min on the training scenes" if seconds else ""
+    first_weights = f", first weights from {own.first_weights}" if own.first_weights else ""
     verdict = "met" if (coco.get("AP") or 0.0) >= QUICK_DEMO_AP else "**missed**"
     lines = [
         "## The run's own eyes: a detector from the same renders",
-        f"A detector (torchvision FCOS from scratch){trained}, run by the runtime alone "
+        f"A detector (torchvision FCOS{first_weights}){trained}, run by the runtime alone "
         f"(`popcode detect`, {own.mean_detect_ms:.0f} ms a frame here) on the cluttered test split and scored as the "
         "BOP challenge scores 2-D detection (COCO AP on amodal boxes, instances under 10 % visible ignored). "
         f"Every table of the poses in its boxes (or its detections, where it found none): [{link}]({link}).",
@@ -41,10 +42,12 @@ def own_detector_markdown(own: OwnDetectorResults, true_boxes: MethodResult, det
         rows.append(_mssd_row("the run's own detector (every instance; a missed one is wrong)", own.poses,
                               true_boxes))
     if verdict != "met":
-        lines.append("What limits it: training compute. A detector trained from scratch on two CPU cores is far from "
-                     "converged after the demo's minutes; its AP against training minutes (and the shipped "
-                     "detector's, trained for most of an hour) is in bench/results/shipped-detector.md, the "
-                     "recipes' in bench/results/detector-choices.md. `--size medium` gives it four times the time.")
+        lines.append("What limits it: training scenes and compute. On the demo's 150 scenes a detector's validation "
+                     "loss turns up within minutes while more minutes still raise its AP a little, and more scenes "
+                     "in the same minutes raise it more; a start pretrained on generated parts lifts it most "
+                     "(bench/results/eyes.md#the-quick-demos-detector; the shipped detector, trained for most of an "
+                     "hour on 1500 scenes, in bench/results/shipped-detector.md). `--size medium` gives it four "
+                     "times the time.")
     bins = list(true_boxes.by_visibility)
     lines += ["MSSD of the population code in the bin by where its boxes came from (all objects, then by visible "
               "fraction):",

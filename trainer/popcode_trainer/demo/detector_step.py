@@ -41,6 +41,7 @@ class OwnDetectorResults:
     detection: DetectionScores
     poses: MethodResult | None  # None: the detector found nothing, so no pose was estimated
     mean_detect_ms: float
+    first_weights: str | None = None  # which start its training took, from its metadata (None: not recorded)
 
 
 def train_demo_detector(size: PipelineSize, train_split: Path, out_dir: Path, obj_ids: list[int],
@@ -69,4 +70,6 @@ def score_own_detector(detector_path: Path, popcode_models: list[Path], split_di
     poses = evaluate_models([read_results_method(results, name)], split, vsd=False)[0] if detections else None
     times = {d.image_key: d.time_s for d in detections}
     mean_ms = 1000.0 * sum(times.values()) / max(len(times), 1)
-    return OwnDetectorResults(detector_path, detection_scores(split_dir, detections), poses, mean_ms)
+    first_weights = detector.metadata.training.get("first_weights")
+    return OwnDetectorResults(detector_path, detection_scores(split_dir, detections), poses, mean_ms,
+                              None if first_weights is None else str(first_weights))

@@ -41,6 +41,7 @@ from ..train import checkpoint
 from ..train.config import CodeConfig, Config, DataConfig, TrainConfig
 from ..train.loop import train
 from ..train.network import NetworkConfig
+from ..train.pretrained import NONE
 from ..train.run_files import CROP_CACHE_FOLDER, LAST_CHECKPOINT, MODEL_FILE
 from ..train.training_data import build_training_data, read_training_split, validation_crops
 from .epoch_budget import first_epoch_compile_seconds, first_epoch_seconds
@@ -104,8 +105,11 @@ class PipelineSize:
         return replace(self, config=replace(self.config, train=replace(self.config.train, epochs=epochs)))
 
     def with_init(self, init: str) -> PipelineSize:
-        """The same run, its models starting from ``init`` (``train.init``: "auto", "none" or a start file)."""
-        return replace(self, config=replace(self.config, train=replace(self.config.train, init=init)))
+        """The same run, its models starting from ``init`` (``train.init``: "auto", "none" or a start file); "none"
+        starts its detector from random weights too (a pose model's start file is no detector's)."""
+        detector = replace(self.detector, init=NONE) if init == NONE else self.detector
+        return replace(self, config=replace(self.config, train=replace(self.config.train, init=init)),
+                       detector=detector)
 
 
 # A network of a few per cent of the paper's width that trains in minutes on two CPU cores: residual

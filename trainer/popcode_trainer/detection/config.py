@@ -17,8 +17,8 @@ from popcode_runtime.model.detector_metadata import MAX_DETECTIONS, MAX_SIDE, MI
 SIDE_MULTIPLE = 32  # the coarsest feature map's stride: the input must tile into it
 MAX_WIDTH_CHANNELS = 512
 MAX_DETECTOR_EPOCHS = 10_000
-# Settings a resume may change: more epochs extend a run.
-RESUMABLE = frozenset({"epochs"})
+# Settings a resume may change: more epochs extend a run; the start only matters to a run's first epoch.
+RESUMABLE = frozenset({"epochs", "init"})
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,9 @@ class DetectorConfig:
     nms_iou: float = 0.5
     max_detections: int = 100
     seed: int = 0
+    # first weights: "auto" (the shipped detector start of this network shape, else random weights), "none"
+    # (random weights) or a detector start file (detection/start.py)
+    init: str = "auto"
 
     def __post_init__(self) -> None:
         for side, name in ((self.input_width, "input_width"), (self.input_height, "input_height")):
@@ -66,6 +69,8 @@ class DetectorConfig:
                 and 0 <= self.val_fraction < 1):
             raise PopcodeError("need 0 < lr <= 1, 0 <= weight_decay <= 1, 0 <= min_visib_fract <= 1 and "
                                "0 <= val_fraction < 1")
+        if not isinstance(self.init, str) or not self.init.strip():
+            raise PopcodeError(f"detector init must be 'auto', 'none' or a start file, got {self.init!r}")
         if self.box_kind not in BOX_KINDS:
             raise PopcodeError(f"detector box_kind must be one of {list(BOX_KINDS)}, got {self.box_kind!r}")
         DetectorMetadata.check_thresholds(self.score_threshold, self.nms_iou, self.max_detections)

@@ -62,7 +62,8 @@ class ExportedDetector(nn.Module):
 def detector_metadata(state: dict[str, Any], config: DetectorConfig) -> DetectorMetadata:
     """What the file says of itself: objects, input size, default thresholds and what it was trained on."""
     training = {"config": config.to_dict(), "epochs": int(state["epoch"]), "frames": state.get("frames", {}),
-                "architecture": "torchvision FCOS, plain backbone + FPN (P3-P5), trained from scratch",
+                "architecture": "torchvision FCOS, plain backbone + FPN (P3-P5)",
+                "first_weights": str(state.get("start", "random weights (a run of an older trainer)")),
                 "git_revision": git_revision()}
     return DetectorMetadata(tuple(state["obj_ids"]), config.input_width, config.input_height,
                             config.score_threshold, config.nms_iou, config.max_detections, training)

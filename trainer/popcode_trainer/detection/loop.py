@@ -24,7 +24,8 @@ from popcode_runtime.base.output_lock import OutputLock
 from ..train.checkpoint import load, restore_rng_state, rng_state, save_atomic
 from .config import DetectorConfig
 from .frames import FrameSet, collate, held_out, read_frames
-from .network import apply_detector_start, build_detector
+from .network import build_detector
+from .start import apply_start, resolve_detector_start
 
 CHECKPOINT = "detector.pt"
 METRICS = "metrics.csv"
@@ -42,6 +43,7 @@ class DetectorRun:
     obj_ids: tuple[int, ...]
     epochs_run: int  # in this call
     first_epoch_seconds: float | None  # this call's first epoch, for a time budget
+    start: str  # which first weights the run took (detection/start.py), in words
 
 
 def fitted_epochs(seconds: float, epoch_seconds: Sequence[float], most: int) -> int:
@@ -96,13 +98,11 @@ def _epoch_loss(model: torch.nn.Module, loader: DataLoader, optimizer: torch.opt
 
 
 def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir: str | Path,
-                   config: DetectorConfig, seconds: float | None = None, progress: bool = True,
-                   start: tuple[str, dict[str, torch.Tensor]] | None = None) -> DetectorRun:
+                   config: DetectorConfig, seconds: float | None = None, progress: bool = True) -> DetectorRun:
     """Train (or resume) a detector of ``obj_ids`` on the scene ``splits`` into ``out_dir``.
 
-    ``start``: (where from, weights) of another detector of this network
-    (:func:`~popcode_trainer.detection.network.transferable_weights`) that a new run starts from instead of
-    random weights; a resumed run ignores it.
+    A new run starts from the start ``config.init`` names (:mod:`popcode_trainer.detection.start`), said in
+    one line; the checkpoint keeps that line, so a resumed run reports the start it took.
 
     ``seconds``: fit the epochs so that training takes about that long (within 1 and ``config.epochs``): from the
     first epoch's time, then again after the second from the faster of the two (:func:`fitted_epochs`). A run
@@ -118,12 +118,17 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
         state = load(checkpoint) if checkpoint.exists() else None
         if state is not None:  # a fitted run keeps its fitted epochs
             config = _resumed_config(state, config, obj_ids, checkpoint, keep_epochs=seconds is not None)
+        # a start named wrongly is refused before the frames are read
+        first_weights, start_line = resolve_detector_start(config) if state is None else \
+            (None, str(state.get("start", "unknown (a run of an older trainer)")))
         train_frames, val_frames = held_out(read_frames(splits, obj_ids, config), config.val_fraction, config.seed)
         train_set = FrameSet(train_frames, config, augment=True, progress=progress)
         val_set = FrameSet(val_frames, config, augment=False, progress=progress)
         model = build_detector(config, len(obj_ids))
-        if start is not None and state is None:
-            apply_detector_start(model, start[1], start[0])
+        if first_weights is not None:
+            apply_start(model, first_weights)
+        if progress and state is None:
+            print(f"detector: first weights from {start_line}", flush=True)
         optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         start = 0
         if state is not None:
@@ -152,6 +157,7 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
                 fit_times.append(took)
                 config = replace(config, epochs=fitted_epochs(seconds, fit_times, most_epochs))
             save_atomic({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
+                         "start": start_line,
                          "config": config.to_dict(), "obj_ids": list(obj_ids), "rng": rng_state(),
                          "frames": {"train": len(train_set), "val": len(val_set),
                                     "splits": [str(Path(s)) for s in splits]}}, checkpoint)
@@ -160,7 +166,7 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
             if progress:
                 tqdm.write(f"detector epoch {epoch}/{config.epochs}: train loss {train_loss:.4f}, "
                            f"val loss {val_loss:.4f}, {took:.0f} s")
-        return DetectorRun(checkpoint, config, obj_ids, epoch - start, first_seconds)
+        return DetectorRun(checkpoint, config, obj_ids, epoch - start, first_seconds, start_line)
 
 
 def _resumed_config(state: dict, config: DetectorConfig, obj_ids: tuple[int, ...], path: Path,

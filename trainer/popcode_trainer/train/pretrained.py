@@ -10,6 +10,9 @@ was measured: bench/results/pretrained-start.md). ``train.init`` chooses the sta
 - ``"none"``: random weights (``--from-scratch``);
 - a path: that start, refused in one line when it is not a start, is damaged, comes from a newer trainer or
   from another network shape -- never a silent random start.
+
+The file format, its checks and ``init``'s choice are shared with the detector's starts
+(:mod:`popcode_trainer.detection.start`): a :class:`StartKind` names which network a start is for.
 """
 
 from __future__ import annotations
@@ -29,11 +32,29 @@ from popcode_runtime.base.errors import PopcodeError
 from . import checkpoint
 from .network import NetworkConfig
 
-START_FORMAT = "popcode-pretrained-start"
 START_VERSION = 1
 TRANSFERRED_MODULES = ("features", "hidden")
 SHIPPED_DIR = Path(__file__).resolve().parents[3] / "models"  # the repository's models/ (an editable install)
 AUTO, NONE = "auto", "none"
+
+
+@dataclass(frozen=True)
+class StartKind:
+    """Which network a start is for: its file's format field, its name in messages, the command that writes
+    one, the name of a shipped one (``<prefix>-<shape id>.pt``), the settings section of its shape's fields and
+    the setting that chooses it."""
+
+    format: str
+    what: str
+    writer: str
+    prefix: str
+    shape_section: str
+    init_setting: str
+
+
+POSE_START = StartKind("popcode-pretrained-start", "pretrained start", "popcode-train pretrain", "pretrained-start",
+                       "network", "train.init")
+START_FORMAT = POSE_START.format
 
 
 @dataclass(frozen=True)
@@ -53,54 +74,70 @@ def network_shape(config: NetworkConfig) -> dict[str, Any]:
     return json.loads(json.dumps(shape))  # tuples as lists, as the file stores them
 
 
-def shape_id(config: NetworkConfig) -> str:
-    """A short name of a network shape, part of a shipped start's file name."""
-    text = json.dumps(network_shape(config), sort_keys=True)
+def shape_id(shape: NetworkConfig | dict[str, Any]) -> str:
+    """A short name of a network shape (a pose network's config, or any start's shape fields), part of a shipped
+    start's file name."""
+    text = json.dumps(network_shape(shape) if isinstance(shape, NetworkConfig) else shape, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
 def shipped_path(config: NetworkConfig, folder: Path | None = None) -> Path:
     """Where the shipped start of this network shape lies in ``folder`` (default :data:`SHIPPED_DIR`); it may not
     exist."""
-    return (SHIPPED_DIR if folder is None else folder) / f"pretrained-start-{shape_id(config)}.pt"
+    return shipped_start_path(POSE_START, network_shape(config), folder)
+
+
+def shipped_start_path(kind: StartKind, shape: dict[str, Any], folder: Path | None = None) -> Path:
+    """Where the shipped ``kind`` start of this ``shape`` lies in ``folder`` (default :data:`SHIPPED_DIR`)."""
+    return (SHIPPED_DIR if folder is None else folder) / f"{kind.prefix}-{shape_id(shape)}.pt"
+
+
+def save_start(kind: StartKind, shape: dict[str, Any], state: dict[str, torch.Tensor], path: Path,
+               card: dict[str, Any]) -> Path:
+    """Save the weights a ``kind`` start carries, with the shape they fit and ``card``, atomically."""
+    checkpoint.save_atomic({"format": kind.format, "version": START_VERSION, "network": shape, "state": state,
+                            "card": card}, Path(path))
+    return Path(path)
 
 
 def write_start(model: nn.Module, config: NetworkConfig, path: Path, card: dict[str, Any]) -> Path:
     """Save ``model``'s transferred weights with ``card`` as a start, atomically."""
     state = {name: tensor.detach().cpu().clone() for name, tensor in model.state_dict().items()
              if name.split(".")[0] in TRANSFERRED_MODULES}
-    checkpoint.save_atomic({"format": START_FORMAT, "version": START_VERSION, "network": network_shape(config),
-                            "state": state, "card": card}, Path(path))
-    return Path(path)
+    return save_start(POSE_START, network_shape(config), state, path, card)
 
 
-def read_start(path: str | Path) -> PretrainedStart:
-    """A start file, checked; PopcodeError in one line for a file that is not one."""
+def read_start(path: str | Path, kind: StartKind = POSE_START) -> PretrainedStart:
+    """A ``kind`` start file, checked; PopcodeError in one line for a file that is not one."""
     path = Path(path)
     if not path.is_file():
-        raise PopcodeError(f"pretrained start not found: {path} (train.init is 'auto', 'none' or a start file)")
+        raise PopcodeError(f"{kind.what} not found: {path} ({kind.init_setting} is 'auto', 'none' or a start file)")
     state = checkpoint.load(path)
-    if state.get("format") != START_FORMAT:
-        raise PopcodeError(f"{path} is not a pretrained start (popcode-train pretrain writes them): it has no "
-                           f"'{START_FORMAT}' format field")
+    if state.get("format") != kind.format:
+        raise PopcodeError(f"{path} is not a {kind.what} ({kind.writer} writes them): it has no '{kind.format}' "
+                           "format field")
     version = state.get("version")
     if not isinstance(version, int) or version < 1:
-        raise PopcodeError(f"{path}: pretrained start of unknown version {version!r}")
+        raise PopcodeError(f"{path}: {kind.what} of unknown version {version!r}")
     if version > START_VERSION:
-        raise PopcodeError(f"{path} is a pretrained start of version {version}, newer than this trainer reads "
+        raise PopcodeError(f"{path} is a {kind.what} of version {version}, newer than this trainer reads "
                            f"({START_VERSION}): update popcode, or pass --from-scratch")
     weights, network, card = state.get("state"), state.get("network"), state.get("card", {})
     if not isinstance(weights, dict) or not isinstance(network, dict) or not isinstance(card, dict) or \
             not all(isinstance(value, torch.Tensor) for value in weights.values()):
-        raise PopcodeError(f"{path}: a damaged pretrained start (its weights, network or card are missing)")
+        raise PopcodeError(f"{path}: a damaged {kind.what} (its weights, network or card are missing)")
     return PretrainedStart(path, network, weights, card)
 
 
 def check_fits(start: PretrainedStart, config: NetworkConfig) -> None:
     """Refuse, naming the differences, a start pretrained for another network shape than ``config``'s."""
-    wanted = network_shape(config)
-    differences = [f"network.{key} {start.network.get(key)!r} there, {wanted[key]!r} here" for key in wanted
-                   if start.network.get(key) != wanted[key]]
+    check_shape(start, network_shape(config), POSE_START)
+
+
+def check_shape(start: PretrainedStart, wanted: dict[str, Any], kind: StartKind) -> None:
+    """Refuse, naming the differences, a ``kind`` start made for another shape than ``wanted``."""
+    differences = [f"{kind.shape_section}.{key} {start.network.get(key)!r} there, {wanted[key]!r} here"
+                   for key in wanted if start.network.get(key) != wanted[key]]
     if differences:
         raise PopcodeError(f"{start.path} was pretrained for another network ({'; '.join(differences)}): pass a "
                            "start of this network, or --from-scratch")
@@ -128,17 +165,23 @@ def parameter_groups(model: nn.Module) -> list[dict[str, Any]]:
 
 def resolve_start(init: str, config: NetworkConfig) -> tuple[PretrainedStart | None, str]:
     """The start ``train.init`` names for a network of ``config``, and one line saying which start a run takes."""
+    return resolve_kind_start(init, network_shape(config), POSE_START)
+
+
+def resolve_kind_start(init: str, shape: dict[str, Any], kind: StartKind) -> tuple[PretrainedStart | None, str]:
+    """The ``kind`` start an ``init`` setting names for a network of ``shape``, and one line saying which start a
+    run takes: ``auto`` the shipped one of this shape if there is one, ``none`` none, else the file it names."""
     if init == NONE:
-        return None, "random weights (train.init 'none')"
+        return None, f"random weights ({kind.init_setting} 'none')"
     if init == AUTO:
-        path = shipped_path(config)
+        path = shipped_start_path(kind, shape)
         if not path.is_file():
-            return None, f"random weights: no pretrained start is shipped for this network shape ({path.name})"
-        start = read_start(path)
-        return start, f"the shipped pretrained start {path.name} ({describe(start)})"
-    start = read_start(init)
-    check_fits(start, config)
-    return start, f"the pretrained start {init} ({describe(start)})"
+            return None, f"random weights: no {kind.what} is shipped for this network shape ({path.name})"
+        start = read_start(path, kind)
+        return start, f"the shipped {kind.what} {path.name} ({describe(start)})"
+    start = read_start(init, kind)
+    check_shape(start, shape, kind)
+    return start, f"the {kind.what} {init} ({describe(start)})"
 
 
 def describe(start: PretrainedStart) -> str:
