@@ -13,7 +13,7 @@ import torch
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.inference.detector import Detector
 from popcode_trainer.cli import main as trainer
-from popcode_trainer.demo.sizes import DEMO_DETECTOR
+from popcode_trainer.demo.sizes import DEMO_DETECTOR, DEMO_SIZES
 from popcode_trainer.detection.config import DetectorConfig
 from popcode_trainer.detection.network import CLASS_LOGITS, build_detector
 from popcode_trainer.detection.start import (
@@ -89,6 +89,14 @@ def test_the_demos_detector_has_a_shipped_start() -> None:
     start, line = resolve_detector_start(DEMO_DETECTOR)
     assert start is not None, line
     apply_start(build_detector(DEMO_DETECTOR, 6), start)
+
+
+def test_from_scratch_starts_the_demos_detector_from_random_weights_too() -> None:
+    quick = DEMO_SIZES["quick"].pipeline
+    assert quick.detector.init == "auto"
+    scratch = quick.with_init("none")
+    assert scratch.detector.init == "none" and scratch.config.train.init == "none"
+    assert quick.with_init("some/pose-start.pt").detector.init == "auto"  # a pose start is no detector's
 
 
 @pytest.fixture(scope="module")

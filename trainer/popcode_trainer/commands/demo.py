@@ -46,8 +46,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "(every model trains one epoch, then as many as fit)")
     parser.add_argument("--images", type=int, metavar="N", help="training images per object instead of the size's")
     parser.add_argument("--from-scratch", action="store_true",
-                        help="start every model from random weights, not from the shipped pretrained start of its "
-                             "network (popcode-train pretrain)")
+                        help="start every model and the detector from random weights, not from the shipped "
+                             "pretrained start of its network (popcode-train pretrain) and the shipped detector start")
     parser.set_defaults(handler=run)
 
 
