@@ -2,7 +2,7 @@
 validation split of the demo's detector (its recipe, scenes and minutes) from random weights and from that start.
 
     python -m experiments.detector_start --parts DIR --parts-scenes DIR [DIR ...] [--work runs/detector_start]
-        [--pretrain-epochs 60] [--demo-scenes DIR] [--minutes 2.5] [--validation-scenes 60] [--ship]
+        [--pretrain-epochs 60] [--demo-scenes DIR] [--minutes 2.5] [--validation-scenes 60] [--seed 0] [--ship]
 
 The start: ``DEMO_DETECTOR`` trained for ``--pretrain-epochs`` on bin scenes of generated parts (each part its own
 class; rendered by ``popcode-train render --objects`` from the parts ``popcode-train pretrain`` generates), all of
@@ -80,6 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--demo-scenes", type=Path, required=True, help="the demo's training scenes")
     parser.add_argument("--minutes", type=float, default=2.5, help="the demo detector's budget")
     parser.add_argument("--validation-scenes", type=int, default=60)
+    parser.add_argument("--seed", type=int, default=0, help="the demo detectors' seed (weights, order, held out)")
     parser.add_argument("--ship", action="store_true", help="copy the start into models/ (the shipped start)")
     parser.add_argument("--name", default="detector-start")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -88,11 +89,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     start, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes, args.pretrain_epochs)
     if args.ship:
         shutil.copyfile(start, shipped_detector_start(DEMO_DETECTOR))
-    records = []
+    records: list[dict[str, Any]] = []
     for arm, init in (("random weights", "none"), ("pretrained start", str(start))):
-        folder = args.work / arm.replace(" ", "_")
-        run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init=init),
-                             seconds=60.0 * args.minutes)
+        folder = args.work / (arm.replace(" ", "_") + (f"_seed{args.seed}" if args.seed else ""))
+        run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder,
+                             replace(DEMO_DETECTOR, init=init, seed=args.seed), seconds=60.0 * args.minutes)
         detector = export_detector(run.checkpoint, folder / "detector.onnx")
         scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
                                                            progress=False))
@@ -108,7 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         f"Start: {pretraining['parts']} generated parts, {pretraining['epochs']} epochs, "
         f"{pretraining['training_s'] / 60:.1f} training minutes, validation loss best / last "
-        f"{pretraining['best_val_loss']:.3f} / {pretraining['last_val_loss']:.3f}. Validation bin split: seed "
+        f"{pretraining['best_val_loss']:.3f} / {pretraining['last_val_loss']:.3f}. Demo detectors' seed "
+        f"{args.seed}. Validation bin split: seed "
         f"{VALIDATION_SEED}, {args.validation_scenes} scenes, industrial camera; COCO AP on amodal boxes.",
         "",
         markdown_table(["demo detector", "epochs", "training min", "validation loss best / last", "AP", "AP50",
