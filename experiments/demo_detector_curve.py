@@ -24,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from experiments.shipped_detector import _render
+from experiments.shipped_detector import render_scenes
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.detector import Detector
@@ -51,7 +51,7 @@ def parse_run(text: str) -> tuple[int, float]:
 def trained_detector(work: Path, scenes: int, minutes: float) -> tuple[Path, dict[str, float]]:
     """Train (or find) the detector of ``scenes`` training scenes and ``minutes``; its file and its epochs and
     training seconds."""
-    split = _render(work / f"train_{scenes}", scenes, TRAIN_SEED, "industrial")
+    split = render_scenes(work / f"train_{scenes}", scenes, TRAIN_SEED, "industrial")
     folder = work / f"run_{scenes}_{minutes:g}min"
     run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init="none"),
                          seconds=60.0 * minutes)
@@ -71,7 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--name", default="demo-detector-curve")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    validation = _render(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
+    validation = render_scenes(args.work / "validation", args.validation_scenes, VALIDATION_SEED,
+                               "industrial")
     records: list[dict[str, Any]] = []
     for scenes, minutes in map(parse_run, args.runs):
         detector, training = trained_detector(args.work, scenes, minutes)

@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from experiments.shipped_detector import _render
+from experiments.shipped_detector import render_scenes
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.benchmark import machine_description
@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--name", default="detector-start")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    validation = _render(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
+    validation = render_scenes(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
     start, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes, args.pretrain_epochs)
     if args.ship:
         shutil.copyfile(start, shipped_detector_start(DEMO_DETECTOR))

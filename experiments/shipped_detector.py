@@ -48,7 +48,8 @@ TRAIN_SEEDS = (21, 22)  # the first without a sensor model, the second with the 
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
 
-def _render(out: Path, scenes: int, seed: int, sensor: str) -> Path:
+def render_scenes(out: Path, scenes: int, seed: int, sensor: str) -> Path:
+    """A bin split of the built-in parts (``popcode-train render --scenes``), rendered once into ``out``."""
     if not (out / "000000" / "scene_gt.json").is_file():
         subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "render", "--objects", "builtin", "--out",
                         str(out), "--scenes", str(scenes), "--seed", str(seed), "--sensor", sensor, "--quiet"],
@@ -100,9 +101,10 @@ def main() -> None:
     parser.add_argument("--measure-only", action="store_true", help="score the detector already in WORK/run")
     args = parser.parse_args()
     work = args.work
-    train = [_render(work / f"train_{seed}", scenes, seed, sensor) for seed, scenes, sensor
+    train = [render_scenes(work / f"train_{seed}", scenes, seed, sensor) for seed, scenes, sensor
              in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial"), strict=True)]
-    splits = {name: _render(work / name, scenes, seed, "industrial") for name, (seed, scenes) in SPLITS.items()}
+    splits = {name: render_scenes(work / name, scenes, seed, "industrial")
+              for name, (seed, scenes) in SPLITS.items()}
     run = work / "run"
     started = time.perf_counter()
     if not args.measure_only:
