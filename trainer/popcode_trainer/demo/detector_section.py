@@ -42,12 +42,13 @@ def own_detector_markdown(own: OwnDetectorResults, true_boxes: MethodResult, det
         rows.append(_mssd_row("the run's own detector (every instance; a missed one is wrong)", own.poses,
                               true_boxes))
     if verdict != "met":
-        lines.append("What limits it: training scenes and compute. On the demo's 150 scenes a detector's validation "
-                     "loss turns up within minutes while more minutes still raise its AP a little, and more scenes "
-                     "in the same minutes raise it more; a start pretrained on generated parts lifts it most "
+        lines.append("What limits it: its training scenes, then its minutes. On the quick demo's 150 scenes a "
+                     "detector's validation loss turns up within minutes; on a validation split four times the "
+                     "minutes raised its AP by 3 points, four times the scenes in the same minutes by 16, and the "
+                     "shipped detector start (`detector.init`) about doubles it "
                      "(bench/results/eyes.md#the-quick-demos-detector; the shipped detector, trained for most of an "
-                     "hour on 1500 scenes, in bench/results/shipped-detector.md). `--size medium` gives it four "
-                     "times the time.")
+                     "hour on 1500 scenes: bench/results/shipped-detector.md). `--size medium` gives it four times "
+                     "the time.")
     bins = list(true_boxes.by_visibility)
     lines += ["MSSD of the population code in the bin by where its boxes came from (all objects, then by visible "
               "fraction):",
