@@ -68,6 +68,21 @@ def test_info_keeps_long_training_settings_to_json(capsys):
     assert "data" in json.loads(capsys.readouterr().out)["popcode.training"]["config"]
 
 
+def test_info_of_a_detector_says_what_it_finds_and_how_it_was_trained(capsys):
+    detector = Path(__file__).parents[2] / "models" / "builtin-parts-detector.onnx"
+    assert main(["info", str(detector)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert all(len(line) <= 140 for line in lines), max(lines, key=len)
+    assert "kind             detector (popcode detect, popcode run --detector, popcode predict --detector)" in lines
+    assert "objects          1, 2, 3, 4, 5, 6" in lines and "input            256x192 grey frame" in "\n".join(lines)
+    config_line = next(line for line in lines if line.startswith("training.config"))
+    assert "settings (input_width, " in config_line and ", ..." in config_line and "--json" in config_line
+    assert main(["info", str(detector), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["kind"] == "detector" and info["obj_ids"] == [1, 2, 3, 4, 5, 6]
+    assert info["training"]["config"]["input_width"] == info["input"]["width"] == 256
+
+
 def test_bench_json(model, capsys):
     assert main(["bench", str(model), "--batch", "1", "--batch", "4", "--iterations", "3", "--warmup", "1",
                  "--threads", "1", "--json"]) == 0

@@ -21,10 +21,12 @@ from ..geometry.crop import MAX_IMAGE_PIXELS, read_image
 from ..geometry.rotations import matrix_to_axis_angle
 from ..geometry.symmetries import symmetry_class
 from ..inference.benchmark import benchmark_estimator, machine_description
+from ..inference.detector import Detector, is_detector_file
 from ..inference.estimator import PoseEstimator
 from ..inference.frame import FramePoseEstimator
 from ..inference.prediction import Prediction
 from ..model.decoding import DECODERS
+from ..model.detector_metadata import PREFIX as DETECTOR_PREFIX
 from . import detect as detect_command
 from . import run as run_command
 from .detect import add_detector_options, open_detector
@@ -118,6 +120,8 @@ def _source_text(prediction: Prediction) -> str:
 
 
 def _info(args: argparse.Namespace) -> int:
+    if is_detector_file(args.model):
+        return _detector_info(args)
     estimator = PoseEstimator(args.model)
     meta = estimator.metadata
     if args.json:
@@ -144,6 +148,26 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _detector_info(args: argparse.Namespace) -> int:
+    """``info`` of a detector file: its objects, input, default thresholds and what it was trained on."""
+    detector = Detector(args.model)
+    meta = detector.metadata
+    if args.json:
+        print(json.dumps({"model": str(args.model), "kind": "detector", "providers": detector.session.get_providers(),
+                          **{k.removeprefix(DETECTOR_PREFIX): json.loads(v) for k, v in meta.to_props().items()}},
+                         indent=2))
+        return 0
+    print(f"model            {args.model}")
+    print("kind             detector (popcode detect, popcode run --detector, popcode predict --detector)")
+    print(f"objects          {', '.join(map(str, meta.obj_ids))}")
+    print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of that aspect is resized)")
+    print(f"thresholds       score {meta.score_threshold:g}, NMS IoU {meta.nms_iou:g}, at most "
+          f"{meta.max_detections} boxes")
+    for key, value in sorted(meta.training.items()):
+        print(f"training.{key:<8} {_short(value)}")
+    return 0
+
+
 def _short(value: object, width: int = INFO_VALUE_WIDTH) -> str:
     """A training value for one line of ``info``: long settings are named only, ``--json`` prints them."""
     if isinstance(value, float):
@@ -152,7 +176,9 @@ def _short(value: object, width: int = INFO_VALUE_WIDTH) -> str:
     if len(text) <= width:
         return text
     if isinstance(value, dict):
-        return f"{len(value)} settings ({', '.join(map(str, value))}); --json prints them"
+        names = ", ".join(map(str, value))
+        names = names if len(names) <= width - 40 else names[: width - 45].rsplit(",", 1)[0] + ", ..."
+        return f"{len(value)} settings ({names}); --json prints them"
     return text[: width - 25] + " ... (--json prints all)"
 
 
@@ -222,9 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_runtime_options(predict)
     predict.set_defaults(handler=_predict)
 
-    info = commands.add_parser("info", help="what a model's metadata says",
+    info = commands.add_parser("info", help="what a model's (or a detector's) metadata says",
                                description="Check a model and print its representation, code, objects and training.")
-    info.add_argument("model", help="popcode ONNX model")
+    info.add_argument("model", help="popcode ONNX model or detector")
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.set_defaults(handler=_info)
 

@@ -25,6 +25,7 @@ from ..model.detector_metadata import (
     DETECTOR_BOXES,
     DETECTOR_INPUT,
     DETECTOR_SCORES,
+    PREFIX,
     DetectorMetadata,
 )
 from ..model.engine import custom_metadata, onnx_session
@@ -43,6 +44,12 @@ class DetectedBox:
 
     def to_dict(self) -> dict[str, object]:
         return {"obj_id": self.obj_id, "box": list(self.box), "score": self.score}
+
+
+def is_detector_file(model_path: str | Path) -> bool:
+    """Whether an ONNX file carries a popcode detector's metadata (rather than a pose model's, or none)."""
+    model_path = path(model_path, "model path")
+    return f"{PREFIX}format_version" in custom_metadata(onnx_session(model_path, None, 1), model_path)
 
 
 def detector_input(image: np.ndarray, width: int, height: int) -> np.ndarray:
