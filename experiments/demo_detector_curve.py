@@ -17,22 +17,17 @@ Results: ``bench/results/<name>.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from experiments.shipped_detector import render_scenes
-from popcode_runtime.bop.split import split_images
-from popcode_runtime.commands.detect import detect_split
-from popcode_runtime.inference.detector import Detector
+from experiments.shipped_detector import render_scenes, run_training, score_cells, validation_scores
 from popcode_trainer.demo.sizes import DEMO_DETECTOR
 from popcode_trainer.detection.export import export_detector
 from popcode_trainer.detection.loop import train_detector
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.metrics.detection_scores import detection_scores
 from tools.command import run_command
 from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
@@ -55,12 +50,7 @@ def trained_detector(work: Path, scenes: int, minutes: float) -> tuple[Path, dic
     folder = work / f"run_{scenes}_{minutes:g}min"
     run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init="none"),
                          seconds=60.0 * minutes)
-    with (folder / "metrics.csv").open() as handle:
-        rows = list(csv.DictReader(handle))
-    return (export_detector(run.checkpoint, folder / "detector.onnx"),
-            {"epochs": len(rows), "training_s": sum(float(row["seconds"]) for row in rows),
-             "first_epoch_s": float(rows[0]["seconds"]), "last_val_loss": float(rows[-1]["val_loss"]),
-             "best_val_loss": min(float(row["val_loss"]) for row in rows)})
+    return export_detector(run.checkpoint, folder / "detector.onnx"), run_training(folder)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -76,14 +66,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     records: list[dict[str, Any]] = []
     for scenes, minutes in map(parse_run, args.runs):
         detector, training = trained_detector(args.work, scenes, minutes)
-        scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
-                                                           progress=False))
-        records.append({"scenes": scenes, "minutes": minutes, **training, "AP": scores.coco["AP"],
-                        "AP50": scores.coco["AP50"], "AP75": scores.coco["AP75"],
-                        "recall_30": scores.recall_goal.recall})
+        records.append({"scenes": scenes, "minutes": minutes, **training,
+                        **validation_scores(detector, validation)})
     rows = [[r["scenes"], f"{r['minutes']:g}", r["epochs"], f"{r['training_s'] / 60:.1f}", f"{r['first_epoch_s']:.1f}",
-             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}", f"{100 * r['AP']:.1f}", f"{100 * r['AP50']:.1f}",
-             f"{100 * r['AP75']:.1f}", f"{100 * r['recall_30']:.1f}"] for r in records]
+             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}", *score_cells(r)] for r in records]
     markdown = "\n".join([
         f"# {args.name}: the demo's detector by training scenes and minutes",
         "",

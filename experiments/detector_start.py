@@ -18,7 +18,6 @@ alone: the epochs are fitted to this machine's speed. ``--work`` keeps runs: a r
 from __future__ import annotations
 
 import argparse
-import csv
 import shutil
 import sys
 import time
@@ -29,11 +28,9 @@ from typing import Any
 
 import torch
 
-from experiments.shipped_detector import render_scenes
+from experiments.shipped_detector import render_scenes, run_training, score_cells, validation_scores
 from popcode_runtime.bop.split import split_images
-from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.benchmark import machine_description
-from popcode_runtime.inference.detector import Detector
 from popcode_trainer.data.bop import load_models_info
 from popcode_trainer.demo.sizes import DEMO_DETECTOR
 from popcode_trainer.detection.export import export_detector
@@ -41,20 +38,12 @@ from popcode_trainer.detection.loop import train_detector
 from popcode_trainer.detection.network import build_detector
 from popcode_trainer.detection.start import shipped_detector_start, write_detector_start
 from popcode_trainer.eval.reporting.markdown import markdown_table
-from popcode_trainer.metrics.detection_scores import detection_scores
 from popcode_trainer.train.checkpoint import git_revision, load
 from tools.command import run_command
 from tools.paths import RESULTS
 from tools.report import machine, machine_line, write_results
 
 VALIDATION_SEED = 4000
-
-
-def _training(folder: Path) -> dict[str, float]:
-    with (folder / "metrics.csv").open() as handle:
-        rows = list(csv.DictReader(handle))
-    return {"epochs": len(rows), "training_s": sum(float(row["seconds"]) for row in rows),
-            "best_val_loss": min(float(row["val_loss"]) for row in rows), "last_val_loss": float(rows[-1]["val_loss"])}
 
 
 def pretrained_start(work: Path, parts: Path, scenes: Sequence[Path], epochs: int) -> tuple[Path, dict[str, Any]]:
@@ -65,7 +54,7 @@ def pretrained_start(work: Path, parts: Path, scenes: Sequence[Path], epochs: in
     run = train_detector(scenes, obj_ids, folder, replace(DEMO_DETECTOR, epochs=epochs, init="none"))
     model = build_detector(run.config, len(obj_ids))
     model.load_state_dict(load(run.checkpoint)["model"])
-    card = {"parts": len(obj_ids), "scenes": sum(len(split_images(split)) for split in scenes), **_training(folder),
+    card = {"parts": len(obj_ids), "scenes": sum(len(split_images(split)) for split in scenes), **run_training(folder),
             "command": "python -m experiments.detector_start", "commit": git_revision(),
             "date": time.strftime("%Y-%m-%d"), "machine": {**machine_description(), "torch": str(torch.__version__)}}
     return write_detector_start(model, run.config, work / "detector-start.pt", card), card
@@ -95,13 +84,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         run = train_detector([args.demo_scenes], [1, 2, 3, 4, 5, 6], folder,
                              replace(DEMO_DETECTOR, init=init, seed=args.seed), seconds=60.0 * args.minutes)
         detector = export_detector(run.checkpoint, folder / "detector.onnx")
-        scores = detection_scores(validation, detect_split(Detector(detector), split_images(validation),
-                                                           progress=False))
-        records.append({"arm": arm, **_training(folder), "AP": scores.coco["AP"], "AP50": scores.coco["AP50"],
-                        "AP75": scores.coco["AP75"], "recall_30": scores.recall_goal.recall})
+        records.append({"arm": arm, **run_training(folder), **validation_scores(detector, validation)})
     rows = [[r["arm"], r["epochs"], f"{r['training_s'] / 60:.1f}",
-             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}",
-             *[f"{100 * r[key]:.1f}" for key in ("AP", "AP50", "AP75", "recall_30")]] for r in records]
+             f"{r['best_val_loss']:.3f} / {r['last_val_loss']:.3f}", *score_cells(r)] for r in records]
     markdown = "\n".join([
         f"# {args.name}: the demo's detector from random weights and from a start pretrained on generated parts",
         "",

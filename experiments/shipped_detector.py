@@ -18,6 +18,7 @@ snapshot in ``WORK/snapshots`` (checkpoints copied while the run went). Writes
 from __future__ import annotations
 
 import argparse
+import csv
 import shutil
 import subprocess
 import sys
@@ -57,6 +58,30 @@ def render_scenes(out: Path, scenes: int, seed: int, sensor: str) -> Path:
     return out
 
 
+SCORE_KEYS = ("AP", "AP50", "AP75", "recall_30")  # validation_scores' fields, in the tables' order
+
+
+def run_training(folder: Path) -> dict[str, float]:
+    """A detector run's epochs, training seconds, first epoch and best and last validation loss (its metrics)."""
+    with (folder / "metrics.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    return {"epochs": len(rows), "training_s": sum(float(row["seconds"]) for row in rows),
+            "first_epoch_s": float(rows[0]["seconds"]), "best_val_loss": min(float(row["val_loss"]) for row in rows),
+            "last_val_loss": float(rows[-1]["val_loss"])}
+
+
+def validation_scores(detector: Path, split_dir: Path) -> dict[str, float]:
+    """A detector file's COCO AP, AP50, AP75 (as the BOP toolkit scores 2-D detection) and recall of instances
+    at least 30 % visible on a split."""
+    scores = detection_scores(split_dir, detect_split(Detector(detector), split_images(split_dir), progress=False))
+    return {**{key: scores.coco[key] for key in SCORE_KEYS[:3]}, "recall_30": scores.recall_goal.recall}
+
+
+def score_cells(record: dict[str, Any]) -> list[str]:
+    """A record's :data:`SCORE_KEYS` as percentages for a table row."""
+    return [f"{100 * record[key]:.1f}" for key in SCORE_KEYS]
+
+
 def _mssd(result: MethodResult) -> dict[str, Any]:
     return {"MSSD": result.groups["All objects"]["MSSD"], "per_object": {
         name: values["MSSD"] for name, values in result.groups.items() if name != "All objects"},
@@ -84,10 +109,8 @@ def _curve(work: Path, split_dir: Path) -> list[dict[str, Any]]:
         onnx_path = checkpoint.with_suffix(".onnx")
         export_detector(checkpoint, onnx_path)
         epoch = int(load(checkpoint)["epoch"])
-        scores = detection_scores(split_dir, detect_split(Detector(onnx_path), split_images(split_dir),
-                                                          progress=False))
-        points.append({"epoch": epoch, "minutes": float(seconds[epoch - 1] / 60), "AP": scores.coco["AP"],
-                       "AP50": scores.coco["AP50"], "recall_30": scores.recall_goal.recall})
+        points.append({"epoch": epoch, "minutes": float(seconds[epoch - 1] / 60),
+                       **validation_scores(onnx_path, split_dir)})
     return points
 
 
