@@ -3,15 +3,15 @@ detectors trained as the demo trains one (its recipe, its training scenes' seed 
 budgets and numbers of training scenes.
 
     python -m experiments.demo_detector_curve [--work runs/demo_detector_curve] [--runs 150:2.5 150:10 600:10]
-        [--validation-scenes 60] [--name demo-detector-curve]
+        [--init none|auto|START.pt] [--validation-scenes 60] [--name demo-detector-curve]
 
-Each ``SCENES:MINUTES`` run renders (once) that many training scenes as the demo does (seed 3000, industrial
-camera) and trains ``popcode_trainer.demo.sizes.DEMO_DETECTOR`` on them from random weights (the start a demo
-takes since is measured in ``experiments.detector_start``) with its epochs fitted to the minutes, as
-``train_demo_detector`` does; the quick demo is ``150:2.5``. Every detector is scored on the validation bin split
-(seed 4000, industrial, as ``experiments.shipped_detector``'s) with the BOP toolkit's COCO AP. Run it alone: the
-epochs are fitted to this machine's speed. ``--work`` keeps scenes and runs: a rerun scores what is there.
-Results: ``bench/results/<name>.{json,md}``.
+Each ``SCENES:MINUTES`` run renders (once) that many training scenes as the demo does (seed 3000, industrial camera)
+and trains ``popcode_trainer.demo.sizes.DEMO_DETECTOR`` on them from the first weights ``--init`` names
+(``detector.init``; by default random weights, as the demo's detector trained before it took the shipped detector
+start) with its epochs fitted to the minutes, as ``train_demo_detector`` does; the quick demo is ``150:2.5``. Every
+detector is scored on the validation bin split (seed 4000, industrial, as ``experiments.shipped_detector``'s) with
+the BOP toolkit's COCO AP. Run it alone: the epochs are fitted to this machine's speed. ``--work`` keeps scenes and
+runs: a rerun scores what is there. Results: ``bench/results/<name>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -43,12 +43,12 @@ def parse_run(text: str) -> tuple[int, float]:
         raise SystemExit(f"--runs {text!r}: give SCENES:MINUTES, e.g. 150:2.5") from None
 
 
-def trained_detector(work: Path, scenes: int, minutes: float) -> tuple[Path, dict[str, float]]:
-    """Train (or find) the detector of ``scenes`` training scenes and ``minutes``; its file and its epochs and
-    training seconds."""
+def trained_detector(work: Path, scenes: int, minutes: float, init: str) -> tuple[Path, dict[str, float]]:
+    """Train (or find) the detector of ``scenes`` training scenes and ``minutes`` from the first weights ``init``
+    names; its file and its epochs and training seconds."""
     split = render_scenes(work / f"train_{scenes}", scenes, TRAIN_SEED, "industrial")
-    folder = work / f"run_{scenes}_{minutes:g}min"
-    run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init="none"),
+    folder = work / (f"run_{scenes}_{minutes:g}min" + ("" if init == "none" else f"_{Path(init).stem}"))
+    run = train_detector([split], [1, 2, 3, 4, 5, 6], folder, replace(DEMO_DETECTOR, init=init),
                          seconds=60.0 * minutes)
     return export_detector(run.checkpoint, folder / "detector.onnx"), run_training(folder)
 
@@ -57,6 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("runs/demo_detector_curve"))
     parser.add_argument("--runs", nargs="+", default=["150:2.5", "150:10", "600:10"], metavar="SCENES:MINUTES")
+    parser.add_argument("--init", default="none", help="the detectors' first weights (detector.init)")
     parser.add_argument("--validation-scenes", type=int, default=60)
     parser.add_argument("--name", default="demo-detector-curve")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -65,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                "industrial")
     records: list[dict[str, Any]] = []
     for scenes, minutes in map(parse_run, args.runs):
-        detector, training = trained_detector(args.work, scenes, minutes)
+        detector, training = trained_detector(args.work, scenes, minutes, args.init)
         records.append({"scenes": scenes, "minutes": minutes, **training,
                         **validation_scores(detector, validation)})
     rows = [[r["scenes"], f"{r['minutes']:g}", r["epochs"], f"{r['training_s'] / 60:.1f}", f"{r['first_epoch_s']:.1f}",
@@ -75,7 +76,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "",
         "`" + " ".join(["python -m experiments.demo_detector_curve", *(sys.argv[1:] if argv is None else argv)]) + "`",
         "",
-        f"Validation bin split: seed {VALIDATION_SEED}, {args.validation_scenes} scenes, industrial camera; COCO AP "
+        f"First weights: detector.init {args.init!r}. Validation bin split: seed {VALIDATION_SEED}, "
+        f"{args.validation_scenes} scenes, industrial camera; COCO AP "
         "on amodal boxes as the BOP toolkit scores 2-D detection.",
         "",
         markdown_table(["training scenes", "budget min", "epochs", "training min", "first epoch s",
