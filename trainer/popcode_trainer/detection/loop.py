@@ -1,5 +1,6 @@
 """Train a detector: epochs over the frames, a checkpoint after each (a rerun resumes from it), a validation
-loss, progress on the terminal and, when asked, an epoch count fitted to a time budget after the first epoch.
+loss, progress on the terminal and, when asked, an epoch count fitted to a time budget after the first epoch and
+again after the second.
 
 The rate warms up over the first epoch and then falls on a cosine to zero at the last, so the first epoch is
 the same whatever the run's length: a time budget can be fitted from it.
