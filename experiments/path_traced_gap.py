@@ -1,14 +1,15 @@
 """What the rasteriser's look costs: models scored on validation splits and on the same splits path traced.
 
-    python -m experiments.path_traced_gap [--method NAME=MODEL[,MODEL...] ...] [--work runs/path_traced]
-        [--images 20] [--scenes 20] [--samples 32] [--name path-traced-gap]
+    python -m experiments.path_traced_gap [--method NAME=MODEL[,MODEL...] ...] [--baseline NAME]
+        [--work runs/path_traced] [--images 20] [--scenes 20] [--samples 32] [--name path-traced-gap]
 
 Renders the project's validation splits (clean single parts, seed 5000; a bin with the industrial camera, seed
 4000: no recipe is reported on a test split), path traces them (``popcode-train path-trace``: same scenes,
 poses and sensor draw, physically based metals, plastics and lights), and scores each method on all four with
 ``popcode-train evaluate`` (ground-truth boxes, instances at least 10 % visible, argmax). Since the ground truth
 is shared, every instance is scored twice: the drop is paired, with a bootstrap 95 % interval over instances.
-The default method is the shipped models. ``--work`` keeps the splits and scores: a rerun resumes.
+The default method is the shipped models. ``--baseline`` pairs every other method with that one on each split
+and look (a refresh's gain, instance by instance). ``--work`` keeps the splits and scores: a rerun resumes.
 Results: ``bench/results/<name>.{json,md}``, with the machine and the path tracer's seconds an image.
 """
 
@@ -101,6 +102,22 @@ def paired_drop(rendered: dict[tuple, float], traced: dict[tuple, float]) -> dic
             "drop": 100.0 * result.difference, "drop_interval": [100.0 * v for v in result.interval]}
 
 
+def _gain(result: PairedDifference) -> dict[str, Any]:
+    return {"instances": result.instances, "gain": 100.0 * result.difference,
+            "interval": [100.0 * v for v in result.interval]}
+
+
+def _gain_table(baseline: str | None, gains: dict[str, dict[str, dict[str, Any]]]) -> list[str]:
+    """Each method's paired MSSD gain over ``baseline`` (points, 95 % interval), a column per split and look."""
+    if not gains:
+        return []
+    columns = [f"{split} {look}" for split in SPLITS for look in LOOKS]
+    rows = [[method, *[f"{g[c]['gain']:+.1f} [{g[c]['interval'][0]:+.1f}, {g[c]['interval'][1]:+.1f}]"
+                       for c in columns]] for method, g in gains.items()]
+    return [f"Paired MSSD gain over `{baseline}` (points, 95 % interval), instance by instance:", "",
+            markdown_table(["method", *[c.replace("_", "-") for c in columns]], rows), ""]
+
+
 def parse_method(text: str) -> tuple[str, list[str]]:
     name, _, models = text.partition("=")
     if not name or not models:
@@ -115,15 +132,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--images", type=int, default=20, help="clean images a part")
     parser.add_argument("--scenes", type=int, default=20, help="bin scenes")
     parser.add_argument("--samples", type=int, default=32, help="path tracer's samples a pixel")
+    parser.add_argument("--baseline", metavar="NAME", help="a method to pair every other one with")
     parser.add_argument("--name", default="path-traced-gap")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     methods = dict(parse_method(text) for text in (args.method or [SHIPPED]))
+    if args.baseline is not None and args.baseline not in methods:
+        parser.error(f"--baseline {args.baseline}: not one of the methods {sorted(methods)}")
     seconds = prepare_splits(args.work, args.images, args.scenes, args.samples)
-    results: dict[str, dict[str, Any]] = {}
-    for method, models in methods.items():
-        results[method] = {split: paired_drop(*(instance_scores(args.work, split, look, method, models)
-                                                for look in LOOKS)) for split in SPLITS}
+    scores = {(method, split, look): instance_scores(args.work, split, look, method, models)
+              for method, models in methods.items() for split in SPLITS for look in LOOKS}
+    results = {method: {split: paired_drop(*(scores[method, split, look] for look in LOOKS)) for split in SPLITS}
+               for method in methods}
+    gains = {} if args.baseline is None else {
+        method: {f"{split} {look}": _gain(paired(scores[args.baseline, split, look], scores[method, split, look]))
+                 for split in SPLITS for look in LOOKS} for method in methods if method != args.baseline}
     rows = [[method, split, str(result["instances"]), f"{result['rendered']:.1f}", f"{result['path_traced']:.1f}",
              f"{result['drop']:+.1f} [{result['drop_interval'][0]:+.1f}, {result['drop_interval'][1]:+.1f}]"]
             for method, by_split in results.items() for split, result in by_split.items()]
@@ -136,12 +159,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         markdown_table(["method", "split", "instances", "rendered MSSD %", "path-traced MSSD %",
                         "paired drop (95 % interval)"], rows),
         "",
+        *_gain_table(args.baseline, gains),
         f"Path tracer: {json.dumps({k: round(v, 2) for k, v in seconds.items()})} seconds an image in this run "
         f"(empty: traced before). {machine_line(description)}",
     ])
-    write_results(args.out, args.name, {"methods": methods, "results": results, "path_trace_seconds": seconds,
-                                        "samples": args.samples, "images": args.images, "scenes": args.scenes},
-                  markdown)
+    write_results(args.out, args.name, {"methods": methods, "results": results, "baseline": args.baseline,
+                                        "gains": gains, "path_trace_seconds": seconds, "samples": args.samples,
+                                        "images": args.images, "scenes": args.scenes}, markdown)
     print(markdown)
     return 0
 

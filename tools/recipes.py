@@ -59,8 +59,15 @@ def shipped_arguments(argv: Sequence[str] | None,
                         help="single-part training images a part path traced (popcode-train path-trace; default 0)")
     parser.add_argument("--traced-share", type=float, default=0.0, metavar="S",
                         help="share of an epoch's crops from the path-traced images (with --traced-images)")
+    parser.add_argument("--init", metavar="START",
+                        help="train.init: the first weights, e.g. a start experiments.shipped_start wrote from a "
+                             "shipped model, to fine-tune it (default the medium size's)")
+    parser.add_argument("--lr", type=float,
+                        help="train.lr instead of the medium size's (a fine-tune takes a lower one)")
     parser.add_argument("--render-only", action="store_true", help="render the data into --out and stop")
     args = parser.parse_args(argv)
+    if args.lr is not None and not 0.0 < args.lr < 1.0:  # NaN too
+        parser.error(f"--lr must lie in (0, 1), not {args.lr}")
     if not args.minutes > 0:
         parser.error(f"--minutes must be positive, not {args.minutes}")
     if args.box_noise_p is not None and not 0.0 < args.box_noise_p <= 1.0:  # NaN too
@@ -72,10 +79,12 @@ def shipped_arguments(argv: Sequence[str] | None,
 
 def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
     """The medium demo fitted to ``args.minutes``, and the run it makes: the population code alone, with the
-    data, compile, network, box-noise and scene-share choices of ``args`` (``None``: the medium size's)."""
+    data, compile, network, box-noise, scene-share, first-weights and rate choices of ``args`` (``None``: the medium
+    size's)."""
     demo = replace(DEMO_SIZES[SHIPPED_SIZE], minutes=args.minutes)
     config = demo.pipeline.config
-    config = replace(config, train=replace(config.train, compile=args.compile))
+    config = replace(config, train=replace(config.train, compile=args.compile, init=args.init or config.train.init,
+                                           lr=args.lr or config.train.lr))
     if args.network is not None:
         config = replace(config, network=NETWORKS[args.network])  # output_dim follows each model's code
     if args.box_noise_p is not None:

@@ -4,6 +4,7 @@ recipe, and bad values refused before anything is rendered."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,8 @@ from tools.recipes import NETWORKS, shipped_arguments, shipped_size
 
 def _args(**changes: object) -> argparse.Namespace:
     values = {"minutes": 30.0, "images": None, "scenes": None, "compile": "auto", "box_noise_p": None,
-              "scene_share": None, "network": None, "traced_images": 0, "traced_share": 0.0}
+              "scene_share": None, "network": None, "traced_images": 0, "traced_share": 0.0, "init": None,
+              "lr": None}
     return argparse.Namespace(**{**values, **changes})
 
 
@@ -60,7 +62,18 @@ def test_a_named_network_replaces_the_recipe_network_alone() -> None:
     assert (size.config.data, size.config.train) == (medium.config.data, medium.config.train)
 
 
-@pytest.mark.parametrize("option", [["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
+def test_a_start_and_a_rate_reach_the_training_settings_alone() -> None:
+    """A fine-tune of a shipped model: its start (experiments.shipped_start) and a lower rate; nothing else."""
+    medium = DEMO_SIZES["medium"].pipeline
+    _, size = shipped_size(_args(init="start.pt", lr=3e-4))
+    assert (size.config.train.init, size.config.train.lr) == ("start.pt", 3e-4)
+    assert (medium.config.train.init, medium.config.train.lr) != ("start.pt", 3e-4)
+    assert dataclasses.replace(size.config.train, init=medium.config.train.init, lr=medium.config.train.lr) == \
+        medium.config.train
+    assert (size.config.data, size.config.network) == (medium.config.data, medium.config.network)
+
+
+@pytest.mark.parametrize("option", [["--lr", "0"], ["--lr", "2"], ["--lr", "nan"], ["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
                                     ["--scene-share", "0"], ["--scene-share", "1"], ["--scene-share", "nan"],
                                     ["--minutes", "0"], ["--network", "huge"]])
 def test_bad_values_exit_2(option: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

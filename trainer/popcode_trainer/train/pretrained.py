@@ -3,7 +3,9 @@ parts starts from instead of random weights (issue 53).
 
 A start holds the weights of the network's ``features`` (convolutions) and ``hidden`` (MLP) for one network shape;
 the output layer is not carried over, since each model's code describes its own parts' frames (what carries over
-was measured: bench/results/pretrained-start.md). ``train.init`` chooses the start:
+was measured: bench/results/pretrained-start.md). A start written from a trained model of the same parts and code
+(``experiments.shipped_finetune``: the shipped models fine-tuned) also carries its output layer (``head``), which
+then must fit the run's code exactly. ``train.init`` chooses the start:
 
 - ``"auto"`` (the default): the shipped start for this run's network shape from the repository's ``models/``
   (:data:`SHIPPED_DIR`), if one is shipped; otherwise random weights, said in one line;
@@ -34,6 +36,7 @@ from .network import NetworkConfig
 
 START_VERSION = 1
 TRANSFERRED_MODULES = ("features", "hidden")
+OUTPUT_MODULE = "head"  # carried only by a start of a trained model of the same parts and code
 SHIPPED_DIR = Path(__file__).resolve().parents[3] / "models"  # the repository's models/ (an editable install)
 AUTO, NONE = "auto", "none"
 
@@ -147,12 +150,24 @@ def apply_start(model: nn.Module, start: PretrainedStart, config: NetworkConfig)
     """Copy the start's weights into ``model`` (built from ``config``); returns how many tensors were copied."""
     check_fits(start, config)
     own = model.state_dict()
-    expected = {name for name in own if name.split(".")[0] in TRANSFERRED_MODULES}
-    if set(start.state) != expected or any(start.state[name].shape != own[name].shape for name in expected):
-        raise PopcodeError(f"{start.path}: its weights do not fit this network's {'/'.join(TRANSFERRED_MODULES)} "
+    modules = TRANSFERRED_MODULES + ((OUTPUT_MODULE,) if carries_output_layer(start) else ())
+    expected = {name for name in own if name.split(".")[0] in modules}
+    if set(start.state) != expected:
+        raise PopcodeError(f"{start.path}: its weights do not fit this network's {'/'.join(modules)} "
                            "(a damaged start, or one from another trainer): pass --from-scratch or another start")
+    differing = [name for name in sorted(expected) if start.state[name].shape != own[name].shape]
+    if differing:
+        what = "output layer" if all(name.startswith(OUTPUT_MODULE + ".") for name in differing) else "weights"
+        raise PopcodeError(f"{start.path}: its {what} ({differing[0]} {tuple(start.state[differing[0]].shape)}) "
+                           f"do not fit this network's ({tuple(own[differing[0]].shape)}): a start with an output "
+                           "layer fits only a run of the same code; pass --from-scratch or another start")
     model.load_state_dict(start.state, strict=False)
     return len(expected)
+
+
+def carries_output_layer(start: PretrainedStart) -> bool:
+    """Whether ``start`` also holds an output layer (a trained model's start, for fine-tuning it)."""
+    return any(name.split(".")[0] == OUTPUT_MODULE for name in start.state)
 
 
 def parameter_groups(model: nn.Module) -> list[dict[str, Any]]:
