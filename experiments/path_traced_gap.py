@@ -1,6 +1,6 @@
 """What the rasteriser's look costs: models scored on validation splits and on the same splits path traced.
 
-    python -m experiments.path_traced_gap [--method NAME=MODEL[,MODEL...] ...] [--baseline NAME]
+    python -m experiments.path_traced_gap [--method NAME=MODEL[,MODEL...] ...] [--baseline NAME] [--detector-boxes]
         [--work runs/path_traced] [--images 20] [--scenes 20] [--samples 32] [--name path-traced-gap]
 
 Renders the project's validation splits (clean single parts, seed 5000; a bin with the industrial camera, seed
@@ -9,7 +9,9 @@ poses and sensor draw, physically based metals, plastics and lights), and scores
 ``popcode-train evaluate`` (ground-truth boxes, instances at least 10 % visible, argmax). Since the ground truth
 is shared, every instance is scored twice: the drop is paired, with a bootstrap 95 % interval over instances.
 The default method is the shipped models. ``--baseline`` pairs every other method with that one on each split
-and look (a refresh's gain, instance by instance). ``--work`` keeps the splits and scores: a rerun resumes.
+and look (a refresh's gain, instance by instance). ``--detector-boxes`` crops every instance from a detector-like
+box instead of its true one (``evaluate --box-noise detector --box-noise-seed 0``: the same boxes for every
+method). ``--work`` keeps the splits and scores: a rerun resumes.
 Results: ``bench/results/<name>.{json,md}``, with the machine and the path tracer's seconds an image.
 """
 
@@ -41,6 +43,8 @@ SPLITS = {  # name: render options of the validation split
 }
 LOOKS = ("rendered", "path_traced")
 MIN_VISIB_FRACT = "0.1"
+DETECTOR_BOXES = ("--box-noise", "detector", "--box-noise-seed", "0")
+VISIBLE_BANDS = ((0.9, 1.0), (0.6, 0.9), (0.1, 0.6))  # the bin's drop by visible fraction: [low, high)
 
 
 def _run(argv: list[str]) -> None:
@@ -85,6 +89,27 @@ def instance_scores(work: Path, split: str, look: str, method: str, models: Sequ
                                   np.array([int(row["obj_id"]) for row in rows]), diameters)
     return {(int(row["scene_id"]), int(row["im_id"]), int(row["gt_index"])): float(score)
             for row, score in zip(rows, scores, strict=True)}
+
+
+def visible_fractions(split: Path) -> dict[tuple, float]:
+    """Each instance's visible fraction (``scene_gt_info.json``), keyed as :func:`instance_scores` keys them."""
+    fractions = {}
+    for info in split.glob("*/scene_gt_info.json"):
+        for im_id, entries in json.loads(info.read_text()).items():
+            for index, entry in enumerate(entries):
+                fractions[int(info.parent.name), int(im_id), index] = float(entry["visib_fract"])
+    return fractions
+
+
+def drop_by_visibility(rendered: dict[tuple, float], traced: dict[tuple, float],
+                       fractions: dict[tuple, float]) -> dict[str, dict[str, Any]]:
+    """:func:`paired_drop` over the instances of each band of :data:`VISIBLE_BANDS` (the top one closed)."""
+    bands = {}
+    for low, high in VISIBLE_BANDS:
+        keys = [k for k in rendered if low <= fractions[k] < high or high == 1.0 and fractions[k] == 1.0]
+        if keys:
+            bands[f"{low}-{high}"] = paired_drop({k: rendered[k] for k in keys}, {k: traced[k] for k in keys})
+    return bands
 
 
 def paired(first: dict[tuple, float], second: dict[tuple, float]) -> PairedDifference:
@@ -133,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scenes", type=int, default=20, help="bin scenes")
     parser.add_argument("--samples", type=int, default=32, help="path tracer's samples a pixel")
     parser.add_argument("--baseline", metavar="NAME", help="a method to pair every other one with")
+    parser.add_argument("--detector-boxes", action="store_true", help="crop from detector-like boxes")
     parser.add_argument("--name", default="path-traced-gap")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
@@ -140,10 +166,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.baseline is not None and args.baseline not in methods:
         parser.error(f"--baseline {args.baseline}: not one of the methods {sorted(methods)}")
     seconds = prepare_splits(args.work, args.images, args.scenes, args.samples)
-    scores = {(method, split, look): instance_scores(args.work, split, look, method, models)
+    options, suffix = (DETECTOR_BOXES, "-detector-boxes") if args.detector_boxes else ((), "")
+    scores = {(method, split, look): instance_scores(args.work, split, look, method + suffix, models,
+                                                     options=options)
               for method, models in methods.items() for split in SPLITS for look in LOOKS}
     results = {method: {split: paired_drop(*(scores[method, split, look] for look in LOOKS)) for split in SPLITS}
                for method in methods}
+    fractions = visible_fractions(args.work / "bin_rendered")
+    by_visibility = {method: drop_by_visibility(*(scores[method, "bin", look] for look in LOOKS), fractions)
+                     for method in methods}
     gains = {} if args.baseline is None else {
         method: {f"{split} {look}": _gain(paired(scores[args.baseline, split, look], scores[method, split, look]))
                  for split in SPLITS for look in LOOKS} for method in methods if method != args.baseline}
@@ -152,7 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             for method, by_split in results.items() for split, result in by_split.items()]
     description = machine()
     markdown = "\n".join([
-        f"# {args.name}: validation splits rendered and path traced",
+        f"# {args.name}: validation splits rendered and path traced"
+        + (", crops from detector-like boxes" if args.detector_boxes else ""),
         "",
         "`" + " ".join(["python -m experiments.path_traced_gap", *(sys.argv[1:] if argv is None else argv)]) + "`",
         "",
@@ -160,10 +192,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "paired drop (95 % interval)"], rows),
         "",
         *_gain_table(args.baseline, gains),
+        "The bin's drop by visible fraction (paired, 95 % interval; instances in brackets):",
+        "",
+        markdown_table(["method", *by_visibility[next(iter(methods))]], [
+            [method, *[f"{b['drop']:+.1f} [{b['drop_interval'][0]:+.1f}, {b['drop_interval'][1]:+.1f}] "
+                       f"({b['instances']})" for b in bands.values()]] for method, bands in by_visibility.items()]),
+        "",
         f"Path tracer: {json.dumps({k: round(v, 2) for k, v in seconds.items()})} seconds an image in this run "
         f"(empty: traced before). {machine_line(description)}",
     ])
-    write_results(args.out, args.name, {"methods": methods, "results": results, "baseline": args.baseline,
+    write_results(args.out, args.name, {"methods": methods, "detector_boxes": args.detector_boxes,
+                                        "results": results, "bin_drop_by_visibility": by_visibility,
+                                        "baseline": args.baseline,
                                         "gains": gains, "path_trace_seconds": seconds, "samples": args.samples,
                                         "images": args.images, "scenes": args.scenes}, markdown)
     print(markdown)

@@ -69,8 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         state = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()
                  if name.split(".")[0] in (*TRANSFERRED_MODULES, OUTPUT_MODULE)}
         training = metadata.training
-        card = {"parts": f"none generated: the model's own {sorted(metadata.objects)}",
-                "epochs": training.get("epochs"), "commit": str(training.get("git_revision", "?"))[:7],
+        card = {"epochs": training.get("epochs"), "commit": str(training.get("git_revision", "?"))[:7],
                 "from_model": str(args.model), "model_sha256": hashlib.sha256(args.model.read_bytes()).hexdigest(),
                 "code": metadata.code.to_dict() if metadata.code else None, "objects": sorted(metadata.objects),
                 "read_back": agreement,

@@ -73,7 +73,8 @@ def test_a_start_and_a_rate_reach_the_training_settings_alone() -> None:
     assert (size.config.data, size.config.network) == (medium.config.data, medium.config.network)
 
 
-@pytest.mark.parametrize("option", [["--lr", "0"], ["--lr", "2"], ["--lr", "nan"], ["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
+@pytest.mark.parametrize("option", [["--lr", "0"], ["--lr", "2"], ["--lr", "nan"],
+                                    ["--box-noise-p", "0"], ["--box-noise-p", "1.5"], ["--box-noise-p", "nan"],
                                     ["--scene-share", "0"], ["--scene-share", "1"], ["--scene-share", "nan"],
                                     ["--minutes", "0"], ["--network", "huge"]])
 def test_bad_values_exit_2(option: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

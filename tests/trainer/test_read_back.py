@@ -27,6 +27,7 @@ from popcode_trainer.train.pretrained import (
     TRANSFERRED_MODULES,
     apply_start,
     carries_output_layer,
+    describe,
     network_shape,
     read_start,
     save_start,
@@ -101,9 +102,11 @@ def test_a_start_with_the_output_layer_fills_a_run_of_the_same_code_only(
     model, _ = read_back(path, crops)
     state = {name: tensor for name, tensor in model.state_dict().items()
              if name.split(".")[0] in (*TRANSFERRED_MODULES, OUTPUT_MODULE)}
-    start_path = save_start(POSE_START, network_shape(model.config), state, tmp_path / "start.pt", {"parts": 1})
+    card = {"from_model": str(path), "epochs": 2, "commit": "abc1234"}
+    start_path = save_start(POSE_START, network_shape(model.config), state, tmp_path / "start.pt", card)
     start = read_start(start_path)
     assert carries_output_layer(start)
+    assert describe(start) == "the weights of model.onnx, 2 epochs, commit abc1234"
     torch.manual_seed(5)
     target = build_network(model.config)
     assert apply_start(target, start, model.config) == len(state)

@@ -200,7 +200,10 @@ def resolve_kind_start(init: str, shape: dict[str, Any], kind: StartKind) -> tup
 
 
 def describe(start: PretrainedStart) -> str:
-    """What a start saw, from its card: "312 generated parts, 18 epochs, commit abc1234"."""
+    """What a start saw, from its card: "312 generated parts, 18 epochs, commit abc1234", or for a trained model's
+    weights "the weights of model.onnx, 90 epochs, commit abc1234"."""
     card = start.card
-    parts = card.get("parts", "?")
-    return f"{parts} generated parts, {card.get('epochs', '?')} epochs, commit {card.get('commit', '?')}"
+    trained = f"{card.get('epochs', '?')} epochs, commit {card.get('commit', '?')}"
+    if "from_model" in card:  # a trained model's own weights (experiments.shipped_start)
+        return f"the weights of {Path(card['from_model']).name}, {trained}"
+    return f"{card.get('parts', '?')} generated parts, {trained}"
