@@ -61,7 +61,20 @@ def test_the_readme_has_the_commands_it_should() -> None:
     assert ["make", "demo"] in COMMANDS and ["make", "test"] in COMMANDS
     assert len(INLINE_BENCH) >= 4
     assert python_snippets(README) and python_snippets(RUNTIME_README)
-    assert len(README.splitlines()) < 400, "the README is read in ten minutes; details go to docs/"
+    assert len(README.splitlines()) <= 350, "the README is read in ten minutes; details go to docs/"
+
+
+def test_the_results_show_today_on_two_screens() -> None:
+    """The Results are today's figures, one table a block, each block dated; older runs live in
+    bench/results/readme-history.md, so the section cannot grow into a logbook again."""
+    results = README.split("\n## Results\n", 1)[1].split("\n## ", 1)[0]
+    assert len(results.splitlines()) <= 60
+    blocks = [block for block in results.split("\n\n") if block.startswith("**")]
+    assert len(blocks) >= 3
+    for block in blocks:
+        assert re.search(r"\b20\d\d-\d\d-\d\d\b", block), f"undated results: {block[:60]}"
+    tables = [block for block in results.split("\n\n") if block.startswith("|")]
+    assert len(tables) == len(blocks), "one table for each block of results"
 
 
 @pytest.mark.parametrize("page, words", ALL_COMMANDS, ids=_ids(ALL_COMMANDS))
