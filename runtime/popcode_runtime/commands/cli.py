@@ -32,6 +32,7 @@ from . import run as run_command
 from .detect import add_detector_options, open_detector
 from .drawing import draw_predictions
 from .options import DEFAULT_BENCH_BATCHES, check_options
+from .parser import CommandParser
 
 INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
 NUMBER_OPTIONS = ("--box", "--K", "--crop-origin")  # their values may start with a minus sign
@@ -200,7 +201,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="popcode", description="Object rotation from a neural population code.")
+    parser = CommandParser(prog="popcode", description="Object rotation from a neural population code.")
     parser.add_argument("--version", action="version", version=f"popcode-runtime {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
