@@ -278,7 +278,7 @@ def test_a_second_run_on_one_out_is_refused_while_the_first_writes(split: Path, 
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
         assert _run(split, out) == 2
         err = capsys.readouterr().err
-        assert "another popcode run is writing" in err and err.count("\n") == 1
+        assert "another popcode detect or run is writing" in err and err.count("\n") == 1
         assert not out.exists() and not out.with_name("results.csv.partial").exists()
     lock.unlink()
     assert _run(split, out) == 0  # once it is gone, the run goes through and leaves no lock behind

@@ -69,9 +69,8 @@ class PartialResults:
     def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]],
                  overwrite: bool = False) -> None:
         self.out, self.fingerprint = out, fingerprint
-        self.path, lock, self.sources = companion_paths(out)
-        self._lock = OutputLock(lock, f"another popcode run is writing {out} (it holds {lock.name}); wait for "
-                                "it or choose another --out")
+        self.path, _, self.sources = companion_paths(out)
+        self._lock = out_lock(out)
         try:
             if not self.path.exists():  # a finished run's files; with a partial beside them, a rerun that resumes
                 refuse_existing(out, "--out", overwrite)
@@ -187,6 +186,13 @@ def sources_path(out: Path) -> Path:
     """Where a run with depth says each estimate's translation source: ``<out stem>.translation<out suffix>``
     (``results.translation.csv``; ``results.translation`` for ``results``), one per results file."""
     return out.with_name(f"{out.stem}.translation{out.suffix}")
+
+
+def out_lock(out: Path) -> OutputLock:
+    """``<out>.lock``, which keeps a second ``popcode run`` or ``popcode detect`` off the same ``out``."""
+    lock = companion_paths(out)[1]
+    return OutputLock(lock, f"another popcode detect or run is writing {out} (it holds {lock.name}); wait for it or "
+                      "choose another --out")
 
 
 def companion_paths(out: Path) -> tuple[Path, Path, Path]:
