@@ -96,21 +96,23 @@ class PartialResults:
     def _resume(self, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
         if not self.path.is_file():  # a FIFO would block the read forever, /dev/zero never end it
             raise self._refuse("is not a regular file")
-        # at most an estimate and a translation line per detection and a closing mark per image, and the header
-        limit = MAX_PARTIAL_LINE_BYTES * (2 * sum(len(ids) for ids in expected.values()) + len(expected) + 1)
+        # at most an estimate and a translation line per detection and a closing mark per image
+        limit = MAX_PARTIAL_LINE_BYTES * (2 * sum(len(ids) for ids in expected.values()) + len(expected))
         with self.path.open("rb") as handle:
+            # the header first: another run's partial is refused as such, whatever its size
+            if handle.readline(MAX_PARTIAL_LINE_BYTES).rstrip(b"\n") != (RUN_MARK + fingerprint).encode():
+                raise self._refuse("holds the partial results of a run with other models, detections, split or "
+                                   "options")
             data = handle.read(limit + 1)
         if len(data) > limit:
-            raise self._refuse(f"is larger than this run's results can be ({limit} bytes)")
+            raise self._refuse(f"is larger than this run's results can be ({limit} bytes after its first line)")
         try:
             text = data.decode("utf-8").split("\n")
         except UnicodeDecodeError as error:
             raise self._refuse(f"is not text ({error.reason} at byte {error.start})") from error
-        if text[0] != RUN_MARK + fingerprint:
-            raise self._refuse("holds the partial results of a run with other models, detections, split or options")
         blocks: list[tuple[list[str], tuple[ImageKey, str] | None]] = []
         pending: list[str] = []
-        for line in text[1:]:
+        for line in text:
             if line.startswith(DONE_MARK):
                 blocks.append((pending, _done_key(line)))
                 pending = []
