@@ -144,8 +144,7 @@ def _info(args: argparse.Namespace) -> int:
         surface = object_surface(info)
         depth = f", {len(surface.points_mm)} surface points for depth" if surface else ", no surface points for depth"
         print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}{depth}")
-    for key, value in sorted(meta.training.items()):
-        print(f"training.{key:<8} {_short(value)}")
+    _print_training(meta.training)
     return 0
 
 
@@ -164,9 +163,27 @@ def _detector_info(args: argparse.Namespace) -> int:
     print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of that aspect is resized)")
     print(f"thresholds       score {meta.score_threshold:g}, NMS IoU {meta.nms_iou:g}, at most "
           f"{meta.max_detections} boxes")
-    for key, value in sorted(meta.training.items()):
-        print(f"training.{key:<8} {_short(value)}")
+    print(f"first weights    {_first_weights(meta.training)}")
+    _print_training({k: v for k, v in meta.training.items() if k != "first_weights"})
     return 0
+
+
+def _first_weights(training: dict[str, object]) -> str:
+    """What a detector's training began from. Detectors exported before detector starts existed (the shipped one
+    among them) say it only in their architecture line, "trained from scratch"."""
+    if "first_weights" in training:
+        return str(training["first_weights"])
+    if "trained from scratch" in str(training.get("architecture", "")):
+        return "random weights (trained from scratch)"
+    return "not recorded"
+
+
+def _print_training(training: dict[str, object]) -> None:
+    """``info``'s ``training.*`` lines; a revision ending in ``+dirty`` is said in words."""
+    for key, value in sorted(training.items()):
+        dirty = key == "git_revision" and str(value).endswith("+dirty")
+        note = " (exported from a tree with uncommitted changes beside that commit)" if dirty else ""
+        print(f"training.{key:<8} {_short(value)}{note}")
 
 
 def _short(value: object, width: int = INFO_VALUE_WIDTH) -> str:
