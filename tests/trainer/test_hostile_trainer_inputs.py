@@ -305,7 +305,8 @@ CASES = [
     ("evaluate-split-box-huge", lambda f: ["evaluate", str(f / "box_fit/hull.onnx"), "--split",
                                            str(f / "split_box_huge"), "--models-dir", str(f / "bar_2fold"),
                                            "--out", str(f / "eval")],
-     "000000.png: box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x the 128x128 image"),
+     "scene 0, image 0, object 0 (scene_gt_info.json): box (0.0, 0.0, 1000000000.0, 1000000000.0) is larger than 4x "
+     "the 128x128 image"),
     ("train-negative-conv", lambda f: ["train", "--set", "network.conv_channels=[-8, 16, 16]"],
      "network.conv_channels widths must be at least 1"),
     ("train-zero-hidden", lambda f: ["train", "--set", "network.hidden=[0, 16, 16]"], "network.hidden widths"),
