@@ -240,7 +240,7 @@ def test_a_larger_partial_of_another_run_is_refused_as_another_runs(tmp_path: Pa
     out.with_name("results.csv.partial").write_text("\n".join(["#popcode-run " + "b" * 32, *rows]) + "\n")
     with pytest.raises(PopcodeError, match="holds the partial results of a run with other models, detections, "
                                            "split or options"):
-        PartialResults(out, "a" * 32, {(1, 0): [1]})
+        PartialResults(out, "a" * 32)
     assert not out.exists() and not out.with_name("results.csv.lock").exists()
 
 
