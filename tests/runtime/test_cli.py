@@ -77,10 +77,29 @@ def test_info_of_a_detector_says_what_it_finds_and_how_it_was_trained(capsys):
     assert "objects          1, 2, 3, 4, 5, 6" in lines and "input            256x192 grey frame" in "\n".join(lines)
     config_line = next(line for line in lines if line.startswith("training.config"))
     assert "settings (input_width, " in config_line and ", ..." in config_line and "--json" in config_line
+    # issue 62: the shipped detector predates detector starts; what it began from, and its export's dirty tree
+    assert "first weights    random weights (trained from scratch)" in lines
+    assert ("training.git_revision f6ca9553ddaef27b3df7a0070d7ab7546fc21691+dirty (exported from a tree with "
+            "uncommitted changes beside that commit)") in lines
     assert main(["info", str(detector), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["kind"] == "detector" and info["obj_ids"] == [1, 2, 3, 4, 5, 6]
     assert info["training"]["config"]["input_width"] == info["input"]["width"] == 256
+
+
+def test_info_of_a_detector_names_the_start_it_was_trained_from(tmp_path, capsys):
+    from onnx_models import fixed_detector
+
+    from popcode_runtime.model.detector_metadata import DetectorMetadata
+
+    start = "the shipped detector start detector-start-e855fe97f1.pt (200 generated parts)"
+    for training, first in (({"first_weights": start, "git_revision": "abc"}, start), ({}, "not recorded")):
+        metadata = DetectorMetadata(obj_ids=(1,), input_width=64, input_height=48, training=training)
+        path = save(fixed_detector(np.zeros((1, 4), np.float32), np.zeros((1, 1), np.float32), metadata),
+                    tmp_path / "det.onnx")
+        assert main(["info", str(path)]) == 0
+        lines = capsys.readouterr().out.splitlines()
+        assert f"first weights    {first}" in lines and not any("training.first_weights" in line for line in lines)
 
 
 def test_bench_json(model, capsys):

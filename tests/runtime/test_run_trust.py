@@ -19,7 +19,9 @@ import onnx
 import pytest
 
 import popcode_runtime.inference.image_loop as image_loop
+from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.commands.cli import main
+from popcode_runtime.commands.run_results import PartialResults
 from popcode_trainer.data.render import render_builtin_split
 from tools.fuzz_run import Pristine, fuzz_run, prepare
 from tools.paths import SHIPPED_MODELS
@@ -230,6 +232,18 @@ def test_another_split_or_max_images_is_refused(split: Path, killed: bytes, tmp_
         assert "other models, detections, split or options" in capsys.readouterr().err
 
 
+def test_a_larger_partial_of_another_run_is_refused_as_another_runs(tmp_path: Path) -> None:
+    """Another detector's many boxes make a partial larger than this run's few can be: the refusal names another
+    run, not the size (issue 62)."""
+    out = tmp_path / "results.csv"
+    rows = [f"1,{im_id},1,0.5,1 0 0 0 1 0 0 0 1,0 0 500,0.01" for im_id in range(100)]
+    out.with_name("results.csv.partial").write_text("\n".join(["#popcode-run " + "b" * 32, *rows]) + "\n")
+    with pytest.raises(PopcodeError, match="holds the partial results of a run with other models, detections, "
+                                           "split or options"):
+        PartialResults(out, "a" * 32)
+    assert not out.exists() and not out.with_name("results.csv.lock").exists()
+
+
 def test_an_image_changed_in_place_to_the_same_size_is_refused(split: Path, killed: bytes, tmp_path: Path,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     """An image the killed run had done, mirrored and padded to its old size: resuming would mix its old rows with
@@ -278,7 +292,7 @@ def test_a_second_run_on_one_out_is_refused_while_the_first_writes(split: Path, 
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
         assert _run(split, out) == 2
         err = capsys.readouterr().err
-        assert "another popcode run is writing" in err and err.count("\n") == 1
+        assert "another popcode detect or run is writing" in err and err.count("\n") == 1
         assert not out.exists() and not out.with_name("results.csv.partial").exists()
     lock.unlink()
     assert _run(split, out) == 0  # once it is gone, the run goes through and leaves no lock behind

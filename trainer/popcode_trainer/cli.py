@@ -9,6 +9,7 @@ import sys
 from collections.abc import Sequence
 
 from popcode_runtime.commands.cli import run_handler
+from popcode_runtime.commands.parser import CommandParser
 
 from . import __version__
 
@@ -29,7 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="popcode-train", description="Render data, train, evaluate and export population-code networks."
     )
     parser.add_argument("--version", action="version", version=f"popcode-trainer {__version__}")

@@ -25,8 +25,8 @@ MAX_OPEN_TRIES = 100  # each retry follows a release by another writer: more in 
 
 class OutputLock:
     """An exclusive lock on ``path`` held until :meth:`release`; ``busy`` says in the refusal what holds it and
-    what to do (for example "another popcode run is writing results.csv ... choose another --out"). Taken when made;
-    as a context manager, released when the block ends, however it ends."""
+    what to do (for example "another popcode detect or run is writing results.csv ... choose another --out").
+    Taken when made; as a context manager, released when the block ends, however it ends."""
 
     def __init__(self, path: Path, busy: str) -> None:
         self.path, self._handle = path, None

@@ -32,6 +32,7 @@ from . import run as run_command
 from .detect import add_detector_options, open_detector
 from .drawing import draw_predictions
 from .options import DEFAULT_BENCH_BATCHES, check_options
+from .parser import CommandParser
 
 INFO_VALUE_WIDTH = 100  # characters of one training value in ``info``'s text output
 NUMBER_OPTIONS = ("--box", "--K", "--crop-origin")  # their values may start with a minus sign
@@ -143,8 +144,7 @@ def _info(args: argparse.Namespace) -> int:
         surface = object_surface(info)
         depth = f", {len(surface.points_mm)} surface points for depth" if surface else ", no surface points for depth"
         print(f"object {obj_id:<9} symmetry {symmetry_class(info).value}{size}{depth}")
-    for key, value in sorted(meta.training.items()):
-        print(f"training.{key:<8} {_short(value)}")
+    _print_training(meta.training)
     return 0
 
 
@@ -163,9 +163,27 @@ def _detector_info(args: argparse.Namespace) -> int:
     print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of that aspect is resized)")
     print(f"thresholds       score {meta.score_threshold:g}, NMS IoU {meta.nms_iou:g}, at most "
           f"{meta.max_detections} boxes")
-    for key, value in sorted(meta.training.items()):
-        print(f"training.{key:<8} {_short(value)}")
+    print(f"first weights    {_first_weights(meta.training)}")
+    _print_training({k: v for k, v in meta.training.items() if k != "first_weights"})
     return 0
+
+
+def _first_weights(training: dict[str, object]) -> str:
+    """What a detector's training began from. Detectors exported before detector starts existed (the shipped one
+    among them) say it only in their architecture line, "trained from scratch"."""
+    if "first_weights" in training:
+        return str(training["first_weights"])
+    if "trained from scratch" in str(training.get("architecture", "")):
+        return "random weights (trained from scratch)"
+    return "not recorded"
+
+
+def _print_training(training: dict[str, object]) -> None:
+    """``info``'s ``training.*`` lines; a revision ending in ``+dirty`` is said in words."""
+    for key, value in sorted(training.items()):
+        dirty = key == "git_revision" and str(value).endswith("+dirty")
+        note = " (exported from a tree with uncommitted changes beside that commit)" if dirty else ""
+        print(f"training.{key:<8} {_short(value)}{note}")
 
 
 def _short(value: object, width: int = INFO_VALUE_WIDTH) -> str:
@@ -200,7 +218,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="popcode", description="Object rotation from a neural population code.")
+    parser = CommandParser(prog="popcode", description="Object rotation from a neural population code.")
     parser.add_argument("--version", action="version", version=f"popcode-runtime {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -17,7 +17,7 @@ from ..geometry.crop import MAX_IMAGE_PIXELS, read_image_file
 from ..inference.detector import Detector
 from ..model.detector_metadata import MAX_DETECTIONS
 from .run_loop import Progress
-from .run_results import ImageKey
+from .run_results import ImageKey, out_lock
 
 
 def add_detector_options(parser: argparse.ArgumentParser) -> None:
@@ -51,7 +51,8 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     detect.add_argument("--overwrite", action="store_true", help=f"--out: {OVERWRITE_HELP}")
     detect.add_argument("--max-images", type=int, metavar="N", help="with --split: only its first N images")
     detect.add_argument("--json", action="store_true", help="IMAGE: print JSON instead of text")
-    detect.add_argument("--quiet", action="store_true", help="no progress line")
+    detect.add_argument("--quiet", action="store_true",
+                        help="no progress, summary or timing line (one IMAGE's boxes are still printed, errors too)")
     detect.add_argument("--max-pixels", type=int, default=MAX_IMAGE_PIXELS, metavar="N",
                         help=f"refuse images of more pixels, before decoding them (default {MAX_IMAGE_PIXELS})")
     add_detector_options(detect)
@@ -82,12 +83,14 @@ def detections_json(detections: list[Detection]) -> list[dict[str, object]]:
 def handle(args: argparse.Namespace) -> int:
     if args.split is not None:
         require_folder(args.split, "--split")
-        check_output_file(args.out, "--out", [args.split, args.detector], args.overwrite)
-        detector = open_detector(args)
-        detections = detect_split(detector, split_images(args.split), args.max_images, not args.quiet)
-        write_json_atomic(args.out, detections_json(detections))
-        images = len({d.image_key for d in detections})
-        print(f"wrote {args.out}: {len(detections)} detections in {images} images")
+        with out_lock(args.out):  # checked and written by one writer: a second detect or run is refused
+            check_output_file(args.out, "--out", [args.split, args.detector], args.overwrite)
+            detector = open_detector(args)
+            detections = detect_split(detector, split_images(args.split), args.max_images, not args.quiet)
+            write_json_atomic(args.out, detections_json(detections))
+        if not args.quiet:
+            images = len({d.image_key for d in detections})
+            print(f"wrote {args.out}: {len(detections)} detections in {images} images")
         return 0
     detector = open_detector(args)
     found = detector.detect(read_image_file(args.image, args.max_pixels))
@@ -97,5 +100,6 @@ def handle(args: argparse.Namespace) -> int:
         return 0
     for d in found:
         print(f"object {d.obj_id}: box [{', '.join(f'{v:.1f}' for v in d.box)}], score {d.score:.3f}")
-    print(f"{len(found)} detections in {1000 * detector.last_seconds:.1f} ms", file=sys.stderr)
+    if not args.quiet:
+        print(f"{len(found)} detections in {1000 * detector.last_seconds:.1f} ms", file=sys.stderr)
     return 0

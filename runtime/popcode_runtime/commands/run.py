@@ -14,8 +14,8 @@ from ..inference.estimator import PoseEstimator
 from ..model.decoding import DECODERS
 from .detect import add_detector_options, detect_split, open_detector
 from .run_fingerprint import run_fingerprint
-from .run_loop import run_detections
-from .run_results import companion_paths, sources_path
+from .run_loop import check_pictures, run_detections
+from .run_results import PartialResults, companion_paths, sources_path
 
 DEFAULT_OUT = "results.csv"
 
@@ -83,20 +83,32 @@ def handle(args: argparse.Namespace) -> int:
     estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
                   for path in args.models]
     images = split_images(args.split)
+    results = None
     if args.detector:
         detector = open_detector(args)
         known = {obj_id for estimator in estimators for obj_id in estimator.metadata.objects}
         if not known & set(detector.obj_ids):
             raise PopcodeError(f"{args.detector} finds objects {list(detector.obj_ids)} and the models know objects "
                                f"{sorted(known)}: none in common (wrong detector or wrong models?)")
-        detections = detect_split(detector, images, args.max_images, not args.quiet)
+        # what the outputs refuse is said before the detector's progress lines: --out (its lock, a finished file,
+        # another run's partial) and the pictures of the images it looks at
+        fingerprint = run_fingerprint(args, images)
+        results = PartialResults(args.out, fingerprint, args.overwrite)
+        try:
+            if args.draw is not None:
+                check_pictures(args.draw, sorted(images)[:args.max_images], args.out, inputs, args.overwrite)
+            detections = detect_split(detector, images, args.max_images, not args.quiet)
+        except BaseException:
+            results.close()
+            raise
     else:
         detections = read_detections(args.detections) if args.detections else \
             ground_truth_boxes(args.split, args.box_kind, args.min_visib_fract)
+        fingerprint = run_fingerprint(args, images)  # after the detections are read: a missing file is named so
     summary = run_detections(estimators, [str(path) for path in args.models], images, detections, out=args.out,
-                             fingerprint=run_fingerprint(args, images), max_images=args.max_images,
-                             progress=not args.quiet, draw_dir=args.draw, depth=args.depth, refine=args.refine,
-                             overwrite=args.overwrite, inputs=inputs)
+                             fingerprint=fingerprint, max_images=args.max_images, progress=not args.quiet,
+                             draw_dir=args.draw, depth=args.depth, refine=args.refine, overwrite=args.overwrite,
+                             inputs=inputs, results=results)
     skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "

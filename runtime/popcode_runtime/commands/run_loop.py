@@ -173,40 +173,49 @@ def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
     write_picture_atomic(path, np.ascontiguousarray(picture[..., ::-1]))
 
 
+def check_pictures(draw_dir: Path, keys: Sequence[ImageKey], out: Path, inputs: Sequence[Path],
+                   overwrite: bool) -> None:
+    """The pictures ``--draw`` would write of ``keys``: never an input nor the run's own files; one that exists is
+    replaced only with ``overwrite`` or by a run that resumes (it finds its earlier pictures)."""
+    resuming, never = companion_paths(out)[0].exists(), [*inputs, out, *companion_paths(out)]
+    for key in keys:
+        check_output_file(picture_path(draw_dir, key), "--draw picture", never, overwrite or resuming)
+
+
 def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], images: dict[ImageKey, SplitImage],
                    detections: Sequence[Detection], *, out: Path, fingerprint: str, max_images: int | None = None,
                    progress: bool = True, draw_dir: Path | None = None, depth: bool = False,
-                   refine: bool = False, overwrite: bool = False, inputs: Sequence[Path] = ()) -> RunSummary:
+                   refine: bool = False, overwrite: bool = False, inputs: Sequence[Path] = (),
+                   results: PartialResults | None = None) -> RunSummary:
     """Estimate every detection whose object a model (``names``: their files) knows; write ``out`` (BOP19 CSV).
 
     ``fingerprint``: what the results depend on (:mod:`.run_fingerprint`). ``max_images``: only the first images
     with detections. ``draw_dir``: also a picture of each image's estimates there (``<scene_id>_<im_id>.png``).
     ``depth``: the translation from each image's depth image, and ``refine`` (with depth): the pose refined against
     it. ``overwrite``: replace a finished ``out`` and, in a run that does not resume, pictures in ``draw_dir``; a
-    picture is never one of the run's ``inputs`` (files or folders) nor its own output files.
+    picture is never one of the run's ``inputs`` (files or folders) nor its own output files. ``results``: ``out``'s
+    partial results, claimed by a caller that had work to do first (a detector's run); closed when this returns.
     """
     started = time.perf_counter()
-    owner = route_objects(estimators, names)
-    skipped = Counter(d.obj_id for d in detections if d.obj_id not in owner)
-    by_image: dict[ImageKey, list[Detection]] = defaultdict(list)
-    # model by model (stable): an image's estimates are written in the order of the models
-    for detection in sorted((d for d in detections if d.obj_id in owner), key=lambda d: owner[d.obj_id]):
-        by_image[detection.image_key].append(detection)
-    if detections and not by_image:
-        raise PopcodeError(f"none of the {len(detections)} detections is of an object these models know (detected: "
-                           f"objects {', '.join(map(str, sorted(skipped)[:10]))}; the models know objects "
-                           f"{', '.join(map(str, sorted(owner)))}): wrong models or wrong detections file?")
-    _check_images(by_image, images)
-    keys = sorted(by_image)[:max_images]
-    _check_image_sizes(keys, by_image, images)
-    if depth:
-        _check_depth(keys, images, by_image, estimators, owner, refine)
-    if draw_dir is not None:  # never an input nor this run's own files; a resumed run finds its earlier pictures
-        resuming, never = companion_paths(out)[0].exists(), [*inputs, out, *companion_paths(out)]
-        for key in keys:
-            check_output_file(picture_path(draw_dir, key), "--draw picture", never, overwrite or resuming)
-    results = PartialResults(out, fingerprint, {key: [d.obj_id for d in by_image[key]] for key in keys}, overwrite)
-    try:
+    with results or PartialResults(out, fingerprint, overwrite) as results:  # closed (lock released) however it ends
+        owner = route_objects(estimators, names)
+        skipped = Counter(d.obj_id for d in detections if d.obj_id not in owner)
+        by_image: dict[ImageKey, list[Detection]] = defaultdict(list)
+        # model by model (stable): an image's estimates are written in the order of the models
+        for detection in sorted((d for d in detections if d.obj_id in owner), key=lambda d: owner[d.obj_id]):
+            by_image[detection.image_key].append(detection)
+        if detections and not by_image:
+            raise PopcodeError(f"none of the {len(detections)} detections is of an object these models know (detected: "
+                               f"objects {', '.join(map(str, sorted(skipped)[:10]))}; the models know objects "
+                               f"{', '.join(map(str, sorted(owner)))}): wrong models or wrong detections file?")
+        _check_images(by_image, images)
+        keys = sorted(by_image)[:max_images]
+        _check_image_sizes(keys, by_image, images)
+        if depth:
+            _check_depth(keys, images, by_image, estimators, owner, refine)
+        if draw_dir is not None:
+            check_pictures(draw_dir, keys, out, inputs, overwrite)
+        results.resume({key: [d.obj_id for d in by_image[key]] for key in keys})
         todo = [key for key in keys if key not in results.done]
         bar, written, sources = Progress(len(todo), progress), 0, Counter()
         work = (ImageBoxes(key, images[key].path, images[key].K, [d.box for d in by_image[key]],
@@ -223,7 +232,5 @@ def run_detections(estimators: Sequence[PoseEstimator], names: Sequence[str], im
             written += len(estimates)
             bar.step()
         results.finish()
-    finally:
-        results.close()
-    return RunSummary(len(todo), len(keys) - len(todo), written, dict(sorted(skipped.items())),
-                      time.perf_counter() - started, dict(sorted(sources.items())))
+        return RunSummary(len(todo), len(keys) - len(todo), written, dict(sorted(skipped.items())),
+                          time.perf_counter() - started, dict(sorted(sources.items())))

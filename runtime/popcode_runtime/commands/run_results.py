@@ -21,6 +21,7 @@ import hashlib
 import os
 from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
+from typing import IO
 
 from ..base.errors import PopcodeError
 from ..base.files import name_id, refuse_existing, write_bytes_atomic
@@ -60,31 +61,39 @@ class PartialResults:
     """``<out>.partial``: the estimate lines of finished images, each image closed by a ``#done`` line that carries
     a checksum of its lines and the run's fingerprint; ``<out>.lock`` held while a run writes them.
 
-    Opening it keeps every closed image (a torn tail from a killed run is dropped) and refuses a file made from
-    other models, detections, split or options, one whose closed images were edited, and a second run writing the
-    same ``out``. ``expected`` (image -> the object ids of its detections, in order) checks each kept image's
-    lines against what this run would write for it. A finished ``out`` is replaced only with ``overwrite``.
+    Made before the run knows its detections (a detector's run detects after it): it takes the lock and refuses a
+    second run writing the same ``out``, a finished ``out`` (replaced only with ``overwrite``) and a partial file
+    made from other models, detections, split or options. :meth:`resume` then keeps every closed image (a torn
+    tail from a killed run is dropped) and refuses a file whose closed images were edited. Closed (lock released)
+    when a ``with`` block ends, however it ends.
     """
 
-    def __init__(self, out: Path, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]],
-                 overwrite: bool = False) -> None:
+    def __init__(self, out: Path, fingerprint: str, overwrite: bool = False) -> None:
         self.out, self.fingerprint = out, fingerprint
-        self.path, lock, self.sources = companion_paths(out)
-        self._lock = OutputLock(lock, f"another popcode run is writing {out} (it holds {lock.name}); wait for "
-                                "it or choose another --out")
+        self.path, _, self.sources = companion_paths(out)
+        self.blocks: dict[ImageKey, list[str]] = {}  # each closed image's lines, its closing mark last
+        self._handle: IO[str] | None = None
+        self._lock = out_lock(out)
         try:
             if not self.path.exists():  # a finished run's files; with a partial beside them, a rerun that resumes
                 refuse_existing(out, "--out", overwrite)
                 refuse_existing(self.sources, "--out's translation sources", overwrite)
-            self.blocks: dict[ImageKey, list[str]] = {}  # each closed image's lines, its closing mark last
-            if self.path.exists():
-                self._resume(fingerprint, expected)
-            lines = [line for block in self.blocks.values() for line in block]
-            write_bytes_atomic(self.path, "\n".join([RUN_MARK + fingerprint, *lines]).encode() + b"\n")
-            self._handle = self.path.open("a")
+            elif not self.path.is_file():  # a FIFO would block the read forever, /dev/zero never end it
+                raise self._refuse("is not a regular file")
+            else:
+                with self.path.open("rb") as handle:  # another run's partial is refused as such, whatever its size
+                    if handle.readline(MAX_PARTIAL_LINE_BYTES).rstrip(b"\n") != (RUN_MARK + fingerprint).encode():
+                        raise self._refuse("holds the partial results of a run with other models, detections, "
+                                           "split or options")
         except BaseException:
             self._lock.release()
             raise
+
+    def __enter__(self) -> PartialResults:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
 
     @property
     def done(self) -> Collection[ImageKey]:
@@ -94,34 +103,40 @@ class PartialResults:
     def _refuse(self, why: str) -> PopcodeError:
         return PopcodeError(f"{self.path} {why}; remove it to start again, or rerun the command that made it")
 
-    def _resume(self, fingerprint: str, expected: Mapping[ImageKey, Sequence[int]]) -> None:
-        if not self.path.is_file():  # a FIFO would block the read forever, /dev/zero never end it
-            raise self._refuse("is not a regular file")
-        # at most an estimate and a translation line per detection and a closing mark per image, and the header
-        limit = MAX_PARTIAL_LINE_BYTES * (2 * sum(len(ids) for ids in expected.values()) + len(expected) + 1)
+    def resume(self, expected: Mapping[ImageKey, Sequence[int]]) -> None:
+        """Keep the closed images of an earlier run's partial file, checked against ``expected`` (image -> the
+        object ids of its detections, in order: what this run would write for it), and open the file anew."""
+        if self.path.exists():
+            self._read(expected)
+        lines = [line for block in self.blocks.values() for line in block]
+        write_bytes_atomic(self.path, "\n".join([RUN_MARK + self.fingerprint, *lines]).encode() + b"\n")
+        self._handle = self.path.open("a")
+
+    def _read(self, expected: Mapping[ImageKey, Sequence[int]]) -> None:
+        # at most an estimate and a translation line per detection and a closing mark per image
+        limit = MAX_PARTIAL_LINE_BYTES * (2 * sum(len(ids) for ids in expected.values()) + len(expected))
         with self.path.open("rb") as handle:
+            handle.readline(MAX_PARTIAL_LINE_BYTES)  # the header, checked when the file was claimed
             data = handle.read(limit + 1)
         if len(data) > limit:
-            raise self._refuse(f"is larger than this run's results can be ({limit} bytes)")
+            raise self._refuse(f"is larger than this run's results can be ({limit} bytes after its first line)")
         try:
             text = data.decode("utf-8").split("\n")
         except UnicodeDecodeError as error:
             raise self._refuse(f"is not text ({error.reason} at byte {error.start})") from error
-        if text[0] != RUN_MARK + fingerprint:
-            raise self._refuse("holds the partial results of a run with other models, detections, split or options")
         blocks: list[tuple[list[str], tuple[ImageKey, str] | None]] = []
         pending: list[str] = []
-        for line in text[1:]:
+        for line in text:
             if line.startswith(DONE_MARK):
                 blocks.append((pending, _done_key(line)))
                 pending = []
             elif line:
                 pending.append(line)  # lines after the last mark: an image a killed run did not close
         # A killed run can tear only its last image (lines, mark or both); anything wrong before that was changed.
-        while blocks and _block_problem(*blocks[-1], expected, self.done, fingerprint) is not None:
+        while blocks and _block_problem(*blocks[-1], expected, self.done, self.fingerprint) is not None:
             blocks.pop()
         for lines, mark in blocks:
-            problem = _block_problem(lines, mark, expected, self.done, fingerprint)
+            problem = _block_problem(lines, mark, expected, self.done, self.fingerprint)
             if problem is not None or mark is None:
                 raise self._refuse(f"was changed after it was written ({problem})")
             key, checksum = mark
@@ -151,7 +166,9 @@ class PartialResults:
         self.path.unlink()
 
     def close(self) -> None:
-        self._handle.close()
+        if self._handle is not None:
+            self._handle.close()
+            self._handle = None
         self._lock.release()
 
 
@@ -187,6 +204,13 @@ def sources_path(out: Path) -> Path:
     """Where a run with depth says each estimate's translation source: ``<out stem>.translation<out suffix>``
     (``results.translation.csv``; ``results.translation`` for ``results``), one per results file."""
     return out.with_name(f"{out.stem}.translation{out.suffix}")
+
+
+def out_lock(out: Path) -> OutputLock:
+    """``<out>.lock``, which keeps a second ``popcode run`` or ``popcode detect`` off the same ``out``."""
+    lock = companion_paths(out)[1]
+    return OutputLock(lock, f"another popcode detect or run is writing {out} (it holds {lock.name}); wait for it or "
+                      "choose another --out")
 
 
 def companion_paths(out: Path) -> tuple[Path, Path, Path]:

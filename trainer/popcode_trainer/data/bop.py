@@ -8,7 +8,7 @@ Only the JSON files are read when a split is indexed; images are opened by whoev
 from __future__ import annotations
 
 import numbers
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +18,7 @@ import numpy as np
 from popcode_runtime.base.checks import shown
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import read_json, require_folder
+from popcode_runtime.base.image_size import image_size
 from popcode_runtime.base.limits import MAX_OBJECTS
 from popcode_runtime.bop.split import (
     BOX_KINDS,
@@ -100,8 +101,9 @@ def gt_rotation(gt: GroundTruth) -> np.ndarray:
 def check_image_matches(instance: Instance, width: int, height: int) -> None:
     """Refuse an image whose size contradicts its annotations: the box or K's principal point outside it.
 
-    Called where an image is first decoded (the crop); a split with resized or
-    swapped images would otherwise train on the wrong pixels without a word.
+    Called when a split is read, with the size in each image's header, and where
+    an image is decoded (the crop); a split with resized or swapped images would
+    otherwise train on the wrong pixels without a word.
     """
     x, y, w, h = instance.box
     where = f"scene {instance.scene_id}, image {instance.im_id}, object {instance.gt_index}"
@@ -117,6 +119,23 @@ def check_image_matches(instance: Instance, width: int, height: int) -> None:
         raise PopcodeError(f"{instance.image_path} is {width}x{height} px but cam_K of image {instance.im_id} "
                            f"(scene_camera.json) puts the principal point at ({cx:g}, {cy:g}), outside it: "
                            "the images do not match the camera")
+
+
+def check_against_headers(instances: Sequence[Instance]) -> None:
+    """Every instance against the size its image's header gives (:func:`check_image_matches`), before any image is
+    decoded: a split whose images contradict their annotations is refused before a progress bar opens, not at the
+    crop that meets it. An image whose header is not read here (a FIFO, an unknown format) is checked when it is
+    decoded."""
+    sizes: dict[Path, tuple[int, int] | None] = {}
+    for instance in instances:
+        path = Path(instance.image_path)
+        if path not in sizes:
+            try:  # a FIFO would block the open
+                sizes[path] = image_size(path) if path.is_file() else None
+            except OSError:
+                sizes[path] = None
+        if sizes[path] is not None:
+            check_image_matches(instance, *sizes[path])
 
 
 def load_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
@@ -239,4 +258,5 @@ def read_bop_split(
     if not instances:
         raise PopcodeError(f"no instances of objects {sorted(wanted)} with visib_fract >= {min_visib_fract} "
                            f"in {split_dir}")
+    check_against_headers(instances)
     return BopSplit(instances=instances, models_info=models_info, split_dir=split_dir, models_dir=models_dir)

@@ -325,7 +325,11 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
                 (out_dir / f"{scene_id:06d}" / folder).mkdir(parents=True, exist_ok=True)
         renderer = _SceneRenderer(settings.width, settings.height)
         try:
-            for k in tqdm(todo, desc="render scenes", unit="img", disable=not progress):
+            # settings under which no part can be seen show in the first image: the bar opens after it, so their
+            # refusal is the only line
+            instances += _render_image(renderer, layouts, meshes, out_dir, todo[0], settings)
+            for k in tqdm(todo[1:], desc="render scenes", unit="img", disable=not progress, initial=1,
+                          total=len(todo)):
                 instances += _render_image(renderer, layouts, meshes, out_dir, k, settings)
         finally:
             renderer.close()

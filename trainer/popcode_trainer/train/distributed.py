@@ -48,9 +48,14 @@ def launched_rank() -> int:
     return int(os.environ.get("RANK", "0"))
 
 
+def launched_world_size() -> int:
+    """How many ranks ``torchrun`` launched (1 alone), known before the process group is joined."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
 def setup(requested_device: str) -> Context:
     """Join the ``torchrun`` process group if there is one; pick this rank's device."""
-    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    world_size = launched_world_size()
     rank = launched_rank()
     device = _pick_device(requested_device, int(os.environ.get("LOCAL_RANK", "0")))
     if world_size > 1 and not dist.is_initialized():

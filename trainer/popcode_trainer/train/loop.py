@@ -33,7 +33,7 @@ from popcode_runtime.model.metadata import RotationFrame
 from . import allocator, checkpoint, distributed, fast_path, pretrained
 from .config import Config
 from .epoch_record import EpochRecord, truncate_metrics
-from .network import NetworkConfig, build_network, feature_side
+from .network import NetworkConfig, build_network, check_trainable
 from .representations import InstanceLike, OutputRepresentation
 from .run_files import LAST_CHECKPOINT, METRICS_FILE, RUN_LOCK, START_FILE, EpochMetrics
 from .schedule import learning_rate
@@ -191,9 +191,7 @@ def _set_up(config: Config, representation: OutputRepresentation, crops: int, ra
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
     net_config = network_config(config, representation)
-    if rank_batch == 1 and feature_side(net_config) == 1:
-        raise PopcodeError(f"the trunk ends at 1x1 for data.crop_size {config.data.crop_size}, where BatchNorm needs "
-                           f"two crops per rank: raise train.batch_size or data.crop_size")
+    check_trainable(net_config, rank_batch)
     path = fast_path.choose_path(cfg.precision, cfg.compile, context.device, cfg.epochs * (crops // rank_batch),
                                  conv_widths=net_config.conv_channels)
     model = build_network(net_config).to(context.device)

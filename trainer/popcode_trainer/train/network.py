@@ -187,6 +187,23 @@ def dense_parameters(config: NetworkConfig) -> int:
     return sum(fan_in * fan_out + fan_out for fan_in, fan_out in zip(widths[:-1], widths[1:], strict=True))
 
 
+def _check_dense(config: NetworkConfig) -> None:
+    if dense_parameters(config) > MAX_DENSE_PARAMETERS:
+        raise PopcodeError(f"network of {dense_parameters(config):,} dense parameters, more than the limit of "
+                           f"{MAX_DENSE_PARAMETERS:,} (the paper's has 35 M): lower network.hidden, "
+                           f"network.squeeze_channels or the code size")
+
+
+def check_trainable(config: NetworkConfig, rank_batch: int) -> None:
+    """Refuse, in one line, a network too large to build or one a rank's batch of ``rank_batch`` crops cannot train
+    (a trunk that ends at 1x1 with one crop: BatchNorm needs two). Checked before the crops are cached, so the line
+    comes before any progress bar, and again when training starts."""
+    _check_dense(config)
+    if rank_batch == 1 and feature_side(config) == 1:
+        raise PopcodeError(f"the trunk ends at 1x1 for data.crop_size {config.input_size}, where BatchNorm needs "
+                           f"two crops per rank: raise train.batch_size or data.crop_size")
+
+
 class PopcodeNet(_CropNet):
     """Grey crop ``(N, 1, S, S)`` in [0, 1] -> output ``(N, output_dim)`` (paper section III-B)."""
 
@@ -198,10 +215,7 @@ class PopcodeNet(_CropNet):
         stages = _residual_stages(config) if config.trunk == "residual" else _paper_stages(config)
         squeeze = [nn.Conv2d(config.conv_channels[-1], config.squeeze_channels, 1), nn.GELU()]
         self.features = nn.Sequential(*stages, *squeeze)
-        if dense_parameters(config) > MAX_DENSE_PARAMETERS:
-            raise PopcodeError(f"network of {dense_parameters(config):,} dense parameters, more than the limit of "
-                               f"{MAX_DENSE_PARAMETERS:,} (the paper's has 35 M): lower network.hidden, "
-                               f"network.squeeze_channels or the code size")
+        _check_dense(config)
         flat = config.squeeze_channels * feature_side(config) ** 2
         self.hidden = _mlp([flat, *config.hidden], nn.LeakyReLU(config.leaky_slope))
         self.head = OutputLayer(config.hidden[-1], config.output_dim)

@@ -20,6 +20,9 @@ from ..data.box_noise import box_noise_preset
 from ..data.samples import CropDataset
 from ..data.symmetry_check import check_models_symmetries
 from .config import Config
+from .distributed import launched_world_size
+from .loop import network_config
+from .network import check_trainable
 from .representations import OutputRepresentation, build_representation
 from .run_files import CROP_CACHE_FOLDER
 
@@ -101,6 +104,8 @@ def build_training_data(config: Config, progress: bool = True, split: TrainingSp
     representation = build_representation(cfg.representation, split.objects, code.n_axes, code.n_angles,
                                           code.sigma_deg, cfg.rotation_frame, cfg.num_hypotheses,
                                           code.sigma_from_symmetries, cfg.loss)
+    # before the crops are cached: a network that cannot be built or trained is named before any progress bar
+    check_trainable(network_config(config, representation), max(1, cfg.batch_size // launched_world_size()))
     train, val = split.train, split.val
     data = config.data
     augmentation = Augmentation(noise_sigma=data.noise_sigma, noise_p=data.noise_p,
