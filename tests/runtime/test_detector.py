@@ -12,7 +12,7 @@ import pytest
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.geometry.crop import to_grey
 from popcode_runtime.inference.detector import Detector, detector_input
-from popcode_runtime.model.detector_metadata import DetectorMetadata
+from popcode_runtime.model.detector_metadata import DETECTOR_INPUT_MEAN, DetectorMetadata
 from tests.onnx_models import fixed_detector, linear_model, save
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -100,10 +100,12 @@ def test_detector_input_is_the_same_for_8_bit_16_bit_and_float_frames():
         assert np.array_equal(detector_input(same, WIDTH, HEIGHT), seen)
 
 
-def test_detector_input_pads_a_frame_of_another_aspect_with_black():
-    """An 8:3 frame in the 4:3 input: scaled to 64 x 24, 12 rows of 0 above and below."""
+def test_detector_input_pads_a_frame_of_another_aspect_with_the_graphs_mean_grey():
+    """An 8:3 frame in the 4:3 input: scaled to 64 x 24, 12 rows of the grey the graph normalises to 0 above and
+    below."""
     seen = detector_input(np.full((48, 128), 255, np.uint8), WIDTH, HEIGHT)
-    assert seen.shape == (HEIGHT, WIDTH) and not seen[:12].any() and not seen[36:].any()
+    pad = np.full((12, WIDTH), DETECTOR_INPUT_MEAN, np.float32)
+    assert seen.shape == (HEIGHT, WIDTH) and np.array_equal(seen[:12], pad) and np.array_equal(seen[36:], pad)
     assert np.array_equal(seen[12:36], np.ones((24, WIDTH), np.float32))
 
 

@@ -14,8 +14,9 @@ import pytest
 
 from popcode_runtime import Detector, FramePoseEstimator, read_image
 from popcode_runtime.commands.cli import main
-from popcode_runtime.geometry.crop import read_image_file
+from popcode_runtime.geometry.crop import read_image_file, to_grey
 from popcode_runtime.geometry.letterbox import Letterbox
+from popcode_runtime.model.detector_metadata import DETECTOR_INPUT_MEAN
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 DETECTOR = MODELS / "builtin-parts-detector.onnx"
@@ -25,7 +26,7 @@ FOCAL_PX = 864.0
 # The best boxes each entry point poses: the pose models' work is most of the test's time, and the boxes of two
 # ways of resizing differed in every box, the best ones too (by up to half a pixel), not only in how many there were.
 BEST = 5
-CANVAS_GREY = 100  # the surroundings of the bin in the frames of other aspects: not the letterbox's pad (0)
+CANVAS_GREY = 200  # the surroundings of the bin in the frames of other aspects: not the letterbox's pad grey
 # Where the bin lies in each frame of another aspect, and that frame's size (columns, rows). The offsets are
 # whole multiples of the source pixels per detector-input pixel (3.75 and 5), so that the hand-padded 4:3
 # references below are resampled on the same grid as the letterboxed frames.
@@ -100,19 +101,19 @@ def test_every_entry_point_gives_the_same_boxes(name, seen, tmp_path, capsys):
 @pytest.mark.parametrize("name", CANVASES)
 def test_a_frame_of_another_aspect_is_letterboxed_and_its_boxes_mapped_back(name):
     """The shipped detector on a 16:9 and a portrait frame gives the boxes of the same frame padded to 4:3 by hand
-    (with 0, the letterbox's pad), less the padding: the detector saw the same pixels, the boxes came back by
-    removing the offset and dividing by the scale. The tolerance is float32 rounding of the two mappings
-    (a box's edges are near 1000 px, float32 resolves 1e-4 px there)."""
+    (with the letterbox's grey), less the padding: the detector saw the same pixels, the boxes came back by
+    removing the offset and dividing by the scale. The tolerance is float32 rounding: of the two mappings (a box's
+    edges are near 1000 px, float32 resolves 1e-4 px there) and of the area average over the reference's pad."""
     frame = _canvas(name)
     rows, cols = frame.shape
     if cols * 3 > rows * 4:  # wider than 4:3: padded above and below
         pad = ((cols * 3 // 4 - rows) // 2, 0)
-        padded = np.zeros((cols * 3 // 4, cols), np.uint8)
-        padded[pad[0]:pad[0] + rows] = frame
+        padded = np.full((cols * 3 // 4, cols), DETECTOR_INPUT_MEAN, np.float32)
+        padded[pad[0]:pad[0] + rows] = to_grey(frame)
     else:  # taller: padded left and right
         pad = (0, (rows * 4 // 3 - cols) // 2)
-        padded = np.zeros((rows, rows * 4 // 3), np.uint8)
-        padded[:, pad[1]:pad[1] + cols] = frame
+        padded = np.full((rows, rows * 4 // 3), DETECTOR_INPUT_MEAN, np.float32)
+        padded[:, pad[1]:pad[1] + cols] = to_grey(frame)
     detector = Detector(DETECTOR)
     found = detector.detect(frame)
     expected = []

@@ -171,7 +171,8 @@ def _detector_info(args: argparse.Namespace) -> int:
     print(f"model            {args.model}")
     print("kind             detector (popcode detect, popcode run --detector, popcode predict --detector)")
     print(f"objects          {', '.join(map(str, meta.obj_ids))}")
-    print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of that aspect is resized)")
+    print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of any size and aspect is "
+          "letterboxed)")
     print(f"thresholds       score {meta.score_threshold:g}, NMS IoU {meta.nms_iou:g}, at most "
           f"{meta.max_detections} boxes")
     for key, value in sorted(meta.training.items()):

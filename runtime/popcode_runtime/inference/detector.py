@@ -25,6 +25,7 @@ from ..geometry.letterbox import Letterbox
 from ..model.detector_metadata import (
     DETECTOR_BOXES,
     DETECTOR_INPUT,
+    DETECTOR_INPUT_MEAN,
     DETECTOR_SCORES,
     PREFIX,
     DetectorMetadata,
@@ -54,12 +55,13 @@ def is_detector_file(model_path: str | Path) -> bool:
 
 def detector_input(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """A frame as the detector sees it: grey float32 ``(height, width)`` in [0, 1], letterboxed (:class:`Letterbox`:
-    resized, area-averaged when shrinking, the rest of the input 0).
+    resized, area-averaged when shrinking, the rest of the input ``DETECTOR_INPUT_MEAN``).
 
     The one path from a frame to the detector, for every entry point and the trainer's frames: the frame is made
     grey float first (:func:`to_grey`), so a frame as stored (8- or 16-bit) and the float frame ``read_image``
-    gives of it are the same pixels to the detector. The pad is 0, as outside the image in a pose crop: no
-    statistic of the frame to compute, and the input is the frame's pixels alone.
+    gives of it are the same pixels to the detector. The pad is the grey the graph normalises to 0, what its
+    convolutions see beyond the input's border anyway: neutral to the network, the same for every frame (nothing
+    to compute), and a frame of only that grey finds no part where a black one did (bench/results/frame-path.md).
     """
     grey = to_grey(image)
     fit = Letterbox.fit((grey.shape[1], grey.shape[0]), (width, height))
@@ -68,7 +70,7 @@ def detector_input(image: np.ndarray, width: int, height: int) -> np.ndarray:
     np.clip(resized, 0.0, 1.0, out=resized)  # an average of values in [0, 1] may round a hair past them
     if fit.scaled == (width, height):
         return resized
-    frame = np.zeros((height, width), np.float32)
+    frame = np.full((height, width), DETECTOR_INPUT_MEAN, np.float32)
     (x, y), (cols, rows) = fit.offset, fit.scaled
     frame[y:y + rows, x:x + cols] = resized
     return frame
