@@ -1,11 +1,12 @@
 """``Detector``: a popcode detector's ONNX file behind one call, camera frame -> every part's box, object and score.
 
 The network gives a score per object and a box for every place of its
-feature maps (docs/design.md#detector-contract); here the frame is brought
-to the detector's input size (:func:`detector_input`, which the trainer's
-data uses too), the places scoring below the threshold are dropped and
-OpenCV's non-maximum suppression keeps, per object, the best of overlapping
-boxes. A frame with no parts gives an empty list.
+feature maps (docs/design.md#detector-contract); here a frame of any size and
+aspect is letterboxed into the detector's input (:func:`detector_input`, which
+the trainer's data uses too), the places scoring below the threshold are
+dropped, OpenCV's non-maximum suppression keeps, per object, the best of
+overlapping boxes, and the boxes are mapped back to the frame. A frame with no
+parts gives an empty list.
 """
 
 from __future__ import annotations
