@@ -217,6 +217,8 @@ CLI_CASES: list[CliCase] = [
     CliCase("box-negative-outside", _predict(box="-500,-500,10,10"), "wholly outside"),
     CliCase("box-sub-pixel", _predict(box="10,10,1e-9,1e-9"), "smaller than a pixel"),
     CliCase("box-missing", _predict(box=None), "--box"),
+    CliCase("box-for-two-models", ("predict", "{folder}/model.onnx", "{folder}/depth_model.onnx", "{folder}/scene.png",
+                                   "--box", GOOD_BOX), "2 models with --box"),
     CliCase("K-three-numbers", _predict("--K", "1,2,3"), "fx,fy,cx,cy, 9 numbers or 3x3"),
     CliCase("K-words", _predict("--K", "a,b,c,d"), "must be comma-separated numbers"),
     CliCase("K-1e300", _predict("--K", "1e300,1e300,0,0", "--translation"), "not physical"),

@@ -10,8 +10,9 @@ import onnx
 import pytest
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.geometry.crop import to_grey
 from popcode_runtime.inference.detector import Detector, detector_input
-from popcode_runtime.model.detector_metadata import DetectorMetadata
+from popcode_runtime.model.detector_metadata import DETECTOR_INPUT_MEAN, DetectorMetadata
 from tests.onnx_models import fixed_detector, linear_model, save
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -56,9 +57,30 @@ def test_a_frame_without_parts_gives_an_empty_list(detector_path):
     assert Detector(detector_path).detect(np.zeros((HEIGHT, WIDTH), np.uint8)) == []
 
 
-def test_a_frame_of_another_aspect_is_refused_in_one_line(detector_path):
-    with pytest.raises(PopcodeError, match=r"the image is 64x64 but the detector takes 64x48 frames"):
-        Detector(detector_path).detect(np.zeros((64, 64), np.uint8))
+def test_a_frame_of_another_aspect_is_letterboxed(detector_path):
+    """A 64 x 64 frame in the 64 x 48 input: scaled by 0.75 to 48 x 48, 8 columns of pad either side; a box in
+    the input comes back less the pad, divided by the scale, cut to the frame; one wholly in the pad is dropped."""
+    boxes = np.array([[8, 8, 24, 24], [0, 0, 6, 40], [50, 10, 64, 30]], np.float32)
+    scores = np.array([[0.9, 0.0], [0.0, 0.8], [0.0, 0.7]], np.float32)
+    detector = Detector(save(fixed_detector(boxes, scores, _metadata()), detector_path.parent / "pad.onnx"))
+    found = detector.detect(np.zeros((64, 64), np.uint8))
+    assert [d.obj_id for d in found] == [1, 2]
+    assert found[0].box == pytest.approx((0.0, 8 / 0.75, 16 / 0.75, 16 / 0.75))
+    assert found[1].box == pytest.approx((42 / 0.75, 10 / 0.75, 64 - 42 / 0.75, 20 / 0.75))
+    tall = detector.detect(np.zeros((96, 48), np.uint8))  # 1:2: scaled by 0.5 to 24 x 48, 20 columns of pad
+    assert [d.box for d in tall] == [(0.0, 16.0, 8.0, 32.0)]
+
+
+@pytest.mark.parametrize(("shape", "count"), [((1, 5000), 2), ((5000, 1), 0), ((3, 3), 2)])
+def test_frames_of_extreme_aspect_are_letterboxed_without_error(tmp_path, shape, count):
+    """A one-row frame keeps one row of the input, a one-column frame one column (where no box of this detector
+    lies), a tiny frame is enlarged; every box is cut to the frame."""
+    detector = Detector(save(fixed_detector(BOXES, SCORES, _metadata()), tmp_path / "det.onnx"))
+    found = detector.detect(np.full(shape, 255, np.uint8))
+    assert len(found) == count
+    for d in found:
+        x, y, w, h = d.box
+        assert min(x, y) >= 0 and x + w <= shape[1] and y + h <= shape[0]
 
 
 def test_detector_input_resizes_colour_and_depths_alike():
@@ -67,6 +89,24 @@ def test_detector_input_resizes_colour_and_depths_alike():
     frame = detector_input(colour, WIDTH, HEIGHT)
     assert frame.shape == (HEIGHT, WIDTH) and frame.dtype == np.float32
     assert np.allclose(frame, 0.299, atol=1e-3)
+
+
+def test_detector_input_is_the_same_for_8_bit_16_bit_and_float_frames():
+    """One path from a frame to the detector's input: the 8-bit frame, its 16-bit copy and the float frame that
+    ``read_image`` gives of it are the same pixels to the detector."""
+    frame = np.random.default_rng(0).integers(0, 256, (300, 400), np.uint8)
+    seen = detector_input(frame, WIDTH, HEIGHT)
+    for same in (frame.astype(np.uint16) * 257, to_grey(frame), to_grey(frame).astype(np.float64)):
+        assert np.array_equal(detector_input(same, WIDTH, HEIGHT), seen)
+
+
+def test_detector_input_pads_a_frame_of_another_aspect_with_the_graphs_mean_grey():
+    """An 8:3 frame in the 4:3 input: scaled to 64 x 24, 12 rows of the grey the graph normalises to 0 above and
+    below."""
+    seen = detector_input(np.full((48, 128), 255, np.uint8), WIDTH, HEIGHT)
+    pad = np.full((12, WIDTH), DETECTOR_INPUT_MEAN, np.float32)
+    assert seen.shape == (HEIGHT, WIDTH) and np.array_equal(seen[:12], pad) and np.array_equal(seen[36:], pad)
+    assert np.array_equal(seen[12:36], np.ones((24, WIDTH), np.float32))
 
 
 @pytest.mark.parametrize(("changes", "message"), [
@@ -144,6 +184,42 @@ def test_predict_with_a_detector_from_the_command_line(tmp_path, capsys):
     assert captured.out == "" and "no parts of objects [3, 4, 5, 6] found" in captured.err
     assert main(["predict", model, str(bright), "--detector", str(model), *camera]) == 2
     assert "it is a popcode pose model: give it as MODEL, not as --detector" in capsys.readouterr().err
+
+
+def test_predict_takes_every_pose_model_and_counts_the_boxes_none_knows(tmp_path, capsys):
+    """Boxes of objects 1 and 3: with the model of parts 3-6 alone, object 1's box is counted (text, JSON and
+    ``FramePoseEstimator.last_skipped``); with the models of 1-2 and 3-6 both boxes get a pose. Several models
+    are for --detector: boxes given by hand go to one model."""
+    import json
+
+    import cv2
+
+    from popcode_runtime import FramePoseEstimator, read_image
+    from popcode_runtime.commands.cli import main
+
+    detector = str(save(fixed_detector(BOXES, SCORES, _metadata(obj_ids=(1, 3))), tmp_path / "det.onnx"))
+    models = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-parts-3-6.onnx")]
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.full((HEIGHT, WIDTH), 255, np.uint8))
+    frame = [str(image), "--detector", detector, "--K", "60,60,31.5,23.5"]
+    assert main(["predict", models[1], *frame]) == 0
+    out = capsys.readouterr().out
+    assert out.count(" detected (score ") == 1 and "object 3 detected" in out
+    assert "skipped 1 detection of objects no model knows: object 1 x1" in out
+    assert main(["predict", models[1], *frame, "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert len(printed["predictions"]) == 1 and printed["skipped_detections"] == {"1": 1}
+    assert main(["predict", *models, *frame, "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert [p["detection"]["obj_id"] for p in printed["predictions"]] == [1, 3]
+    assert printed["skipped_detections"] == {} and printed["models"] == models
+    assert main(["predict", *models, *frame]) == 0
+    assert "skipped" not in capsys.readouterr().out
+    alone = FramePoseEstimator.from_files(detector, models[1:])
+    assert len(alone.estimate(read_image(image), K=[60, 60, 31.5, 23.5])) == 1 and alone.last_skipped == {1: 1}
+    assert main(["predict", *models, str(image), "--box", "1,1,20,20"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "2 models with --box" in error
 
 
 def test_a_detector_of_objects_no_pose_model_knows_is_refused(tmp_path, capsys):

@@ -135,7 +135,7 @@ def test_frame_estimator_matches_detector_then_pose_model(scenes: Path, trained:
     for pose, expected in zip(poses, direct, strict=True):
         np.testing.assert_allclose(pose.prediction.R_m2c, expected.R_m2c, atol=1e-12)
         np.testing.assert_allclose(pose.prediction.t_m2c_mm, expected.t_m2c_mm, atol=1e-9)
-    assert frame_estimator.last_timings.skipped == dict(Counter(
+    assert frame_estimator.last_skipped == dict(Counter(
         d.obj_id for d in frame_estimator.detector.detect(image) if d.obj_id in (1, 2)))
 
 

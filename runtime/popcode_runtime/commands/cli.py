@@ -29,8 +29,8 @@ from ..model.decoding import DECODERS
 from ..model.detector_metadata import PREFIX as DETECTOR_PREFIX
 from . import detect as detect_command
 from . import run as run_command
-from .detect import add_detector_options, open_detector
-from .drawing import draw_predictions
+from .detect import add_detector_options, open_detector, skipped_line
+from .drawing import draw_models
 from .options import DEFAULT_BENCH_BATCHES, check_options
 from .parser import CommandParser
 
@@ -69,9 +69,12 @@ def _add_runtime_options(parser: argparse.ArgumentParser) -> None:
 def _predict(args: argparse.Namespace) -> int:
     if args.draw:
         # before the model runs: a typo costs a line, not the run
-        check_picture_path(args.draw, "--draw", [args.model, args.image, *filter(None, [args.depth])], args.overwrite)
-    estimator = PoseEstimator(args.model, providers=args.provider, threads=args.threads, decoder=args.decoder)
-    frame = FramePoseEstimator(open_detector(args), [estimator], [str(args.model)]) if args.detector else None
+        check_picture_path(args.draw, "--draw", [*args.models, args.image, *filter(None, [args.depth])],
+                           args.overwrite)
+    estimators = [PoseEstimator(path, providers=args.provider, threads=args.threads, decoder=args.decoder)
+                  for path in args.models]
+    frame = FramePoseEstimator(open_detector(args), estimators, list(map(str, args.models))) if args.detector \
+        else None
     image = read_image(args.image, args.max_pixels)
     depth = read_depth(args.depth, args.max_pixels) if args.depth else None
     K = parse_camera_matrix(args.K) if args.K else None
@@ -81,21 +84,27 @@ def _predict(args: argparse.Namespace) -> int:
     if frame is not None:
         poses = frame.estimate(image, **options)
         predictions, detections = [pose.prediction for pose in poses], [pose.detection for pose in poses]
+        skipped = frame.last_skipped
     else:
-        predictions = estimator.predict(image, args.box, obj_ids=args.obj_id, crop_origin=args.crop_origin,
-                                        **options)
-        detections = [None] * len(predictions)
+        predictions = estimators[0].predict(image, args.box, obj_ids=args.obj_id, crop_origin=args.crop_origin,
+                                            **options)
+        detections, skipped = [None] * len(predictions), {}
     if args.draw:
         camera = None if K is None else camera_for_image(K, image.shape, args.crop_origin)  # in the image's pixels
-        write_picture_atomic(args.draw, draw_predictions(image, predictions, estimator.metadata, camera))
+        drawn = [(e.metadata, [p for p in predictions if p.obj_id is None or p.obj_id in e.metadata.objects])
+                 for e in estimators]
+        write_picture_atomic(args.draw, draw_models(image, drawn, camera))
     if args.json:
-        print(json.dumps({"model": str(args.model), "image": str(args.image),
+        print(json.dumps({"models": list(map(str, args.models)), "image": str(args.image),
                           "predictions": [{**p.to_dict(), **({} if d is None else {"detection": d.to_dict()})}
-                                          for p, d in zip(predictions, detections, strict=True)]}, indent=2))
+                                          for p, d in zip(predictions, detections, strict=True)],
+                          **({} if frame is None else {"skipped_detections": {str(k): v for k, v in skipped.items()}})},
+                         indent=2))
         return 0
     np.set_printoptions(precision=4, suppress=True)
     if frame is not None and not predictions:
-        print(f"no parts of objects {list(estimator.metadata.objects)} found", file=sys.stderr)
+        known = sorted(obj_id for estimator in estimators for obj_id in estimator.metadata.objects)
+        print(f"no parts of objects {known} found", file=sys.stderr)
     for index, (prediction, detection) in enumerate(zip(predictions, detections, strict=True)):
         axis = ", ".join(f"{v:+.3f}" for v in prediction.axis)
         found = "" if detection is None else f"object {detection.obj_id} detected (score {detection.score:.3f}) in "
@@ -110,6 +119,8 @@ def _predict(args: argparse.Namespace) -> int:
             print(f"    hypothesis {rank}: score {hypothesis.score:.2f}, activation {hypothesis.activation:.3f}, "
                   f"angle {np.degrees(angle):.1f} deg about ({', '.join(f'{v:+.3f}' for v in axis)}), "
                   f"{len(hypothesis.equivalent)} equivalent peak(s)")
+    if skipped:
+        print(skipped_line(skipped))
     return 0
 
 
@@ -160,7 +171,8 @@ def _detector_info(args: argparse.Namespace) -> int:
     print(f"model            {args.model}")
     print("kind             detector (popcode detect, popcode run --detector, popcode predict --detector)")
     print(f"objects          {', '.join(map(str, meta.obj_ids))}")
-    print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of that aspect is resized)")
+    print(f"input            {meta.input_width}x{meta.input_height} grey frame (a frame of any size and aspect is "
+          "letterboxed)")
     print(f"thresholds       score {meta.score_threshold:g}, NMS IoU {meta.nms_iou:g}, at most "
           f"{meta.max_detections} boxes")
     print(f"first weights    {_first_weights(meta.training)}")
@@ -223,8 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     predict = commands.add_parser("predict", help="rotation of the object in each box of an image",
-                                  description="Crop each box, run the model once on the batch, decode rotations.")
-    predict.add_argument("model", help="popcode ONNX model")
+                                  description="Crop each box, run the model once on the batch, decode rotations; "
+                                              "with --detector, every part of a camera frame, each box posed by the "
+                                              "model of its object.")
+    predict.add_argument("models", nargs="+", metavar="MODEL",
+                         help="popcode ONNX model; with --detector every model of the frame's parts (each box goes "
+                              "to the model that knows its object, boxes no model knows are counted)")
     predict.add_argument("image", help="image file (grey or colour, 8 or 16 bit)")
     predict.add_argument("--box", type=_box, action="append", metavar="X,Y,W,H",
                          help="object box in pixels (top-left corner, width, height); repeat for several objects "

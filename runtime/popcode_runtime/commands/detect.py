@@ -37,6 +37,13 @@ def open_detector(args: argparse.Namespace) -> Detector:
                     score_threshold=args.score_threshold, nms_iou=args.nms_iou, max_detections=args.max_detections)
 
 
+def skipped_line(skipped: Mapping[int, int]) -> str:
+    """The line that counts a frame's (or a run's) detections no given model knows, by object."""
+    total = sum(skipped.values())
+    return (f"skipped {total} detection{'' if total == 1 else 's'} of objects no model knows: "
+            + ", ".join(f"object {obj_id} x{count}" for obj_id, count in sorted(skipped.items())))
+
+
 def register(commands: argparse._SubParsersAction, add_runtime_options: Callable[[argparse.ArgumentParser], None]
              ) -> None:
     detect = commands.add_parser(

@@ -138,6 +138,16 @@ def draw_predictions(image: np.ndarray, predictions: Sequence[Prediction], metad
     return picture
 
 
+def draw_models(image: np.ndarray, drawn: Sequence[tuple[ModelMetadata, Sequence[Prediction]]],
+                K: Sequence[float] | np.ndarray | None = None) -> np.ndarray:
+    """A BGR uint8 copy of ``image`` with the estimates of several models, each drawn with its model's metadata
+    (a frame whose parts several models estimate: ``popcode run``, ``popcode predict --detector``)."""
+    picture = _bgr_uint8(image)
+    for metadata, predictions in drawn:
+        picture = draw_predictions(picture[..., ::-1], predictions, metadata, K)  # it takes RGB, gives BGR
+    return picture
+
+
 def _check_prediction(prediction: Prediction, metadata: ModelMetadata) -> None:
     """Finite numbers of the right shapes and an object the model knows (or none: a model not told which)."""
     if not isinstance(prediction, Prediction):

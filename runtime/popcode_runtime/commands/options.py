@@ -62,6 +62,9 @@ def _check_predict(args: argparse.Namespace) -> None:
     if (args.box is None) == (args.detector is None):
         raise PopcodeError("give the objects' boxes (--box X,Y,W,H, repeatable) or a detector to find them "
                            "(--detector DET.onnx), one of the two")
+    if args.detector is None and len(args.models) > 1:
+        raise PopcodeError(f"{len(args.models)} models with --box: boxes given by hand go to one MODEL; several "
+                           "models are for --detector, whose boxes each go to the model of their object")
     if args.detector is None and any(given(args, o) for o in ("score_threshold", "nms_iou", "max_detections")):
         raise PopcodeError("--score-threshold, --nms-iou and --max-detections set how --detector runs: add "
                            "--detector DET.onnx")

@@ -12,7 +12,7 @@ from ..bop.detections import ground_truth_boxes, read_detections
 from ..bop.split import BOP19_MIN_VISIB_FRACT, BOX_KINDS, split_images
 from ..inference.estimator import PoseEstimator
 from ..model.decoding import DECODERS
-from .detect import add_detector_options, detect_split, open_detector
+from .detect import add_detector_options, detect_split, open_detector, skipped_line
 from .run_fingerprint import run_fingerprint
 from .run_loop import check_pictures, run_detections
 from .run_results import PartialResults, companion_paths, sources_path
@@ -109,14 +109,12 @@ def handle(args: argparse.Namespace) -> int:
                              fingerprint=fingerprint, max_images=args.max_images, progress=not args.quiet,
                              draw_dir=args.draw, depth=args.depth, refine=args.refine, overwrite=args.overwrite,
                              inputs=inputs, results=results)
-    skipped = sum(summary.skipped.values())
     resumed = f" ({summary.images_resumed} done by an earlier run)" if summary.images_resumed else ""
     print(f"wrote {args.out}: {summary.estimates} estimates of {summary.images_done} images{resumed} in "
           f"{summary.seconds:.1f} s")
     if args.depth:
         print(f"translation sources ({sources_path(args.out)}): "
               + ", ".join(f"{source} {count}" for source, count in summary.sources.items()))
-    if skipped:
-        print(f"skipped {skipped} detections of objects no model knows: "
-              + ", ".join(f"object {obj_id} x{count}" for obj_id, count in summary.skipped.items()))
+    if summary.skipped:
+        print(skipped_line(summary.skipped))
     return 0

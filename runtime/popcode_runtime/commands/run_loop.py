@@ -37,7 +37,7 @@ from ..geometry.crop import check_box
 from ..inference.estimator import PoseEstimator
 from ..inference.image_loop import ImageBoxes, estimate_images, route_objects
 from ..inference.prediction import Prediction
-from .drawing import draw_predictions
+from .drawing import draw_models
 from .run_results import ImageKey, PartialResults, companion_paths
 
 
@@ -167,10 +167,7 @@ def picture_path(draw_dir: Path, key: ImageKey) -> Path:
 def draw_image(path: Path, image: np.ndarray, split_image: SplitImage,
                drawn: Sequence[tuple[PoseEstimator, list[Prediction]]]) -> None:
     """Every model's estimates of one image in one picture."""
-    picture = image
-    for estimator, predictions in drawn:
-        picture = draw_predictions(picture, predictions, estimator.metadata, split_image.K)[..., ::-1]  # RGB
-    write_picture_atomic(path, np.ascontiguousarray(picture[..., ::-1]))
+    write_picture_atomic(path, draw_models(image, [(e.metadata, found) for e, found in drawn], split_image.K))
 
 
 def check_pictures(draw_dir: Path, keys: Sequence[ImageKey], out: Path, inputs: Sequence[Path],

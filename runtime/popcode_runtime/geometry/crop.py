@@ -136,12 +136,9 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     uint8 is divided by 255, uint16 by 65535; float images must already lie in [0, 1].
     """
     image = check_image(image)
-    if image.dtype == np.uint8:
-        grey = image.astype(np.float32) / 255.0
-    elif image.dtype == np.uint16:
-        grey = image.astype(np.float32) / 65535.0
-    else:
-        grey = image.astype(np.float32)
+    grey = image.astype(np.float32)
+    if image.dtype in (np.uint8, np.uint16):  # in place: a second whole-frame array costs more than the division
+        grey /= 255.0 if image.dtype == np.uint8 else 65535.0
     if grey.ndim == 3:
         grey = grey @ _GREY_WEIGHTS_RGB
     return np.ascontiguousarray(grey)

@@ -1,11 +1,12 @@
 """``Detector``: a popcode detector's ONNX file behind one call, camera frame -> every part's box, object and score.
 
 The network gives a score per object and a box for every place of its
-feature maps (docs/design.md#detector-contract); here the frame is brought
-to the detector's input size (:func:`detector_input`, which the trainer's
-data uses too), the places scoring below the threshold are dropped and
-OpenCV's non-maximum suppression keeps, per object, the best of overlapping
-boxes. A frame with no parts gives an empty list.
+feature maps (docs/design.md#detector-contract); here a frame of any size and
+aspect is letterboxed into the detector's input (:func:`detector_input`, which
+the trainer's data uses too), the places scoring below the threshold are
+dropped, OpenCV's non-maximum suppression keeps, per object, the best of
+overlapping boxes, and the boxes are mapped back to the frame. A frame with no
+parts gives an empty list.
 """
 
 from __future__ import annotations
@@ -20,17 +21,18 @@ import numpy as np
 
 from ..base.checks import path
 from ..base.errors import PopcodeError, library_step
-from ..geometry.crop import check_image, to_grey
+from ..geometry.crop import to_grey
+from ..geometry.letterbox import Letterbox
 from ..model.detector_metadata import (
     DETECTOR_BOXES,
     DETECTOR_INPUT,
+    DETECTOR_INPUT_MEAN,
     DETECTOR_SCORES,
     PREFIX,
     DetectorMetadata,
 )
 from ..model.engine import custom_metadata, onnx_session
 
-MAX_ASPECT_CHANGE = 0.02  # a frame whose width/height differs more from the detector's is refused, not distorted
 MAX_CANDIDATES = 5000  # places above the threshold that go to NMS, best first: bounds its quadratic work
 
 
@@ -53,22 +55,26 @@ def is_detector_file(model_path: str | Path) -> bool:
 
 
 def detector_input(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """A frame as the detector sees it: grey float32 ``(height, width)`` in [0, 1], resized (area-averaged when
-    shrinking); a frame of another aspect ratio is refused rather than distorted."""
-    image = check_image(image)
-    rows, cols = image.shape[:2]
-    if abs((cols / rows) / (width / height) - 1.0) > MAX_ASPECT_CHANGE:
-        raise PopcodeError(f"the image is {cols}x{rows} but the detector takes {width}x{height} frames (aspect "
-                           f"{width / height:.3f}, the image's {cols / rows:.3f}): crop the image to that aspect or "
-                           "train a detector for this camera")
-    if (cols, rows) != (width, height):
-        if image.dtype == np.float64:
-            image = image.astype(np.float32)
-        shrink = cols > width
-        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        if image.dtype == np.float32:  # an average of values in [0, 1] may round a hair past them
-            np.clip(image, 0.0, 1.0, out=image)
-    return to_grey(image)
+    """A frame as the detector sees it: grey float32 ``(height, width)`` in [0, 1], letterboxed (:class:`Letterbox`:
+    resized, area-averaged when shrinking, the rest of the input ``DETECTOR_INPUT_MEAN``).
+
+    The one path from a frame to the detector, for every entry point and the trainer's frames: the frame is made
+    grey float first (:func:`to_grey`), so a frame as stored (8- or 16-bit) and the float frame ``read_image``
+    gives of it are the same pixels to the detector. The pad is the grey the graph normalises to 0, what its
+    convolutions see beyond the input's border anyway: neutral to the network, the same for every frame (nothing
+    to compute), and a frame of only that grey finds no part where a black one did (bench/results/frame-path.md).
+    """
+    grey = to_grey(image)
+    fit = Letterbox.fit((grey.shape[1], grey.shape[0]), (width, height))
+    shrink = fit.scaled[0] < grey.shape[1]
+    resized = cv2.resize(grey, fit.scaled, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    np.clip(resized, 0.0, 1.0, out=resized)  # an average of values in [0, 1] may round a hair past them
+    if fit.scaled == (width, height):
+        return resized
+    frame = np.full((height, width), DETECTOR_INPUT_MEAN, np.float32)
+    (x, y), (cols, rows) = fit.offset, fit.scaled
+    frame[y:y + rows, x:x + cols] = resized
+    return frame
 
 
 class Detector:
@@ -126,7 +132,8 @@ class Detector:
         return found
 
     def _select(self, boxes: np.ndarray, scores: np.ndarray, image_shape: tuple[int, ...]) -> list[DetectedBox]:
-        """Threshold, per-object NMS and the cap, then boxes in the frame's pixels (clipped to it)."""
+        """Threshold, per-object NMS and the cap, then boxes in the frame's pixels (the letterbox undone, clipped to
+        the frame)."""
         if boxes.ndim != 2 or boxes.shape[1] != 4 or scores.shape != (len(boxes), len(self.obj_ids)):
             raise PopcodeError(f"the detector returned boxes {boxes.shape} and scores {scores.shape}; expected (L, 4) "
                                f"and (L, {len(self.obj_ids)})")
@@ -137,9 +144,8 @@ class Detector:
             best = np.argpartition(-values, MAX_CANDIDATES)[:MAX_CANDIDATES]
             places, classes, values = places[best], classes[best], values[best]
         rows, cols = image_shape[:2]
-        scale = np.array([cols / self.metadata.input_width, rows / self.metadata.input_height] * 2, np.float32)
-        edges = np.nan_to_num(boxes[places] * scale)
-        edges = np.clip(edges, 0.0, [cols, rows, cols, rows])
+        fit = Letterbox.fit((cols, rows), (self.metadata.input_width, self.metadata.input_height))
+        edges = fit.to_frame(np.nan_to_num(boxes[places]))
         xywh = np.column_stack([edges[:, :2], edges[:, 2:] - edges[:, :2]])
         usable = (xywh[:, 2] >= 1.0) & (xywh[:, 3] >= 1.0)
         xywh, classes, values = xywh[usable], classes[usable], values[usable]

@@ -9,8 +9,9 @@ observed surface (and refined against it when asked).
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,6 @@ class FrameTimings:
 
     detect_s: float = 0.0
     poses_s: float = 0.0
-    skipped: dict[int, int] = field(default_factory=dict)  # object id -> boxes no pose model knows
 
 
 class FramePoseEstimator:
@@ -51,8 +51,9 @@ class FramePoseEstimator:
 
     Build it from files with :meth:`from_files` or from a :class:`Detector` and
     :class:`PoseEstimator` objects. A detector none of whose objects a pose
-    model knows is refused when built; boxes of objects only some models lack
-    are skipped and counted in :attr:`last_timings`.
+    model knows is refused when built; boxes of objects no given model knows
+    are skipped and counted, per object, in :attr:`last_skipped` (as ``popcode
+    run`` and ``popcode predict --detector`` count them).
     """
 
     def __init__(self, detector: Detector, estimators: Sequence[PoseEstimator], names: Sequence[str] | None = None
@@ -66,6 +67,7 @@ class FramePoseEstimator:
             raise PopcodeError(f"the detector finds objects {list(detector.obj_ids)} and the pose models know objects "
                                f"{sorted(self._owner)}: none in common (wrong detector or wrong models?)")
         self.last_timings = FrameTimings()
+        self.last_skipped: dict[int, int] = {}  # the last frame's boxes no pose model knows, by object id
 
     @classmethod
     def from_files(cls, detector_path: str | Path, model_paths: Sequence[str | Path],
@@ -91,7 +93,6 @@ class FramePoseEstimator:
         started = time.perf_counter()
         found = self.detector.detect(image)
         detected = time.perf_counter()
-        skipped: dict[int, int] = {}
         poses: list[FramePose] = []
         for index, estimator in enumerate(self.estimators):
             mine = [d for d in found if self._owner.get(d.obj_id) == index]
@@ -102,8 +103,6 @@ class FramePoseEstimator:
                                             refine_depth=refine_depth, return_code=return_code,
                                             translation=K is not None if translation is None else translation)
             poses += [FramePose(d, p) for d, p in zip(mine, predictions, strict=True)]
-        for detection in found:
-            if detection.obj_id not in self._owner:
-                skipped[detection.obj_id] = skipped.get(detection.obj_id, 0) + 1
-        self.last_timings = FrameTimings(detected - started, time.perf_counter() - detected, skipped)
+        self.last_skipped = dict(sorted(Counter(d.obj_id for d in found if d.obj_id not in self._owner).items()))
+        self.last_timings = FrameTimings(detected - started, time.perf_counter() - detected)
         return sorted(poses, key=lambda pose: -pose.detection.score)

@@ -25,6 +25,9 @@ DETECTOR_FORMAT_VERSION = 1
 DETECTOR_INPUT = "image"  # (1, 1, H, W) float32 grey in [0, 1]
 DETECTOR_BOXES = "boxes"  # (1, L, 4) float32 x0, y0, x1, y1 in the input's pixels
 DETECTOR_SCORES = "scores"  # (1, L, C) float32 in [0, 1], C the object ids in metadata order
+# The grey a detector's graph first normalises to 0 ((x - mean) / std): the value its convolutions see beyond the
+# input's border, and so the runtime's pad of a letterboxed frame (the trainer's network takes it from here).
+DETECTOR_INPUT_MEAN = 0.45
 MIN_SIDE, MAX_SIDE = 32, 2048  # the detector's input side [px]
 MAX_DETECTIONS = 1000  # per frame; the runtime's pose call takes at most MAX_BOXES_PER_CALL boxes
 PREFIX = "popcode_detector."

@@ -1,5 +1,6 @@
 """Whole frames and their boxes for the detector, read from BOP scene splits (the renders the project already
-makes), brought to the detector's input size by the runtime's own :func:`detector_input`, and augmented.
+makes), brought to the detector's input by the runtime's own :func:`detector_input` (a frame of another aspect
+letterboxed, its boxes with it), and augmented.
 
 The augmentation is what a camera changes and a render does not: zoom and framing (a crop of the frame, so parts
 appear larger and cut by its border), exposure, contrast, blur and sensor noise. No flips: a mirrored part is not
@@ -21,6 +22,7 @@ from tqdm import tqdm
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.bop.split import scene_folders, scene_ground_truth, split_images
 from popcode_runtime.geometry.crop import read_image_file
+from popcode_runtime.geometry.letterbox import Letterbox
 from popcode_runtime.inference.detector import detector_input
 
 from .config import DetectorConfig
@@ -79,9 +81,9 @@ class FrameSet(Dataset):
         size = (config.input_width, config.input_height)
         for frame in tqdm(self.frames, desc="reading frames", unit="img", disable=not progress, leave=False):
             image = read_image_file(frame.path)
-            scale = np.array([size[0] / image.shape[1], size[1] / image.shape[0]] * 2, np.float32)
             self.pixels.append(np.round(detector_input(image, *size) * 255).astype(np.uint8))
-            self.boxes.append(frame.boxes * scale)
+            fit = Letterbox.fit((image.shape[1], image.shape[0]), size)
+            self.boxes.append(fit.to_input(frame.boxes).astype(np.float32))
 
     def __len__(self) -> int:
         return len(self.frames)

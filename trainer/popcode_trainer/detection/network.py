@@ -15,12 +15,13 @@ import torch
 from torch import nn
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.model.detector_metadata import DETECTOR_INPUT_MEAN
 
 from .config import DetectorConfig
 
 CLASS_LOGITS = "head.classification_head.cls_logits."  # the one layer tied to a detector's own objects
 ANCHOR_SIZES = ((8,), (16,), (32,))  # FCOS's size per level = its stride: P3, P4, P5
-IMAGE_MEAN, IMAGE_STD = (0.45,), (0.25,)  # grey frames in [0, 1]
+IMAGE_MEAN, IMAGE_STD = (DETECTOR_INPUT_MEAN,), (0.25,)  # grey frames in [0, 1]
 
 
 def _conv(fan_in: int, fan_out: int, stride: int) -> list[nn.Module]:
