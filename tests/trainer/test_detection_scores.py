@@ -199,3 +199,19 @@ def test_the_command_refuses_bad_input_in_one_line(split: Path, tmp_path: Path, 
     error = captured.err.strip()
     assert len(error.splitlines()) == 1 and error.startswith("popcode-train: error:")
     assert re.search(message, error), error
+
+
+def test_detections_of_an_object_the_split_lacks_are_named_not_scored(split: Path, tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """An object with no ground truth has no AP: its detections are left out and counted, in text and JSON, rather
+    than scored without a word (issue 62)."""
+    other = Detection(0, 0, 99, (10.0, 10.0, 20.0, 20.0), 0.95)
+    found = detections_file(tmp_path / "dets.json", [*perfect(), other, other])
+    assert main(["evaluate-detections", "--split", str(split), "--detections", str(found)]) == 0
+    text = capsys.readouterr().out
+    assert "2 detections of object 99, which the split does not annotate, are not scored" in text
+    assert "| 99 |" not in text
+    assert main(["evaluate-detections", "--split", str(split), "--detections", str(found), "--json"]) == 0
+    scores = json.loads(capsys.readouterr().out)
+    assert scores["unannotated_detections"] == {"99": 2} and set(scores["ap_per_object"]) == {"1", "2"}
+    assert scores["AP"] == pytest.approx(1.0)

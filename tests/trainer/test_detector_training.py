@@ -19,6 +19,7 @@ from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.inference.frame import FramePoseEstimator
 from popcode_trainer.cli import main as trainer
+from popcode_trainer.detection.frames import Frame, held_out
 from popcode_trainer.detection.loop import fitted_epochs
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -56,6 +57,14 @@ def test_a_slow_first_epoch_is_corrected_by_the_second() -> None:
     assert fitted_epochs(150.0, [15.0, 2.0], 40) == 40  # the config's epochs stay the most
     assert fitted_epochs(10.0, [15.0, 2.0], 200) == 2  # an overrun budget ends with the epochs done
     assert fitted_epochs(1.0, [15.0], 200) == 1
+
+
+def test_a_validation_share_holds_out_at_least_one_image() -> None:
+    """Four images at val_fraction 0.1 once held out none: every epoch's validation loss was NaN (issue 62)."""
+    frames = [Frame(("split", 0, im_id), Path(f"{im_id}.png"), np.zeros((0, 4), np.float32), np.zeros(0, np.int64))
+              for im_id in range(4)]
+    assert [len(part) for part in held_out(frames, 0.1, seed=0)] == [3, 1]
+    assert [len(part) for part in held_out(frames, 0.0, seed=0)] == [4, 0]
 
 
 def test_training_resumes_and_exports_a_detector_the_runtime_reads(trained: Path) -> None:

@@ -6,6 +6,7 @@ import io
 import json
 import os
 import pickle
+import zipfile
 from pathlib import Path
 
 import cv2
@@ -411,11 +412,72 @@ CASES += [
 ]
 
 
-def test_evaluate_records_the_decoder_of_each_method(files: Path, tmp_path: Path) -> None:
-    """A single --decoder keeps the method's plain name, so the report says which decoder it used."""
-    assert main(_evaluate_hull(files, tmp_path / "refined", "--decoder", "refined")) == 0
-    assert json.loads((tmp_path / "refined" / "report.json").read_text())["methods"]["hull"]["decoder"] == "refined"
-    assert "| hull | refined |" in (tmp_path / "refined" / "report.md").read_text()
+# issue 62: the detector's trainer and the commands that write beside their inputs
+SHIPPED = Path(__file__).resolve().parents[2] / "models"
+
+
+def _flipped(source: Path, target: Path) -> Path:
+    """``source`` with 4 KiB of its largest tensor's bytes inverted: an archive torch.load still reads."""
+    with zipfile.ZipFile(source) as archive:
+        largest = max(archive.infolist(), key=lambda entry: entry.file_size)
+    data = bytearray(source.read_bytes())
+    start = largest.header_offset + 1024  # past the entry's local header, inside its bytes
+    data[start:start + 4096] = bytes(255 - value for value in data[start:start + 4096])
+    target.write_bytes(bytes(data))
+    return target
+
+
+def _flipped_init(files: Path, setting: str, shipped: str, name: str) -> str:
+    """``--set`` of ``setting`` to a copy of the shipped start ``shipped`` with flipped bytes."""
+    return f'{setting}="{_flipped(SHIPPED / shipped, files / name)}"'
+
+
+def _detector(files: Path, *options: str, split: str = "split", out: str | None = None) -> list[str]:
+    return ["train-detector", "--split", str(files / split), "--out", out or str(files / "detector_run"), "--quiet",
+            *options]
+
+
+CASES += [
+    *((f"train-detector-{key}-{value}", lambda f, key=key, value=value: _detector(f, "--set",
+                                                                                   f"detector.{key}={value}"),
+       f"detector.{key} must be {kind}, got {shown}") for key, value, kind, shown in (
+        ("lr", "abc", "float", "'abc'"), ("head_convs", "1.5", "int", "1.5"), ("batch_size", "2.5", "int", "2.5"),
+        ("fpn_channels", "64.0", "int", "64.0"), ("seed", '"x"', "int", "'x'"), ("epochs", "1.5", "int", "1.5"),
+        ("widths", "[8, 8, 16, 16, 16.5]", "int", "16.5"), ("init", "5", "str", "5"),
+        ("val_fraction", "true", "float", "True"))),
+    ("train-detector-val-fraction-leaves-no-training-image",
+     lambda f: _detector(f, "--from-scratch", "--set", "detector.val_fraction=0.99"),
+     "detector.val_fraction 0.99 holds out 1 of the 1 annotated images, leaving none to train on"),
+    ("train-detector-val-fraction-holds-out-the-one-image",
+     lambda f: _detector(f, "--from-scratch", "--set", "detector.val_fraction=0.1"),
+     "detector.val_fraction 0.1 holds out 1 of the 1 annotated images, leaving none to train on: lower it (0: no"),
+    ("train-detector-obj-ids-the-split-lacks", lambda f: _detector(f, "--from-scratch", "--obj-ids", "1", "99"),
+     "--obj-ids: the splits hold no instance of object 99; they hold objects 1"),
+    ("train-detector-out-in-its-split", lambda f: _detector(f, out=str(f / "split" / "detector")),
+     "split/detector lies in the input"),
+    ("train-out-dir-in-its-split", lambda f: [*_train(f), "--set", f'train.out_dir="{f / "split" / "run"}"'],
+     "split/run lies in the input"),
+    ("path-trace-out-in-its-split", lambda f: ["path-trace", "--split", str(f / "split"), "--out",
+                                               str(f / "split" / "pt")], "lies in the input"),
+    ("path-trace-out-is-its-split", lambda f: ["path-trace", "--split", str(f / "split"), "--out", str(f / "split")],
+     "is the input"),
+    ("render-out-in-its-models", lambda f: ["render", "--objects", str(f / "bar_2fold"), "--images", "1", "--out",
+                                            str(f / "bar_2fold" / "rendered")], "lies in the input"),
+    ("demo-out-in-its-objects", lambda f: ["demo", "--objects", str(f / "bar_2fold"), "--out",
+                                           str(f / "bar_2fold" / "demo")], "lies in the input"),
+    ("train-detector-start-with-flipped-bytes",
+     lambda f: _detector(f, "--set", _flipped_init(f, "detector.init", "detector-start-e855fe97f1.pt",
+                                                   "detector_start_flipped.pt")),
+     "detector_start_flipped.pt is damaged: its part .detector-start.pt/data/"),
+    ("train-pretrained-start-with-flipped-bytes",
+     lambda f: [*_train(f), "--set", _flipped_init(f, "train.init", "pretrained-start-ac55e87b5a.pt",
+                                                   "pose_start_flipped.pt")],
+     "pose_start_flipped.pt is damaged: its part "),
+    ("pretrain-fewer-crops-than-a-batch", lambda f: ["pretrain", "--out", str(f / "pretrain_small"), "--parts", "1",
+                                                     "--images", "1", "--scenes", "0", "--epochs", "2"],
+     "fewer than one batch (32): raise --images, --parts or --scenes"),
+]
+
 
 
 def test_evaluate_refuses_an_out_it_cannot_write_before_any_prediction(files: Path, monkeypatch) -> None:

@@ -146,7 +146,7 @@ def test_an_edited_scene_is_named_not_skipped(rendered: dict[str, Path], tmp_pat
     ("already-traced", "is already path traced"),
     ("other-models", "are not the ones"),
     ("samples-zero", "samples"),
-    ("out-is-split", "another folder than --split"),
+    ("out-is-split", "is the input"),
     ("other-settings", "was rendered with other settings"),
 ])
 def test_bad_input_is_refused_in_one_line(case: str, expect: str, rendered: dict[str, Path],

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import refuse_inputs
 
 from ..data.render import MAX_RENDERED_IMAGES
 from ..demo.parts import BUILTIN
@@ -65,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     if args.check:
         print(describe_parts(*prepare_parts(args.objects, size.config.code)))
         return 0
+    if args.objects != BUILTIN:
+        refuse_inputs(args.out, "--out", [args.objects])
     if args.epochs is not None:
         size, minutes = size.with_epochs(args.epochs), None
     if args.minutes is not None:

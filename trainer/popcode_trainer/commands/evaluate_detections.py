@@ -70,6 +70,11 @@ def report(scores: DetectionScores, detections: Path, split: Path) -> str:
         ["visible", "instances", "found", "recall"],
         [[f"{r.low:g}–{r.high:g}", r.instances, r.found, _value(r.recall)] for r in recalls])
     time = "unknown" if scores.mean_time_per_image_s is None else f"{scores.mean_time_per_image_s:.3f} s"
+    unannotated = [f"{count} detection{'s' * (count != 1)} of object {obj_id}"
+                   for obj_id, count in scores.unannotated_detections.items()]
+    if unannotated:
+        head += (f"\n{', '.join(unannotated)}, which the split does not annotate, are not scored (no ground truth "
+                 "defines their AP)")
     return "\n\n".join([
         head, coco, f"mean detection time per image: {time}", "AP per object", objects,
         f"recall at IoU 0.5 by visible fraction (detections scored >= {scores.min_score:g}; last row: the goal, "

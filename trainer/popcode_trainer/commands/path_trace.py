@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import refuse_inputs
 from popcode_runtime.base.output_lock import folder_lock
 
 from ..data.path_trace import INSTALL_HINT, MAX_SAMPLES, PathTraceSettings
@@ -44,8 +45,7 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--split {args.split}: no such folder")
     if args.out.is_file():
         raise PopcodeError(f"--out {args.out} is a file; a split is written into a folder")
-    if args.out.resolve() == args.split.resolve():
-        raise PopcodeError("--out must be another folder than --split: the rendered split is the paired reference")
+    refuse_inputs(args.out, "--out", [args.split, *filter(None, [args.models_dir])])
     with folder_lock(args.out, LOCK, f"another popcode-train path-trace is writing {args.out} (it holds {LOCK}); "
                                      "wait for it to end, or write into another --out"):
         stats = path_trace_split(args.split, args.out, settings, models_dir=args.models_dir, progress=not args.quiet)

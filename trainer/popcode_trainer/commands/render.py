@@ -8,6 +8,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import refuse_inputs
 from popcode_runtime.base.output_lock import folder_lock
 
 from ..data.bop import RENDER_MARKER
@@ -98,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
                                f"{BUILTIN_MODELS_FOLDER}/ folder); render the built-in parts into another folder")
     elif not Path(args.objects).is_dir():
         raise PopcodeError(f"--objects: no such models folder {args.objects} (or use 'builtin')")
+    else:
+        refuse_inputs(args.out, "--out", [args.objects])
     with _shard_lock(args.out, shard):
         if args.objects == "builtin":
             models_dir = write_builtin_models(args.out / BUILTIN_MODELS_FOLDER)

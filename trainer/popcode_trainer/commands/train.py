@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from pathlib import Path
+
+from popcode_runtime.base.files import refuse_inputs
 
 from ..train.config import load_config
 from ..train.loop import run_lock, train
@@ -33,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
         resolve_start(config.train.init, replace(config.network, input_size=config.data.crop_size))
     from ..train.training_data import build_training_data, read_training_split  # once the config is valid
 
+    refuse_inputs(Path(config.train.out_dir), "train.out_dir",
+                  [*config.data.splits, *filter(None, [config.data.models_dir])])
     split = read_training_split(config)  # the data checked before the run folder is made
     with run_lock(config.train.out_dir):  # before the crop cache, which lies in the run folder by default
         data = build_training_data(config, split=split)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.base.files import require_folder
+from popcode_runtime.base.files import refuse_inputs, require_folder
 
 from ..detection.config import DetectorConfig
 from ..train.config import parse_override
@@ -61,11 +61,17 @@ def run(args: argparse.Namespace) -> int:
         raise PopcodeError(f"--minutes must lie in (0, 100000], got {args.minutes}")
     for split in args.split:
         require_folder(split, "--split")
+    refuse_inputs(args.out, "--out", args.split)
     from ..detection.export import export_detector
     from ..detection.frames import split_objects
     from ..detection.loop import train_detector
 
-    obj_ids = args.obj_ids or split_objects(args.split)
+    held = split_objects(args.split)
+    absent = sorted(set(args.obj_ids or ()) - set(held))
+    if absent:
+        raise PopcodeError(f"--obj-ids: the splits hold no instance of object{'s' if len(absent) > 1 else ''} "
+                           f"{', '.join(map(str, absent))}; they hold objects {', '.join(map(str, held))}")
+    obj_ids = args.obj_ids or held
     run = train_detector(args.split, obj_ids, args.out, config,
                          seconds=None if args.minutes is None else 60.0 * args.minutes, progress=not args.quiet)
     path = export_detector(run.checkpoint, args.out / DETECTOR_FILE)

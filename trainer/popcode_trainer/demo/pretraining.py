@@ -35,7 +35,7 @@ from ..train.loop import train
 from ..train.network import NetworkConfig
 from ..train.pretrained import NONE, write_start
 from ..train.run_files import LAST_CHECKPOINT, read_metrics
-from ..train.training_data import build_training_data
+from ..train.training_data import TrainingData, build_training_data, read_training_split
 from . import epoch_budget
 from .parts import Parts, load_parts
 from .steps import (
@@ -124,7 +124,7 @@ def train_model(size: PretrainSize, parts: Parts, split: Path, out_dir: Path) ->
     if epochs is None:  # train the first epoch of a run of unknown length (its rate does not depend on it) and time it
         config = training_config(size.pipeline(1), Representation.POPULATION_CODE, parts.obj_ids, split, folder)
         if not (folder / LAST_CHECKPOINT).is_file():
-            data = build_training_data(config)
+            data = _training_data(config)
             train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances,
                   stop_after_epoch=1)
         seconds = float(read_metrics(folder, ("seconds",))["seconds"][0])
@@ -132,10 +132,20 @@ def train_model(size: PretrainSize, parts: Parts, split: Path, out_dir: Path) ->
         write_json_atomic(fit_path, {"epochs": epochs, "first_epoch_seconds": seconds, "minutes": size.minutes})
         print(f"{epochs} epochs: one takes {seconds:.0f} s here and the budget is {size.minutes:g} min", flush=True)
     config = training_config(size.pipeline(epochs), Representation.POPULATION_CODE, parts.obj_ids, split, folder)
-    data = build_training_data(config)
+    data = _training_data(config)
     train(config, data.representation, data.train_set, data.val_set, val_instances=data.val_instances,
           resume=(folder / LAST_CHECKPOINT).is_file())
     return config
+
+
+def _training_data(config: Config) -> TrainingData:
+    """The crops to pretrain on, refused in one line when they fill no batch: the training loop's advice would name
+    ``train.batch_size``, which pretrain does not take."""
+    split = read_training_split(config)  # counted before the crops are cached: no progress bar before the refusal
+    if len(split.train) < config.train.batch_size:
+        raise PopcodeError(f"the generated parts make {len(split.train)} training crops, fewer than one batch "
+                           f"({config.train.batch_size}): raise --images, --parts or --scenes")
+    return build_training_data(config, split=split)
 
 
 def card(size: PretrainSize, parts: Parts, config: Config, started: float) -> dict:

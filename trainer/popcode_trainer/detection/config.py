@@ -14,6 +14,8 @@ from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.bop.split import BOX_KINDS
 from popcode_runtime.model.detector_metadata import MAX_DETECTIONS, MAX_SIDE, MIN_SIDE, DetectorMetadata
 
+from ..train.config import typed_values
+
 SIDE_MULTIPLE = 32  # the coarsest feature map's stride: the input must tile into it
 MAX_WIDTH_CHANNELS = 512
 MAX_DETECTOR_EPOCHS = 10_000
@@ -83,11 +85,13 @@ class DetectorConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DetectorConfig:
+        """A config of ``data`` (a checkpoint's, or the defaults with ``--set`` values), each value checked against
+        its field's type as the pose model's settings are, then its range."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
             raise PopcodeError(f"unknown detector setting(s) {unknown}; valid: {sorted(names)}")
-        return cls(**{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()})
+        return cls(**typed_values(cls, data, "detector"))
 
     def with_overrides(self, overrides: dict[str, Any]) -> DetectorConfig:
         """This config with ``overrides`` (``--set key=value`` already parsed) applied and checked."""

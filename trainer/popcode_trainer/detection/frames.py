@@ -64,9 +64,14 @@ def read_frames(splits: Sequence[str | Path], obj_ids: Sequence[int], config: De
 
 
 def held_out(frames: Sequence[Frame], fraction: float, seed: int) -> tuple[list[Frame], list[Frame]]:
-    """Training and validation frames, split by image with a seeded draw (the same every run)."""
+    """Training and validation frames, split by image with a seeded draw (the same every run). A ``fraction`` above
+    0 holds out at least one image, so a validation loss is what it asked for; one that leaves no image to train on
+    is refused before any is read."""
     order = np.random.default_rng(seed).permutation(len(frames))
-    count = int(round(fraction * len(frames)))
+    count = max(int(round(fraction * len(frames))), int(fraction > 0))
+    if count >= len(frames):
+        raise PopcodeError(f"detector.val_fraction {fraction:g} holds out {count} of the {len(frames)} annotated "
+                           "images, leaving none to train on: lower it (0: no validation loss), or give more images")
     val = set(order[:count].tolist())
     return [f for i, f in enumerate(frames) if i not in val], [f for i, f in enumerate(frames) if i in val]
 

@@ -21,14 +21,17 @@ The toolkit writes each test image's ground truth as COCO annotations (its
 Where this differs from the toolkit: the images scored are the split's (``split_images`` that
 ``scene_gt.json`` annotates) rather than a targets file's; a detection of another image is refused, not
 dropped; no detections at all score 0, not -1; a score COCO cannot define (no instance in an area range) is
-None, not -1. Beside COCO's scores: AP per object, and recall at IoU 0.5 per visible fraction, taken from
-the same greedy matching COCOeval does (by score, one detection per instance, best IoU first).
+None, not -1; detections of an object the split does not annotate at all are left out and counted
+(``unannotated_detections``: no ground truth defines their AP). Beside COCO's scores: AP per object, and recall
+at IoU 0.5 per visible fraction, taken from the same greedy matching COCOeval does (by score, one detection per
+instance, best IoU first).
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,6 +99,7 @@ class DetectionScores:
     ap_per_object: dict[int, float | None]  # None: no instance of the object to find
     recall_by_visibility: tuple[VisibilityRecall, ...]  # at IoU 0.5, one per VISIBILITY_BINS
     recall_goal: VisibilityRecall  # at IoU 0.5, instances at least 30 % visible
+    unannotated_detections: dict[int, int]  # object -> detections of it, an object the split does not annotate
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -105,6 +109,7 @@ class DetectionScores:
             "ap_per_object": {str(obj_id): ap for obj_id, ap in self.ap_per_object.items()},
             "recall_iou50_by_visibility": [recall.to_dict() for recall in self.recall_by_visibility],
             "recall_iou50_goal": self.recall_goal.to_dict(),
+            "unannotated_detections": {str(obj_id): count for obj_id, count in self.unannotated_detections.items()},
         }
 
 
@@ -151,7 +156,9 @@ def detection_scores(split_dir: str | Path, detections: Sequence[Detection], box
     if not scored:
         raise PopcodeError(f"{split_dir}: no ground-truth instance at least {IGNORE_BELOW_VISIB_FRACT:.0%} visible "
                            f"in its {len(images)} annotated images; there is nothing to detect")
-    evaluator = _evaluate(images, instances, detections)
+    annotated = {instance.obj_id for instance in instances}
+    unannotated = Counter(d.obj_id for d in detections if d.obj_id not in annotated)
+    evaluator = _evaluate(images, instances, [d for d in detections if d.obj_id in annotated])
     found = _found_instances(evaluator, min_score)
 
     def recall(low: float, high: float) -> VisibilityRecall:
@@ -167,6 +174,7 @@ def detection_scores(split_dir: str | Path, detections: Sequence[Detection], box
         ap_per_object=_ap_per_object(evaluator),
         recall_by_visibility=tuple(recall(low, high) for low, high in VISIBILITY_BINS),
         recall_goal=recall(GOAL_MIN_VISIB_FRACT, 1.0),
+        unannotated_detections=dict(sorted(unannotated.items())),
     )
 
 

@@ -13,6 +13,7 @@ import os
 import pickle
 import random
 import subprocess
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ def load(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise PopcodeError(f"checkpoint not found: {path}")
+    _check_archive(path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as error:
@@ -57,6 +59,23 @@ def load(path: str | Path) -> dict[str, Any]:
     if not isinstance(state, dict):
         raise PopcodeError(f"{path} is not a popcode checkpoint: it holds a {type(state).__name__}, not a dict")
     return state
+
+
+def _check_archive(path: Path) -> None:
+    """Refuse a checkpoint whose bytes changed after it was written. torch.save stores each part's CRC-32 in its zip
+    archive, but torch.load does not check them (PyTorch builds its zip reader without), so a start or checkpoint
+    with flipped bytes would load and be trained from; zipfile's test reads every part against its CRC (a few ms a
+    MB). A file that is no zip archive is left to torch.load, which reads the legacy format or names the problem."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+    except zipfile.BadZipFile:
+        return
+    except Exception as error:  # a header that names an unknown compression, a truncated part...
+        raise PopcodeError(f"cannot read checkpoint {path}: {first_line(error)}") from error
+    if damaged is not None:
+        raise PopcodeError(f"{path} is damaged: its part {damaged} does not match the checksum it was written with "
+                           "(the file changed on disk or in transfer); copy it again, or write it anew")
 
 
 def load_trained(path: str | Path) -> dict[str, Any]:

@@ -158,9 +158,15 @@ def _build_section(section: str, table: Any) -> Any:
     if unknown:
         raise PopcodeError(f"unknown config key(s) {[f'{section}.{k}' for k in unknown]}; "
                            f"valid keys in [{section}]: {valid}")
-    hints = typing.get_type_hints(SECTIONS[section])
-    values = {key: _coerce(value, hints[key], f"{section}.{key}") for key, value in table.items()}
-    return SECTIONS[section](**values)
+    return SECTIONS[section](**typed_values(SECTIONS[section], table, section))
+
+
+def typed_values(fields: type, table: Mapping[str, Any], section: str) -> dict[str, Any]:
+    """``table``'s values checked against the types of the dataclass ``fields`` (an int field takes an integer
+    only, a float field any finite number, a str field text), named ``section.key`` in the one-line error: the one
+    type check of every config file and ``--set``, the pose model's and the detector's."""
+    hints = typing.get_type_hints(fields)
+    return {key: _coerce(value, hints[key], f"{section}.{key}") for key, value in table.items()}
 
 
 def _coerce(value: Any, hint: Any, name: str) -> Any:
