@@ -245,7 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--cases", type=Path, default=CASES, help="where shrunk failing calls are added")
     args = parser.parse_args(argv)
-    from tools.report import write_results  # torch, for the machine record; the fuzz itself needs no torch
+    from tools.report import machine, machine_line, write_results  # torch: the machine record; the fuzz needs none
 
     cases = args.cases.relative_to(ROOT) if args.cases.is_relative_to(ROOT) else args.cases
     started = time.perf_counter()
@@ -266,6 +266,8 @@ def main(argv: Sequence[str] | None = None) -> int:
              "Most common refusals: " + "; ".join(f"{text}... ({n})" for text, n in report.refusals.most_common(8))]
     if report.unhandled:
         lines += ["", "Unhandled (shrunk): " + "; ".join(report.unhandled)]
+    lines += ["", machine_line(machine()), "",
+              f"Command: `python -m tools.fuzz --calls {args.calls} --seed {args.seed}`"]
     json_path, _ = write_results(args.out, "fuzz", {"fuzz": result}, "\n".join(lines))
     print("\n".join(lines))
     print(f"wrote {json_path}")
