@@ -122,6 +122,7 @@ def temporary_name(path: Path) -> Path:
 
 
 def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (POSIX only)."""
     try:
         os.kill(pid, 0)  # signal 0: only asks whether the process exists
     except ProcessLookupError:
@@ -140,7 +141,7 @@ def remove_stale_temporaries(path: Path) -> list[Path]:
     on every write would cost more than the leftover. On Windows ``os.kill`` would end the process, so nothing is
     removed there.
     """
-    folder = path.parent if str(path.parent) else Path(".")
+    folder = path.parent
     if os.name == "nt" or not folder.is_dir():
         return []
     pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)-{_host_tag()}\.[0-9a-f]{{8}}\.tmp")
@@ -167,7 +168,7 @@ def sync_folder(folder: Path) -> None:
     refuse to sync one; there the rename is as durable as the system makes it."""
     if os.name == "nt":
         return
-    descriptor = os.open(folder if str(folder) else ".", os.O_RDONLY)
+    descriptor = os.open(folder, os.O_RDONLY)
     try:
         os.fsync(descriptor)
     except OSError as error:
