@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from popcode_runtime.base.files import write_bytes_atomic
 from popcode_runtime.geometry.symmetries import SymmetryClass, symmetry_class
 from popcode_runtime.inference.benchmark import machine_description
 from popcode_runtime.model.metadata import Representation
@@ -182,7 +183,7 @@ def run_benchmark(size: PipelineSize, out_dir: Path, size_name: str) -> dict[str
         "mssd_by_symmetry": ours_by_symmetry,
         "paper": {"table_iv_percent": PAPER_TABLE_IV, "mssd_by_symmetry": paper_mssd_by_symmetry()},
     }
-    (out_dir / "representations.json").write_text(to_json(record) + "\n")
+    write_bytes_atomic(out_dir / "representations.json", (to_json(record) + "\n").encode())
     markdown = "\n\n".join([
         f"# Representations on the built-in objects ({size_name})",
         f"Machine: {record['machine']['cpu']}, {record['machine']['cores']} cores, {record['machine']['device']}; "
@@ -196,7 +197,7 @@ def run_benchmark(size: PipelineSize, out_dir: Path, size_name: str) -> dict[str
         "## The paper's Table IV (T-LESS)",
         paper_table_iv_markdown(),
     ]) + "\n"
-    (out_dir / "representations.md").write_text(markdown)
+    write_bytes_atomic(out_dir / "representations.md", markdown.encode())
     print(markdown)
     return record
 

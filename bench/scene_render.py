@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from popcode_runtime.base.files import write_picture_atomic
 from popcode_trainer.data.scene_render import render_cluttered_test_split
 from popcode_trainer.metrics.recall import VISIBILITY_BINS
 from tools.command import run_command
@@ -74,7 +75,7 @@ def main(argv: list[str] | None = None) -> None:
             "instances_per_visibility_bin": {**bins, "< 0.1": int((visib < 0.1).sum())},
         }, indent=1))
         if args.picture is not None:
-            cv2.imwrite(str(args.picture), masks_picture(split, 0), [cv2.IMWRITE_JPEG_QUALITY, 85])
+            write_picture_atomic(args.picture, masks_picture(split, 0), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from popcode_runtime.base.files import write_bytes_atomic
 from popcode_runtime.bop.detections import read_detections
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.geometry.crop import read_image_file
@@ -56,7 +57,7 @@ def train(recipe: str, train_split: Path, val_split: Path, minutes: float, work:
     subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "train-detector", "--split", str(train_split),
                     "--out", str(run), "--minutes", str(minutes), "--quiet", *_settings(recipe)],
                    check=True, env=environment)
-    (run / "wall_seconds.txt").write_text(f"{time.perf_counter() - started:.1f}\n")
+    write_bytes_atomic(run / "wall_seconds.txt", f"{time.perf_counter() - started:.1f}\n".encode())
     subprocess.run([sys.executable, "-m", "popcode_runtime.commands.cli", "detect", str(run / "detector.onnx"),
                     "--split", str(val_split), "--out", str(run / "val_detections.json"), "--overwrite", "--quiet",
                     "--threads", "1"], check=True, env=environment)

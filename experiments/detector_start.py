@@ -18,7 +18,6 @@ alone: the epochs are fitted to this machine's speed. ``--work`` keeps runs: a r
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from typing import Any
 import torch
 
 from experiments.shipped_detector import render_scenes, run_training, score_cells, validation_scores
+from popcode_runtime.base.files import copy_file_atomic
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.inference.benchmark import machine_description
 from popcode_trainer.data.bop import load_models_info
@@ -77,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     validation = render_scenes(args.work / "validation", args.validation_scenes, VALIDATION_SEED, "industrial")
     start, pretraining = pretrained_start(args.work, args.parts, args.parts_scenes, args.pretrain_epochs)
     if args.ship:
-        shutil.copyfile(start, shipped_detector_start(DEMO_DETECTOR))
+        copy_file_atomic(start, shipped_detector_start(DEMO_DETECTOR))
     records: list[dict[str, Any]] = []
     for arm, init in (("random weights", "none"), ("pretrained start", str(start))):
         folder = args.work / (arm.replace(" ", "_") + (f"_seed{args.seed}" if args.seed else ""))

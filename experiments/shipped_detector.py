@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import shutil
 import subprocess
 import sys
 import time
@@ -28,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.base.files import copy_file_atomic
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.detector import Detector
@@ -136,7 +136,7 @@ def main() -> None:
             f"detector.epochs={args.epochs}", *(item for o in args.overrides for item in ("--set", o))], check=True)
     detector = run / "detector.onnx"
     if args.copy_to:
-        shutil.copyfile(detector, args.copy_to)
+        copy_file_atomic(detector, args.copy_to)
     curve = _curve(work, splits["validation"])
     scores = {name: _score_split(detector, split, work / f"scored_{name}") for name, split in splits.items()}
     payload = {"arguments": {k: str(v) for k, v in vars(args).items()}, "train_seconds": time.perf_counter() - started,

@@ -28,7 +28,6 @@ this network is bound by its kernel launches, ``bench/results/cuda-step.md``).
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -36,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-from popcode_runtime.base.files import write_json_atomic
+from popcode_runtime.base.files import copy_file_atomic, write_json_atomic
 from popcode_trainer.demo.epoch_budget import FIT_FILE
 from popcode_trainer.demo.parts import BUILTIN
 from popcode_trainer.demo.plan import FIRST_EPOCHS, StagePlan, plan
@@ -63,7 +62,7 @@ def copy_exports(folder: Path, destination: Path) -> None:
     target = destination / folder.name
     target.mkdir(parents=True, exist_ok=True)
     for path in [*sorted(folder.glob("*.onnx")), folder / METRICS_FILE]:
-        shutil.copy2(path, target / path.name)
+        copy_file_atomic(path, target / path.name)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -95,7 +94,7 @@ def _train(args: argparse.Namespace, parser: argparse.ArgumentParser, started: f
     size = size.with_epochs(fit.epochs)
     if args.copy_to:
         args.copy_to.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(args.out / FIT_FILE, args.copy_to / FIT_FILE)
+        copy_file_atomic(args.out / FIT_FILE, args.copy_to / FIT_FILE)
     for group in codes:
         train_models(size, [group], train_split, args.out, stages)
         if args.copy_to:

@@ -49,9 +49,9 @@ from popcode_runtime.bop.detections import ground_truth_boxes
 from popcode_runtime.commands.cli import main as popcode
 from popcode_trainer.train.deadline import deadline
 from tools.command import run_command
-from tools.fuzz import CallTimeout, pick
+from tools.fuzz import CallTimeout
 from tools.paths import RESULTS, SHIPPED_MODELS
-from tools.run_mutations import MUTATIONS, Call, apply, real, regular, write_inputs
+from tools.run_mutations import MUTATIONS, Call, apply, pick, real, regular, write_inputs
 
 CALL_LIMIT_S = 20.0  # a call still running then is a hang (the slowest calls take about 2 s)
 KILL_POINTS = (1, 2, 4)  # images a killed run closed before it died, for the partial files calls resume

@@ -10,6 +10,7 @@ from typing import Any
 
 import torch
 
+from popcode_runtime.base.files import write_bytes_atomic
 from popcode_runtime.inference.benchmark import machine_description
 
 
@@ -32,6 +33,6 @@ def write_results(out_dir: str | Path, name: str, payload: dict[str, Any], markd
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path, md_path = out_dir / f"{name}.json", out_dir / f"{name}.md"
-    json_path.write_text(json.dumps({"machine": machine(), **payload}, indent=1) + "\n", encoding="utf-8")
-    md_path.write_text(markdown + "\n", encoding="utf-8")
+    write_bytes_atomic(json_path, (json.dumps({"machine": machine(), **payload}, indent=1) + "\n").encode())
+    write_bytes_atomic(md_path, (markdown + "\n").encode())
     return json_path, md_path

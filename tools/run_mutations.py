@@ -16,15 +16,13 @@ import json
 import os
 import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-
-from tools.fuzz import pick
 
 OVERSIZE_BYTES = (1 << 26) + 1  # one byte over the runtime's JSON limit; written sparse, so it costs nothing
 DETECTION_FIELDS = ("scene_id", "image_id", "category_id", "bbox", "score", "time")
@@ -40,6 +38,11 @@ BOXES_OUTSIDE = ([500.0, 500.0, 20.0, 20.0], [-100.0, -100.0, 10.0, 10.0], [0.0,
 SCORES = (-3, 5, 1.0000001, -1e-9, 0, 1, 5e-324, 100)
 MAX_IMAGES = ("0", "-1", "1", "2", "5", "6", "7", str(2 ** 63), str(10 ** 30), "abc", "1.5", "", "0x10", " 3", "٣")
 MISSING = object()  # a file that the call does not write
+
+
+def pick(rng: np.random.Generator, options: Sequence[Any]) -> Any:
+    """One of ``options`` (``rng.choice`` would make an array of them, which mixed types cannot be)."""
+    return options[int(rng.integers(len(options)))]
 
 
 class Raw:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import os
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -31,15 +32,15 @@ def test_a_full_disk_mid_run_is_one_line_and_keeps_the_finished_images(split: Pa
                                                                        capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "results.csv"
     partial = out.with_name("results.csv.partial")
-    real_fsync, calls = os.fsync, {"n": 0}
+    real_flush, calls = run_results.flush_to_disk, {"n": 0}
 
-    def disk_full_at_the_third_image(fd: int) -> None:
+    def disk_full_at_the_third_image(handle: IO) -> None:
         calls["n"] += 1
         if calls["n"] == 3:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(partial))
-        real_fsync(fd)
+        real_flush(handle)
 
-    monkeypatch.setattr(run_results.os, "fsync", disk_full_at_the_third_image)
+    monkeypatch.setattr(run_results, "flush_to_disk", disk_full_at_the_third_image)
     assert _run(split, out) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(partial) in err and os.strerror(errno.ENOSPC) in err

@@ -1,17 +1,30 @@
-"""Files in and out: JSON read with errors that name the file, and atomic writes, so that a reader (a resumed
-run, or another process writing beside this one) never sees half a file.
+"""Files in and out: JSON read with errors that name the file, and the one atomic write, so that a reader (a
+resumed run, or another process writing beside this one) never sees half a file, and a file reported as written
+survives a power cut.
 
-The trainer writes its images, JSON and models through these functions too.
+Every file popcode, its trainer, benchmarks and experiments write goes through :func:`atomic_path` (or its
+forms :func:`atomic_file`, :func:`write_bytes_atomic`, :func:`append_synced`): the data go to a temporary name
+unique to the writer in the same folder, are synced to disk, renamed over the target, and the folder is synced so
+the rename itself is on disk. A killed process only stops the page cache from being written back later; a power
+cut drops whatever was not synced, so without the syncs a renamed file could read back empty.
 """
 
 from __future__ import annotations
 
+import csv
+import errno
+import io
 import json
 import math
 import os
-from collections.abc import Iterable
+import re
+import secrets
+import socket
+import zlib
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import cv2
 import numpy as np
@@ -23,7 +36,7 @@ from .errors import PopcodeError, library_step
 # so this bounds a parse at about 1.6 GB (a BOP dataset's largest annotation or detections file is tens of MB).
 MAX_JSON_BYTES = 1 << 26
 MAX_JSON_INTEGER_DIGITS = 18  # ids, sizes and counts; longer integers are a corrupt or crafted file
-MAX_NAME_BYTES = 200  # an output's name; ".<name>.<pid>.tmp" and "<name>.partial" must stay within 255
+MAX_NAME_BYTES = 200  # an output's name; ".<name>.<pid>-<host>.<random>.tmp" and "<name>.partial" stay within 255
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
@@ -96,14 +109,131 @@ def _no_constant(name: str) -> float:
     raise _BadNumberError(f"{name} is not a JSON number")
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> None:
-    """Write to a temporary name in the same folder, then rename over ``path``; no temporary file is left behind."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+def _host_tag() -> str:
+    """8 hex digits of this machine's name: a process id means something only on the machine that gave it (runs on
+    several machines may share a folder)."""
+    return f"{zlib.crc32(socket.gethostname().encode()):08x}"
+
+
+def temporary_name(path: Path) -> Path:
+    """Where :func:`atomic_path` writes ``path`` first: ``.<name>.<pid>-<host>.<random>.tmp`` beside it, unique to
+    the writer, so two writers of one file never share a temporary and a crashed one's leftover is never reused."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{_host_tag()}.{secrets.token_hex(4)}.tmp")
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (POSIX only)."""
     try:
-        temporary.write_bytes(data)
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Remove the temporaries of ``path`` left by writers on this machine that are no longer running (a crash or a
+    power cut mid-write); returns them.
+
+    Called by the writers of large files (checkpoints, the crop cache) before they write; elsewhere a leftover is
+    only ignored: its name is unique, hidden and never read, and listing a folder of thousands of rendered images
+    on every write would cost more than the leftover. On Windows ``os.kill`` would end the process, so nothing is
+    removed there.
+    """
+    folder = path.parent
+    if os.name == "nt" or not folder.is_dir():
+        return []
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)-{_host_tag()}\.[0-9a-f]{{8}}\.tmp")
+    removed = []
+    for entry in os.scandir(folder):
+        match = pattern.fullmatch(entry.name)
+        if match and int(match.group(1)) != os.getpid() and not _alive(int(match.group(1))):
+            Path(entry.path).unlink(missing_ok=True)
+            removed.append(Path(entry.path))
+    return removed
+
+
+def sync_file(path: Path) -> None:
+    """Force ``path``'s data to disk (through a descriptor of its own: the writer may have closed its handle)."""
+    descriptor = os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def sync_folder(folder: Path) -> None:
+    """Force ``folder``'s entries (a rename into it) to disk. Windows cannot open a folder, and a few file systems
+    refuse to sync one; there the rename is as durable as the system makes it."""
+    if os.name == "nt":
+        return
+    descriptor = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    except OSError as error:
+        if error.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(descriptor)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """The one atomic write: yields a temporary path beside ``path`` for a writer that wants a file name
+    (``torch.save``, ``np.lib.format.open_memmap``); when the block ends without an error the file is synced,
+    renamed over ``path`` and the folder synced; on an error it is removed and ``path`` keeps what it held."""
+    path = Path(path)
+    temporary = temporary_name(path)
+    try:
+        yield temporary
+        sync_file(temporary)
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+    sync_folder(path.parent)
+
+
+@contextmanager
+def atomic_file(path: str | os.PathLike, mode: str = "wb", **open_arguments: Any) -> Iterator[IO]:
+    """:func:`atomic_path` for a writer that wants an open handle (``np.save``, ``csv.writer``)."""
+    with atomic_path(path) as temporary, temporary.open(mode, **open_arguments) as handle:
+        yield handle
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """``data`` as the whole of ``path``, written with :func:`atomic_path`."""
+    with atomic_file(path) as handle:
+        handle.write(data)
+
+
+def copy_file_atomic(source: Path, target: Path) -> None:
+    """A copy of ``source`` at ``target``, written with :func:`atomic_path` (``shutil.copy`` syncs nothing)."""
+    write_bytes_atomic(target, Path(source).read_bytes())
+
+
+def flush_to_disk(handle: IO) -> None:
+    """What was written to an open ``handle`` so far, on disk: after this, a power cut loses none of it."""
+    handle.flush()
+    os.fsync(handle.fileno())
+
+
+def append_synced(path: Path, text: str, first: str = "") -> None:
+    """Append ``text`` to ``path`` and sync it; a missing or empty file is written whole (``first``, a header,
+    then ``text``) with :func:`write_bytes_atomic`, so its creation is synced with its folder too."""
+    if not path.exists() or path.stat().st_size == 0:
+        write_bytes_atomic(path, (first + text).encode())
+        return
+    with path.open("a", encoding="utf-8", newline="") as handle:
+        handle.write(text)
+        flush_to_disk(handle)
+
+
+def csv_text(rows: Iterable[Sequence[Any]]) -> str:
+    """``rows`` as CSV text, as ``csv.writer`` writes them to a file (what :func:`append_synced` appends)."""
+    text = io.StringIO(newline="")
+    csv.writer(text).writerows(rows)
+    return text.getvalue()
 
 
 def json_bytes(data: Any) -> bytes:
@@ -180,11 +310,12 @@ def check_picture_path(value: str | os.PathLike, what: str = "picture path", inp
     return path
 
 
-def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray) -> Path:
-    """Encode a BGR (or grey) uint8/uint16 image in the format its suffix names and write it atomically."""
+def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray, params: Sequence[int] = ()) -> Path:
+    """Encode a BGR (or grey) uint8/uint16 image in the format its suffix names (OpenCV's ``params``, such as
+    ``[cv2.IMWRITE_JPEG_QUALITY, 85]``) and write it atomically."""
     path = check_picture_path(path)
     with library_step(f"encode {path.name} as {path.suffix.lstrip('.').upper()}"):
-        ok, encoded = cv2.imencode(path.suffix.lower(), np.ascontiguousarray(image_bgr))
+        ok, encoded = cv2.imencode(path.suffix.lower(), np.ascontiguousarray(image_bgr), list(params))
     if not ok:
         raise PopcodeError(f"cannot encode {path.name} as {path.suffix.lstrip('.').upper()}")
     write_bytes_atomic(path, encoded.tobytes())

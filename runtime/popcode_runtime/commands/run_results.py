@@ -18,13 +18,12 @@ image's checksum.
 from __future__ import annotations
 
 import hashlib
-import os
 from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import IO
 
 from ..base.errors import PopcodeError
-from ..base.files import name_id, refuse_existing, write_bytes_atomic
+from ..base.files import flush_to_disk, name_id, refuse_existing, write_bytes_atomic
 from ..base.output_lock import OutputLock
 from ..bop.bop19_csv import PoseEstimate, format_estimate, parse_estimate, write_bop19_lines
 from ..geometry.rotations import is_rotation
@@ -148,8 +147,7 @@ class PartialResults:
         lines = [format_estimate(est) for est in estimates] + [SOURCE_MARK + line for line in sources]
         lines.append(f"{DONE_MARK}{key[0]} {key[1]} {_checksum(lines, self.fingerprint)}")
         self._handle.write("\n".join(lines) + "\n")
-        self._handle.flush()
-        os.fsync(self._handle.fileno())
+        flush_to_disk(self._handle)
         self.blocks[key] = lines
 
     def finish(self) -> None:

@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import atomic_file, atomic_path, remove_stale_temporaries
 from popcode_runtime.geometry.crop import CROP_PADDING, crop_square, read_image
 
 from .bop import Instance, check_image_matches
@@ -141,8 +142,6 @@ class CropCache:
     def _build(self, instances: Sequence[Instance], crop_size: int, margin: int, progress: bool) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         outer = crop_size + 2 * margin
-        temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-        array = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8, shape=(len(instances), 2, outer, outer))
         sizes = np.zeros((len(instances), 2), np.int64)
         threads = max(1, min(CACHE_THREADS, os.cpu_count() or 1))
         runs = np.array_split(np.arange(len(instances)), threads * CHUNKS_PER_THREAD)
@@ -157,9 +156,13 @@ class CropCache:
                 with counted:
                     bar.update()
 
-        # Named *.npy: np.save appends the suffix to other names.
-        sizes_temporary = self.sizes_path.with_name(f".{os.getpid()}.{self.sizes_path.name}")
-        try:
+        remove_stale_temporaries(self.path)
+        remove_stale_temporaries(self.sizes_path)
+        # Both files are replaced whole, so a process reading a cache another process rebuilds (runs sharing
+        # data.cache_dir) never sees a partial file; the sizes first: the crops' file means both are complete.
+        with atomic_path(self.path) as temporary:
+            array = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8,
+                                              shape=(len(instances), 2, outer, outer))
             with tqdm(total=len(instances), desc="caching crops", unit="crop", disable=not progress,
                       leave=False) as bar:
                 pool = ThreadPoolExecutor(threads)
@@ -174,15 +177,8 @@ class CropCache:
                     pool.shutdown(cancel_futures=True)
             array.flush()
             del array
-            # Both files are replaced whole, so a process reading a cache another process rebuilds (runs sharing
-            # data.cache_dir) never sees a partial file; the sizes first: the crops' file means both are complete.
-            np.save(sizes_temporary, sizes)
-            os.replace(sizes_temporary, self.sizes_path)
-            os.replace(temporary, self.path)
-        except BaseException:
-            temporary.unlink(missing_ok=True)
-            sizes_temporary.unlink(missing_ok=True)
-            raise
+            with atomic_file(self.sizes_path) as handle:
+                np.save(handle, sizes)
 
     @property
     def array(self) -> np.ndarray:

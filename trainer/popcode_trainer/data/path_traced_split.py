@@ -16,7 +16,6 @@ atomically); a rerun renders what is missing. An image that cannot be rendered s
 
 from __future__ import annotations
 
-import shutil
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -28,7 +27,7 @@ import trimesh
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.base.files import read_json, write_bytes_atomic, write_png_atomic
+from popcode_runtime.base.files import copy_file_atomic, read_json, write_bytes_atomic, write_png_atomic
 
 from .bop import RENDER_MARKER, load_models_info
 from .path_trace import (
@@ -134,7 +133,14 @@ def _copy_annotations(source_scene: Path, out_scene: Path, stem: str, image_fold
         if folder.is_dir() and folder.name not in (image_folder, RECORDS_FOLDER):
             (out_scene / folder.name).mkdir(parents=True, exist_ok=True)
             for path in folder.glob(f"{stem}*"):
-                shutil.copy2(path, out_scene / folder.name / path.name)
+                copy_file_atomic(path, out_scene / folder.name / path.name)
+
+
+def _copy_models(source: Path, out: Path) -> None:
+    """The models folder's files, ``models_info.json`` last: a copy that has it is complete."""
+    out.mkdir(parents=True, exist_ok=True)
+    for path in sorted((p for p in source.iterdir() if p.is_file()), key=lambda p: p.name == "models_info.json"):
+        copy_file_atomic(path, out / path.name)
 
 
 def _images(source: Path) -> list[tuple[int, int]]:
@@ -167,8 +173,8 @@ def path_trace_split(source: str | Path, out: str | Path, settings: PathTraceSet
                            "models folder it was rendered from with --models-dir)")
     out.mkdir(parents=True, exist_ok=True)
     check_settings(out, {**source_settings, PATH_TRACED_KEY: asdict(settings)})
-    if (source / BUILTIN_MODELS_FOLDER).is_dir() and not (out / BUILTIN_MODELS_FOLDER).is_dir():
-        shutil.copytree(source / BUILTIN_MODELS_FOLDER, out / BUILTIN_MODELS_FOLDER)
+    if (source / BUILTIN_MODELS_FOLDER).is_dir() and not (out / BUILTIN_MODELS_FOLDER / "models_info.json").is_file():
+        _copy_models(source / BUILTIN_MODELS_FOLDER, out / BUILTIN_MODELS_FOLDER)
     todo = [(scene_id, im_id) for scene_id, im_id in _images(source)
             if not (out / f"{scene_id:06d}" / RECORDS_FOLDER / f"{im_id:06d}.json").is_file()]
     start = time.perf_counter()

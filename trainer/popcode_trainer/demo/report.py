@@ -153,7 +153,7 @@ def write_model_card(run: DemoRun) -> Path:
         "`DIR/runs/population_code_*/model*.onnx`.",
     ]
     path = run.out_dir / MODEL_CARD_FILE
-    path.write_text("\n".join(lines) + "\n")
+    write_bytes_atomic(path, ("\n".join(lines) + "\n").encode())
     return path
 
 
@@ -402,7 +402,7 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
     model_card = write_model_card(run)
     samples = write_samples(run.split, run.out_dir / "samples")
     report = run.out_dir / REPORT_FILE
-    report.write_text(report_markdown(run, model_card))
+    write_bytes_atomic(report, report_markdown(run, model_card).encode())
     summary = {
         "size": run.size_name, "settings": asdict(run.size), "object_groups": run.groups,
         "objects": run.parts, "group_codes": list(run.code_notes),
@@ -418,5 +418,5 @@ def write_outputs(run: DemoRun) -> dict[str, Any]:
         "figures": {title: [str(p) for p in paths] for title, paths in run.figures.items()},
         "report": str(report), "model_card": str(model_card), "samples": str(samples),
     }
-    (run.out_dir / SUMMARY_FILE).write_text(to_json(summary) + "\n")
+    write_bytes_atomic(run.out_dir / SUMMARY_FILE, (to_json(summary) + "\n").encode())
     return summary

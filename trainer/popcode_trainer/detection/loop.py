@@ -8,7 +8,6 @@ the same whatever the run's length: a time budget can be fitted from it.
 
 from __future__ import annotations
 
-import csv
 import math
 import time
 from collections.abc import Sequence
@@ -20,6 +19,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import append_synced, csv_text, write_bytes_atomic
 from popcode_runtime.base.output_lock import OutputLock
 
 from ..train.checkpoint import load, restore_rng_state, rng_state, save_atomic
@@ -184,10 +184,9 @@ def _resumed_config(state: dict, config: DetectorConfig, obj_ids: tuple[int, ...
 
 
 def _truncate_metrics(path: Path) -> None:
-    with path.open("w", newline="") as handle:
-        csv.writer(handle).writerow(METRIC_COLUMNS)
+    write_bytes_atomic(path, csv_text([METRIC_COLUMNS]).encode())
 
 
 def _append_metrics(path: Path, row: list[float]) -> None:
-    with path.open("a", newline="") as handle:
-        csv.writer(handle).writerow([f"{v:.6g}" if isinstance(v, float) else v for v in row])
+    append_synced(path, csv_text([[f"{v:.6g}" if isinstance(v, float) else v for v in row]]),
+                  first=csv_text([METRIC_COLUMNS]))

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.stats import rankdata
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.geometry.symmetries import (
@@ -68,14 +69,7 @@ def auroc(score: np.ndarray, correct: np.ndarray) -> float:
     positives, negatives = int(correct.sum()), int((~correct).sum())
     if positives == 0 or negatives == 0:
         return float("nan")
-    order = np.argsort(score, kind="stable")
-    ranks = np.empty(len(score))
-    sorted_scores = score[order]
-    # average rank of each group of tied scores (Mann-Whitney U)
-    starts = np.flatnonzero(np.r_[True, sorted_scores[1:] != sorted_scores[:-1]])
-    ends = np.r_[starts[1:], len(score)]
-    for start, end in zip(starts, ends, strict=True):
-        ranks[order[start:end]] = 0.5 * (start + end - 1) + 1.0
+    ranks = rankdata(score)  # tied scores share their average rank (Mann-Whitney U)
     u = ranks[correct].sum() - positives * (positives + 1) / 2.0
     return float(u / (positives * negatives))
 

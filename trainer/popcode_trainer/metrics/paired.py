@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.stats import bootstrap
 
 from .recall import Thresholds
 
@@ -42,8 +43,17 @@ def paired_difference(first: np.ndarray, second: np.ndarray, seed: int = 0) -> P
     first, second = np.asarray(first, np.float64), np.asarray(second, np.float64)
     if first.shape != second.shape or first.ndim != 1 or not len(first):
         raise ValueError(f"paired scores need two equal, non-empty 1-D arrays, got {first.shape} and {second.shape}")
-    draws = np.random.default_rng(seed).integers(len(first), size=(BOOTSTRAP_DRAWS, len(first)))
-    differences = second[draws].mean(axis=1) - first[draws].mean(axis=1)
-    low, high = np.percentile(differences, [2.5, 97.5])
-    return PairedDifference(len(first), float(first.mean()), float(second.mean()),
-                            float(second.mean() - first.mean()), (float(low), float(high)))
+    difference = float(second.mean() - first.mean())
+    interval = (difference, difference)  # one instance: no spread to draw from (scipy needs two)
+    if len(first) > 1:
+        # the percentile interval of the mean difference over instances drawn with replacement, both methods' scores
+        # of an instance drawn together
+        drawn = bootstrap((first, second), _mean_difference, paired=True, vectorized=True,
+                          n_resamples=BOOTSTRAP_DRAWS, confidence_level=0.95, method="percentile",
+                          random_state=np.random.default_rng(seed)).confidence_interval
+        interval = (float(drawn.low), float(drawn.high))
+    return PairedDifference(len(first), float(first.mean()), float(second.mean()), difference, interval)
+
+
+def _mean_difference(first: np.ndarray, second: np.ndarray, axis: int = -1) -> np.ndarray:
+    return second.mean(axis=axis) - first.mean(axis=axis)

@@ -2,14 +2,13 @@
 
 A checkpoint holds only tensors and plain Python values (dicts, lists,
 numbers, strings), so ``torch.load(..., weights_only=True)`` reads it. It
-is written to a temporary file and moved into place with ``os.replace``, so
-a crash mid-write leaves the previous checkpoint intact.
+is written with the runtime's one atomic write (a temporary file, synced, renamed), so
+a crash or a power cut mid-write leaves the previous checkpoint intact.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import os
 import pickle
 import random
 import subprocess
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from popcode_runtime.base.errors import PopcodeError, first_line
+from popcode_runtime.base.files import atomic_path, remove_stale_temporaries
 from popcode_runtime.model.metadata import ModelMetadata
 
 from ..data.hull import with_hull_points
@@ -34,10 +34,11 @@ TRAINED_KEYS = frozenset({"network", "model", "metadata", "config", "epoch", "be
 
 
 def save_atomic(state: dict[str, Any], path: Path) -> None:
+    """``state`` at ``path``, synced before and after its rename; what a crashed save left beside it goes first."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    torch.save(state, temporary)
-    os.replace(temporary, path)
+    remove_stale_temporaries(path)
+    with atomic_path(path) as temporary:
+        torch.save(state, temporary)
 
 
 def load(path: str | Path) -> dict[str, Any]:

@@ -18,6 +18,7 @@ from torch import nn
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.files import append_synced, csv_text, write_bytes_atomic
 
 from . import checkpoint
 from .config import Config
@@ -29,12 +30,8 @@ METRICS_COLUMNS = [f.name for f in dataclasses.fields(EpochMetrics)]
 
 
 def append_metrics(path: Path, row: EpochMetrics) -> None:
-    new = not path.exists() or path.stat().st_size == 0
-    with path.open("a", newline="") as handle:
-        writer = csv.writer(handle)
-        if new:
-            writer.writerow(METRICS_COLUMNS)
-        writer.writerow(dataclasses.astuple(row))
+    """One row, synced: the checkpoint written after it must never be on disk without it."""
+    append_synced(path, csv_text([dataclasses.astuple(row)]), first=csv_text([METRICS_COLUMNS]))
 
 
 def truncate_metrics(path: Path, last_epoch: int) -> None:
@@ -51,12 +48,8 @@ def truncate_metrics(path: Path, last_epoch: int) -> None:
     if lacking:
         raise PopcodeError(f"{path} has no column {', '.join(lacking)}: not the metrics of a popcode training run")
     kept = [dict(zip(rows[0], row, strict=False)) for row in rows[1:] if int(row[0]) <= last_epoch]
-    temporary = path.with_name(f".{path.name}.tmp")
-    with temporary.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(METRICS_COLUMNS)
-        writer.writerows([[old[name] if name in old else defaults[name] for name in METRICS_COLUMNS] for old in kept])
-    temporary.replace(path)
+    rows = [[old[name] if name in old else defaults[name] for name in METRICS_COLUMNS] for old in kept]
+    write_bytes_atomic(path, csv_text([METRICS_COLUMNS, *rows]).encode())
 
 
 class _TensorBoard:
