@@ -12,7 +12,10 @@ The bin is the project's cluttered validation split (seed 4000, industrial, ``--
 detector (``Detector`` with ``score_threshold`` overridden) gives the boxes of each kind of empty frame, and on
 the bin COCO AP and AP50 as the BOP toolkit scores 2-D detection, recall at IoU 0.5 of parts at least 30 % and
 90 % visible and boxes per instance; with ``--poses``, also the shipped pose models' MSSD from its boxes
-(``popcode run``'s loop, every instance scored, a missed one wrong). Writes ``bench/results/empty-frames.{json,md}``.
+(``popcode run``'s loop, every instance scored, a missed one wrong), and the same sweep over the estimate's score
+that ``popcode run`` and ``FramePoseEstimator`` give (the detector's times the pose's calibrated confidence):
+estimates on the empty frames against AP and recall of the bin's boxes ranked and kept by that score. Writes
+``bench/results/empty-frames.{json,md}``.
 """
 
 from __future__ import annotations
@@ -24,11 +27,14 @@ from typing import Any
 
 import numpy as np
 
+from popcode_runtime.bop.detections import Detection
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.commands.run_loop import run_detections
+from popcode_runtime.geometry.crop import read_image_file
 from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
+from popcode_runtime.inference.frame import FramePoseEstimator
 from popcode_trainer.data.scene_content import SceneSettings
 from popcode_trainer.data.scene_render import render_emptied_scenes
 from popcode_trainer.eval.pipeline.evaluate import evaluate_models
@@ -49,6 +55,9 @@ GREY_LEVELS = (0, 32, 64, 96, 128, 160, 192, 224, 255)
 NOISE_SIGMAS = (0.02, 0.05, 0.1, 0.2)  # Gaussian about 0.5, of the frame's [0, 1]
 NOISE_SEEDS = 3
 THRESHOLDS = (0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7)
+# On the detector's score x the calibrated confidence: never above the detector's, so a sweep from the detector's
+# lowest threshold up is exact.
+ESTIMATE_THRESHOLDS = (0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
 
 
 def synthetic_frames(size: tuple[int, int] = FRAME_SIZE) -> dict[str, list[np.ndarray]]:
@@ -116,6 +125,30 @@ def bin_scores(detector: Detector, split_dir: Path, work: Path, poses: bool) -> 
     return found
 
 
+def estimate_scores(frames: FramePoseEstimator, empty: dict[str, list[np.ndarray]], split_dir: Path
+                    ) -> tuple[dict[str, list[list[float]]], list[Detection]]:
+    """Every estimate's score (detector's x calibrated confidence) on the empty frames by kind, and the bin's boxes
+    scored so (no camera is needed for the score: the empty frames are estimated without one)."""
+    scores = {kind: [[pose.score for pose in frames.estimate(frame)] for frame in group]
+              for kind, group in empty.items()}
+    rescored = []
+    for key, image in sorted(split_images(split_dir).items()):
+        rescored += [Detection(*key, pose.detection.obj_id, pose.detection.box, pose.score, 0.0)
+                     for pose in frames.estimate(read_image_file(image.path), K=image.K)]
+    return scores, rescored
+
+
+def estimate_rows(scores: dict[str, list[list[float]]], rescored: list[Detection], split_dir: Path,
+                  thresholds: Sequence[float]) -> list[dict[str, Any]]:
+    """Per threshold on the estimate's score: empty frames with an estimate, and the bin's AP, AP50 and recall."""
+    rows = []
+    for threshold in sorted(thresholds):
+        kept = detection_scores(split_dir, [d for d in rescored if d.score >= threshold])
+        rows.append({"threshold": threshold, "empty": boxes_above(scores, threshold),
+                     "bin": {"AP": kept.coco["AP"], "AP50": kept.coco["AP50"], "recall_30": kept.recall_goal.recall}})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("runs/empty_frames"))
@@ -134,10 +167,17 @@ def main() -> None:
         detector = Detector(args.detector, threads=1, score_threshold=threshold)
         rows.append({"threshold": threshold, "empty": boxes_above(scores, threshold),
                      "bin": bin_scores(detector, split_dir, args.work, args.poses)})
+    estimates: list[dict[str, Any]] = []
+    if args.poses:
+        frame_estimator = FramePoseEstimator(Detector(args.detector, threads=1, score_threshold=lowest),
+                                             [PoseEstimator(path, threads=1) for path in SHIPPED_MODELS])
+        estimates = estimate_rows(*estimate_scores(frame_estimator, frames, split_dir), split_dir,
+                                  [t for t in ESTIMATE_THRESHOLDS if t >= lowest])
     payload = {"arguments": {k: str(v) for k, v in vars(args).items()},
                "file_threshold": Detector(args.detector).metadata.score_threshold,
                "max_score": {kind: max((s for f in group for s in f), default=None) for kind, group in scores.items()},
-               "lowest_clearing_threshold": lowest_clearing(scores, args.thresholds), "rows": rows}
+               "lowest_clearing_threshold": lowest_clearing(scores, args.thresholds), "rows": rows,
+               "estimate_rows": estimates}
     write_results(RESULTS, "empty-frames", payload, _markdown(payload, lowest))
 
 
@@ -157,13 +197,24 @@ def _markdown(payload: dict[str, Any], lowest: float) -> str:
           f"{row['bin']['boxes_per_instance']:.2f}", *([f"{100 * row['bin']['MSSD']:.1f}"] if poses else [])]
          for t, row in zip(thresholds, rows, strict=True)])
     clearing = payload["lowest_clearing_threshold"]
+    estimates = []
+    if payload["estimate_rows"]:
+        kinds = list(payload["max_score"])
+        estimates = [
+            "Thresholds on the estimate's score (detector's x calibrated confidence, as `popcode run` scores and "
+            "ranks an estimate): empty frames with an estimate, and the bin's boxes ranked and kept by that score:",
+            markdown_table(["estimate score ≥", *kinds, "AP", "AP50", "recall ≥ 30 % visible"], [
+                [f"{row['threshold']:g}", *(f"{row['empty'][k]['frames_with_boxes']}/{row['empty'][k]['frames']}"
+                                            for k in kinds),
+                 *(f"{100 * row['bin'][key]:.1f}" for key in ("AP", "AP50", "recall_30"))]
+                for row in payload["estimate_rows"]])]
     return "\n\n".join([
         "# Boxes on empty frames against recall on the bin (`python -m experiments.empty_frames`)",
         f"The detector's file threshold: {payload['file_threshold']:g}. The lowest threshold of the sweep at which "
         f"no empty frame has a box: {'none' if clearing is None else f'{clearing:g}'}.",
         "Empty frames with a box, by the score threshold:", empty,
         f"The validation bin ({rows[0]['bin']['instances']} instances), by the score threshold:", bin_rows,
-        machine_line(machine())])
+        *estimates, machine_line(machine())])
 
 
 if __name__ == "__main__":

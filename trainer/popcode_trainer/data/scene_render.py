@@ -371,9 +371,11 @@ def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tup
 def render_emptied_scenes(models_dir: str | Path, settings: SceneSettings, indices: Sequence[int],
                           keep_distractors: bool) -> list[np.ndarray]:
     """Image ``k`` (for each of ``indices``) of the scene split that ``settings`` renders, with its target parts
-    taken out (its distractors too unless ``keep_distractors``): the same bin, camera, lights and sensor, and
-    nothing a detector should find. Distractors stay where they came to rest, on the parts or beside them.
+    taken out (its distractors too unless ``keep_distractors``): the frames on which a detector should find nothing.
 
+    The world is image ``k``'s first draw, with the same bin, camera, lights, materials and sensor effects, so
+    where no part lay or shaded the frame is the split's image (an image whose first draw showed no part, which
+    the split draws again, differs). Distractors stay where they came to rest, on the parts or beside them.
     ``settings.bin`` must hold: the walls and the ground bound the camera's near and far planes.
     """
     if not settings.bin:
@@ -388,9 +390,10 @@ def render_emptied_scenes(models_dir: str | Path, settings: SceneSettings, indic
         for k in indices:
             rng = np.random.default_rng([settings.seed, k])
             content = layouts.draw(rng, K)
+            look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
             kept = content.distractors if keep_distractors else []
-            content = replace(content, targets=[], distractors=kept)
-            colour = renderer.render(content, draw_scene_look(rng, len(kept)), meshes, K)[0]
+            look = replace(look, objects=look.objects[len(content.targets):][:len(kept)])  # targets' come first
+            colour = renderer.render(replace(content, targets=[], distractors=kept), look, meshes, K)[0]
             frames.append(_camera_image(colour, rng, settings))
     finally:
         renderer.close()
