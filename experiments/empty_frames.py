@@ -35,6 +35,7 @@ from popcode_runtime.geometry.crop import read_image_file
 from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.inference.frame import FramePoseEstimator
+from popcode_trainer.data.render import camera_matrix
 from popcode_trainer.data.scene_content import SceneSettings
 from popcode_trainer.data.scene_render import render_emptied_scenes
 from popcode_trainer.eval.pipeline.evaluate import evaluate_models
@@ -127,9 +128,10 @@ def bin_scores(detector: Detector, split_dir: Path, work: Path, poses: bool) -> 
 
 def estimate_scores(frames: FramePoseEstimator, empty: dict[str, list[np.ndarray]], split_dir: Path
                     ) -> tuple[dict[str, list[list[float]]], list[Detection]]:
-    """Every estimate's score (detector's x calibrated confidence) on the empty frames by kind, and the bin's boxes
-    scored so (no camera is needed for the score: the empty frames are estimated without one)."""
-    scores = {kind: [[pose.score for pose in frames.estimate(frame)] for frame in group]
+    """Every estimate's score (detector's x calibrated confidence) on the empty frames by kind (seen by the bin
+    splits' camera), and the bin's boxes scored so."""
+    K = camera_matrix(*FRAME_SIZE)
+    scores = {kind: [[pose.score for pose in frames.estimate(frame, K=K)] for frame in group]
               for kind, group in empty.items()}
     rescored = []
     for key, image in sorted(split_images(split_dir).items()):
@@ -197,6 +199,11 @@ def _markdown(payload: dict[str, Any], lowest: float) -> str:
           f"{row['bin']['boxes_per_instance']:.2f}", *([f"{100 * row['bin']['MSSD']:.1f}"] if poses else [])]
          for t, row in zip(thresholds, rows, strict=True)])
     clearing = payload["lowest_clearing_threshold"]
+    needs = markdown_table(["empty frames", "lowest threshold without a box", "recall ≥ 30 % visible there",
+                            "AP there"], [
+        [kind, *next(([f"{row['threshold']:g}", f"{100 * row['bin']['recall_30']:.1f}",
+                       f"{100 * row['bin']['AP']:.1f}"] for row in rows if not row["empty"][kind]["boxes"]),
+                     ["above the sweep", "–", "–"])] for kind in payload["max_score"]])
     estimates = []
     if payload["estimate_rows"]:
         kinds = list(payload["max_score"])
@@ -213,6 +220,7 @@ def _markdown(payload: dict[str, Any], lowest: float) -> str:
         f"The detector's file threshold: {payload['file_threshold']:g}. The lowest threshold of the sweep at which "
         f"no empty frame has a box: {'none' if clearing is None else f'{clearing:g}'}.",
         "Empty frames with a box, by the score threshold:", empty,
+        "What each kind of empty frame needs, and what the bin keeps at that threshold:", needs,
         f"The validation bin ({rows[0]['bin']['instances']} instances), by the score threshold:", bin_rows,
         *estimates, machine_line(machine())])
 
