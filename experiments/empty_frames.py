@@ -21,6 +21,9 @@ estimates on the empty frames against AP and recall of the bin's boxes ranked an
 from __future__ import annotations
 
 import argparse
+import os
+import shlex
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -32,7 +35,7 @@ from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.commands.run_loop import run_detections
 from popcode_runtime.geometry.crop import read_image_file
-from popcode_runtime.inference.detector import Detector
+from popcode_runtime.inference.detector import DetectedBox, Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_runtime.inference.frame import FramePoseEstimator
 from popcode_trainer.data.render import camera_matrix
@@ -87,9 +90,17 @@ def emptied_bins(models_dir: Path, count: int) -> dict[str, list[np.ndarray]]:
                                                              keep_distractors=True)}
 
 
-def empty_frame_scores(detector: Detector, frames: dict[str, list[np.ndarray]]) -> dict[str, list[list[float]]]:
-    """Every box's score on every frame, by kind (the detector's threshold bounds them from below)."""
-    return {kind: [[box.score for box in detector.detect(frame)] for frame in group] for kind, group in frames.items()}
+def empty_frame_boxes(detector: Detector, frames: dict[str, list[np.ndarray]]) -> dict[str, list[list[DetectedBox]]]:
+    """Every box on every frame, by kind (the detector's threshold bounds their scores from below)."""
+    return {kind: [detector.detect(frame) for frame in group] for kind, group in frames.items()}
+
+
+def highest_per_object(boxes: list[list[DetectedBox]]) -> dict[int, float]:
+    """Each object's highest box score over some frames: which objects a per-object threshold would have to raise."""
+    best: dict[int, float] = {}
+    for box in (box for frame in boxes for box in frame):
+        best[box.obj_id] = max(best.get(box.obj_id, 0.0), box.score)
+    return dict(sorted(best.items()))
 
 
 def boxes_above(scores: dict[str, list[list[float]]], threshold: float) -> dict[str, dict[str, int]]:
@@ -163,7 +174,8 @@ def main() -> None:
     split_dir = render_scenes(args.work / "validation", args.scenes, VALIDATION_SEED, "industrial")
     frames = {**synthetic_frames(), **emptied_bins(split_dir / "models", args.bins)}
     lowest = min(args.thresholds)
-    scores = empty_frame_scores(Detector(args.detector, threads=1, score_threshold=lowest), frames)
+    boxes = empty_frame_boxes(Detector(args.detector, threads=1, score_threshold=lowest), frames)
+    scores = {kind: [[box.score for box in frame] for frame in group] for kind, group in boxes.items()}
     rows = []
     for threshold in sorted(args.thresholds):
         detector = Detector(args.detector, threads=1, score_threshold=threshold)
@@ -175,9 +187,11 @@ def main() -> None:
                                              [PoseEstimator(path, threads=1) for path in SHIPPED_MODELS])
         estimates = estimate_rows(*estimate_scores(frame_estimator, frames, split_dir), split_dir,
                                   [t for t in ESTIMATE_THRESHOLDS if t >= lowest])
-    payload = {"arguments": {k: str(v) for k, v in vars(args).items()},
+    payload = {"command": shlex.join(["python", "-m", "experiments.empty_frames", *sys.argv[1:]]),
+               "threads": os.environ.get("OMP_NUM_THREADS"), "arguments": {k: str(v) for k, v in vars(args).items()},
                "file_threshold": Detector(args.detector).metadata.score_threshold,
                "max_score": {kind: max((s for f in group for s in f), default=None) for kind, group in scores.items()},
+               "max_score_per_object": {kind: highest_per_object(group) for kind, group in boxes.items()},
                "lowest_clearing_threshold": lowest_clearing(scores, args.thresholds), "rows": rows,
                "estimate_rows": estimates}
     write_results(RESULTS, "empty-frames", payload, _markdown(payload, lowest))
@@ -191,6 +205,9 @@ def _markdown(payload: dict[str, Any], lowest: float) -> str:
         [[kind, "–" if top is None else f"{top:.3f}",
           *(f"{row['empty'][kind]['frames_with_boxes']}/{row['empty'][kind]['frames']}" for row in rows)]
          for kind, top in payload["max_score"].items()])
+    per_object = markdown_table(["empty frames", "highest score of each object (object: score)"], [
+        [kind, ", ".join(f"{obj_id}: {score:.2f}" for obj_id, score in best.items()) or "–"]
+        for kind, best in payload["max_score_per_object"].items()])
     poses = "MSSD" in rows[0]["bin"]
     bin_rows = markdown_table(
         ["threshold", "AP", "AP50", "recall ≥ 30 % visible", "recall ≥ 90 % visible", "boxes / instance",
@@ -217,10 +234,13 @@ def _markdown(payload: dict[str, Any], lowest: float) -> str:
                 for row in payload["estimate_rows"]])]
     return "\n\n".join([
         "# Boxes on empty frames against recall on the bin (`python -m experiments.empty_frames`)",
+        f"Command: `{payload['command']}` (OMP_NUM_THREADS={payload['threads']}); validation data only (the bin "
+        f"split of seed {VALIDATION_SEED} and its emptied images, seeded noise).",
         f"The detector's file threshold: {payload['file_threshold']:g}. The lowest threshold of the sweep at which "
         f"no empty frame has a box: {'none' if clearing is None else f'{clearing:g}'}.",
         "Empty frames with a box, by the score threshold:", empty,
         "What each kind of empty frame needs, and what the bin keeps at that threshold:", needs,
+        "Which objects the boxes name (the metadata carries one threshold for every object):", per_object,
         f"The validation bin ({rows[0]['bin']['instances']} instances), by the score threshold:", bin_rows,
         *estimates, machine_line(machine())])
 
