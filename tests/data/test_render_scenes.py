@@ -20,7 +20,7 @@ from popcode_trainer.data.objects import model_info
 from popcode_trainer.data.scene_annotation import instance_gt_info
 from popcode_trainer.data.scene_content import Layouts, SceneContent, SceneSettings
 from popcode_trainer.data.scene_layout import PlacedObject
-from popcode_trainer.data.scene_render import render_scene_split
+from popcode_trainer.data.scene_render import render_emptied_scenes, render_scene_split
 from popcode_trainer.metrics.visibility import depth_to_distance
 
 TINY = SceneSettings(scenes=4, width=96, height=72, seed=3, parts=(3, 5), distractors=(1, 2), bin_size_mm=90.0)
@@ -207,3 +207,23 @@ def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys:
                 {"sensor": "fisheye"}, {"scenes": 0}, {"width": 100_000}):
         with pytest.raises(PopcodeError):
             SceneSettings(**{"scenes": 1, **bad})
+
+
+def test_an_emptied_scene_is_its_bin_without_its_parts(tiny_models, tiny_scenes):
+    """The frames a detector should find nothing on: image k's bin, camera, lights and distractors, no part; where
+    no part lay, the split's own image pixel for pixel."""
+    emptied = render_emptied_scenes(tiny_models, TINY, [0, 1], keep_distractors=True)
+    bare = render_emptied_scenes(tiny_models, TINY, [0], keep_distractors=False)[0]
+    assert render_emptied_scenes(tiny_models, TINY, [1], keep_distractors=True)[0].tobytes() == emptied[1].tobytes()
+    for k, frame in enumerate(emptied):
+        assert frame.shape == (TINY.height, TINY.width) and frame.dtype == np.uint8
+        shown = _read(tiny_scenes / "000000" / "gray" / f"{k:06d}.png")
+        parts = np.zeros(frame.shape, bool)
+        for mask in (tiny_scenes / "000000" / "mask").glob(f"{k:06d}_*.png"):
+            parts |= _read(mask) > 0
+        parts = cv2.dilate(parts.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        assert parts.any() and (frame[~parts] == shown[~parts]).all()
+        assert (frame[parts] != shown[parts]).mean() > 0.5
+    assert (bare != emptied[0]).any(), "every image holds a distractor (TINY): without it the frame differs"
+    with pytest.raises(PopcodeError, match="needs its bin walls"):
+        render_emptied_scenes(tiny_models, SceneSettings(1, width=96, height=72, bin=False), [0], True)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -226,6 +226,14 @@ def _location(k: int) -> tuple[int, int]:
     return k // IMAGES_PER_SCENE_FOLDER, k % IMAGES_PER_SCENE_FOLDER
 
 
+def _camera_image(colour: np.ndarray, rng: np.random.Generator, settings: SceneSettings) -> np.ndarray:
+    """The rendered colour as the split's camera delivers it: its sensor's effects, grey or colour."""
+    effects = sensor_preset(settings.sensor)
+    if effects is not None:
+        return apply_sensor_effects(colour, rng, effects, settings.gray)
+    return cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY) if settings.gray else colour
+
+
 def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
                   k: int, settings: SceneSettings) -> int:
     """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
@@ -245,12 +253,8 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
     scene_id, im_id = _location(k)
     scene_dir = out_dir / f"{scene_id:06d}"
     stem = f"{im_id:06d}"
-    effects = sensor_preset(settings.sensor)
-    if effects is not None:
-        image = apply_sensor_effects(colour, rng, effects, settings.gray)
-    else:
-        image = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY) if settings.gray else colour
-    write_png_atomic(scene_dir / ("gray" if settings.gray else "rgb") / f"{stem}.png", image)
+    write_png_atomic(scene_dir / ("gray" if settings.gray else "rgb") / f"{stem}.png",
+                     _camera_image(colour, rng, settings))
     # Drawn after every annotation: the ground truth above stays the exact depth's (module docstring).
     depth_noise = depth_noise_preset(settings.sensor)
     measured_mm = depth_scene_mm if depth_noise is None else apply_depth_noise(depth_scene_mm, K, colour, rng,
@@ -367,3 +371,34 @@ def render_cluttered_test_split(out_dir: str | Path, scenes: int = 40, size: tup
     render_scene_split(models_dir, out_dir, scene_settings, obj_ids=obj_ids, shard=shard, progress=progress)
     return out_dir
 
+
+def render_emptied_scenes(models_dir: str | Path, settings: SceneSettings, indices: Sequence[int],
+                          keep_distractors: bool) -> list[np.ndarray]:
+    """Image ``k`` (for each of ``indices``) of the scene split that ``settings`` renders, with its target parts
+    taken out (its distractors too unless ``keep_distractors``): the frames on which a detector should find nothing.
+
+    The world is image ``k``'s first draw, with the same bin, camera, lights, materials and sensor effects, so
+    where no part lay or shaded the frame is the split's image (an image whose first draw showed no part, which
+    the split draws again, differs). Distractors stay where they came to rest, on the parts or beside them.
+    ``settings.bin`` must hold: the walls and the ground bound the camera's near and far planes.
+    """
+    if not settings.bin:
+        raise PopcodeError("an emptied scene needs its bin walls (settings.bin)")
+    models_dir = Path(models_dir)
+    meshes = load_scene_meshes(models_dir, sorted(load_models_info(models_dir)))
+    layouts = Layouts(meshes, settings)
+    K = camera_matrix(settings.width, settings.height)
+    renderer = _SceneRenderer(settings.width, settings.height)
+    frames = []
+    try:
+        for k in indices:
+            rng = np.random.default_rng([settings.seed, k])
+            content = layouts.draw(rng, K)
+            look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
+            kept = content.distractors if keep_distractors else []
+            look = replace(look, objects=look.objects[len(content.targets):][:len(kept)])  # targets' come first
+            colour = renderer.render(replace(content, targets=[], distractors=kept), look, meshes, K)[0]
+            frames.append(_camera_image(colour, rng, settings))
+    finally:
+        renderer.close()
+    return frames
