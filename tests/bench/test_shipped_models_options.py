@@ -90,6 +90,7 @@ def test_the_command_refuses_a_bad_value_before_any_file_is_written(tmp_path: Pa
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_training_error_is_one_line_with_exit_2(tmp_path: Path) -> None:
     """Data too small for one batch: the trainer's error as one line, not a traceback; the renders stay."""
     refused = run_module("experiments.shipped_models", "--out", tmp_path / "out", "--images", "1", "--scenes", "1",

@@ -10,6 +10,7 @@ import tarfile
 from pathlib import Path
 
 import onnx
+import pytest
 
 from tools.paths import ROOT
 
@@ -22,6 +23,7 @@ def _run(*args: str | Path, env: dict[str, str] | None = None) -> subprocess.Com
                           timeout=600, env={**os.environ, "PATH": path, **(env or {})})
 
 
+@pytest.mark.slow
 def test_each_network_trains_from_one_render_and_comes_back(tmp_path: Path) -> None:
     results = tmp_path / "results"
     done = _run(tmp_path / "work", results, 120, "tiny", "small",
