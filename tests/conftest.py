@@ -15,8 +15,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
         os.environ.setdefault(variable, "1")
 
-# pyrender calls gc.collect() each time it closes a renderer, and the depth metrics and renders close hundreds: a
-# full collection walks every object alive, most of them imported modules, so each took a third of a second.
+# A full garbage collection walks every object alive, most of them imported modules: a third of a second each when
+# pyrender's renderers still ran one at every close (popcode closes them without it: data/gl.py delete_offscreen).
 # What lives after collection, and later what modules a test imported, is frozen out of every later collection
 # (gc.freeze); garbage is collected first, so nothing that is garbage then is kept.
 REFREEZE_AFTER = 50_000  # new tracked objects at the end of a test module that are worth a collection to freeze
