@@ -24,12 +24,14 @@ install: $(BIN)/.installed
 demo: $(BIN)/.installed
 	$(BIN)/popcode-train demo --out runs/demo
 
-# One pytest-xdist worker per core of the 2-core machine the suite must finish on in 10 minutes (tests/conftest.py
+# One pytest-xdist worker per core of the 2-core machine the suite must finish on in 8 minutes (tests/conftest.py
 # gives each one thread); a test module stays in one worker, so a module's fixtures (a demo run, a rendered split)
-# are built once.
+# are built once. The modules are handed out in the order tests/conftest.py gives them, those with a slow test
+# first (--no-loadscope-reorder: pytest-xdist's own order, by number of tests, left the minutes-long few-test
+# modules for last, where one worker ran them while the other had finished).
 TEST_WORKERS ?= 2
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check runtime trainer tests bench experiments tools

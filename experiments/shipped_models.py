@@ -2,8 +2,8 @@
 fitted to a time budget, exported as the demo exports them (ONNX fp32, static int8, confidence calibrator).
 
     python -m experiments.shipped_models [--minutes 8] [--out runs/shipped] [--copy-to DIR] [--images N] [--scenes N]
-        [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--scene-share S] [--network NAME]
-        [--traced-images N --traced-share S] [--render-only]
+        [--test-images N] [--compile auto|on|off] [--group OBJ_ID ...] [--box-noise-p P] [--scene-share S]
+        [--network NAME] [--traced-images N --traced-share S] [--render-only]
 
 Made for a lent GPU machine, whose lease is minutes: ``popcode-train demo --size medium --minutes M`` trains the
 single-variable baseline beside every model and spends the budget's tail on its evaluation, which the shipped
@@ -12,10 +12,10 @@ goes to the population code's models, one per object group, each trained as the 
 seeds, code, mix of scene crops; first epochs timed, then all resumed to the fitted epochs). ``--copy-to``
 receives each model's ONNX files and training curve as soon as it is exported, so a run cut short keeps what
 it finished, and at the end ``run.json``: the machine (CPU flags, cores, load, library versions), the GPU, the
-arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` change the data (shrink it for a
-check of the script itself); ``--group`` trains only the model of the group that holds those parts (the whole
-budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops cut from
-detector-like boxes; ``--scene-share`` the share of an epoch's crops cut from the training scenes;
+arguments, the epochs and each step's seconds. ``--images`` / ``--scenes`` / ``--test-images`` change the data
+(shrink it for a check of the script itself); ``--group`` trains only the model of the group that holds those
+parts (the whole budget to it; the renders stay those of every part); ``--box-noise-p`` changes the share of crops
+cut from detector-like boxes; ``--scene-share`` the share of an epoch's crops cut from the training scenes;
 ``--network`` trains another of :data:`tools.recipes.NETWORKS` (the trunk's width); ``--traced-images`` path
 traces that many further single-part images a part (``popcode-train path-trace``) and ``--traced-share`` gives
 them that share of every epoch's crops (bench/results/path-traced.md).

@@ -1,6 +1,7 @@
 import gc
 import os
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -14,11 +15,21 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
         os.environ.setdefault(variable, "1")
 
-# pyrender calls gc.collect() each time it closes a renderer, and the depth metrics and renders close hundreds: a
-# full collection walks every object alive, most of them imported modules, so each took a third of a second.
+# A full garbage collection walks every object alive, most of them imported modules: a third of a second each when
+# pyrender's renderers still ran one at every close (popcode closes them without it: data/gl.py delete_offscreen).
 # What lives after collection, and later what modules a test imported, is frozen out of every later collection
 # (gc.freeze); garbage is collected first, so nothing that is garbage then is kept.
 REFREEZE_AFTER = 50_000  # new tracked objects at the end of a test module that are worth a collection to freeze
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The modules with a slow test first, the rest by their number of tests: `make test` hands whole modules to
+    its workers in this order (--no-loadscope-reorder), so that no module of minutes starts last while the other
+    worker has nothing left to do (pytest-xdist's own order, by number of tests, put those few-test modules last).
+    A module's tests keep their order and stay together (a stable sort on a key of the module alone)."""
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    counts = Counter(item.path for item in items)
+    items.sort(key=lambda item: (item.path not in slow, -counts[item.path]))
 
 
 @pytest.hookimpl(trylast=True)

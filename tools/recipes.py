@@ -46,6 +46,9 @@ def shipped_arguments(argv: Sequence[str] | None,
     parser.add_argument("--copy-to", type=Path, help="copy each model's exports here once it is exported")
     parser.add_argument("--images", type=int, help="training images per part instead of the medium size's")
     parser.add_argument("--scenes", type=int, help="training scenes instead of the medium size's")
+    parser.add_argument("--test-images", type=int, metavar="N",
+                        help="test images per part instead of the medium size's (rendered beside the training data, "
+                             "never trained on: few for a check of the script)")
     parser.add_argument("--group", nargs="+", type=int, metavar="OBJ_ID",
                         help="train only the model of the object group holding these parts (default: every group)")
     parser.add_argument("--compile", choices=COMPILE_CHOICES, default="auto", help="train.compile (default auto)")
@@ -74,6 +77,8 @@ def shipped_arguments(argv: Sequence[str] | None,
         parser.error(f"--box-noise-p must lie in (0, 1], not {args.box_noise_p}")
     if args.scene_share is not None and not 0.0 < args.scene_share < 1.0:
         parser.error(f"--scene-share must lie in (0, 1), not {args.scene_share}")
+    if args.test_images is not None and args.test_images < 1:
+        parser.error(f"--test-images must be at least 1, not {args.test_images}")
     return args, parser
 
 
@@ -89,9 +94,12 @@ def shipped_size(args: argparse.Namespace) -> tuple[DemoSize, PipelineSize]:
         config = replace(config, network=NETWORKS[args.network])  # output_dim follows each model's code
     if args.box_noise_p is not None:
         config = replace(config, data=replace(config.data, box_noise_p=args.box_noise_p))
+    test_images = args.test_images or demo.pipeline.test_images_per_object
     size = replace(demo.pipeline, representations=(POPCODE,), config=config,
                    train_images_per_object=args.images or demo.pipeline.train_images_per_object,
                    train_scenes=args.scenes or demo.pipeline.train_scenes,
+                   test_images_per_object=test_images,  # the demo path traces the first of them; these runs never
+                   path_traced_images=min(demo.pipeline.path_traced_images, test_images),
                    scene_share=demo.pipeline.scene_share if args.scene_share is None else args.scene_share,
                    traced_train_images=args.traced_images, traced_share=args.traced_share)
     return demo, size

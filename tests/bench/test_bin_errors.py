@@ -55,6 +55,7 @@ def _expected(scenes: Path) -> list[tuple[float, float | None]]:
     return expected
 
 
+@pytest.mark.slow
 def test_every_instance_and_its_neighbours_are_counted(scenes: Path, identity_model: Path, tmp_path: Path) -> None:
     printed = run_module("experiments.bin_errors", "--model", identity_model, "--split", scenes, "--out", tmp_path,
                          "--name", "t").stdout

@@ -10,6 +10,7 @@ import tarfile
 from pathlib import Path
 
 import onnx
+import pytest
 
 from tools.paths import ROOT
 
@@ -22,10 +23,11 @@ def _run(*args: str | Path, env: dict[str, str] | None = None) -> subprocess.Com
                           timeout=600, env={**os.environ, "PATH": path, **(env or {})})
 
 
+@pytest.mark.slow
 def test_each_network_trains_from_one_render_and_comes_back(tmp_path: Path) -> None:
     results = tmp_path / "results"
     done = _run(tmp_path / "work", results, 120, "tiny", "small",
-                env={"SHIPPED_ARGS": "--images 6 --scenes 4 --group 3", "PYOPENGL_PLATFORM": "egl"})
+                env={"SHIPPED_ARGS": "--images 6 --scenes 4 --test-images 1 --group 3", "PYOPENGL_PLATFORM": "egl"})
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(path.name for path in results.iterdir()) == ["logs.tgz", "small.onnx", "tiny.onnx"]
     widths = {name: [init.dims[0] for init in onnx.load(str(results / f"{name}.onnx")).graph.initializer

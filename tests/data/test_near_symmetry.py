@@ -38,6 +38,7 @@ def test_a_plate_with_one_pin_looks_four_fold_about_z() -> None:
     assert not any(order == 3 for order, _ in found)  # no 3-fold look-alike on a square
 
 
+@pytest.mark.slow
 def test_declared_symmetries_and_built_in_parts_give_no_look_alike() -> None:
     for part in BUILTIN_PARTS:
         mesh = build_part(part.obj_id)

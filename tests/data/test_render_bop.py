@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import shutil
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 import popcode_trainer.data.render as render_module
+import popcode_trainer.data.scene_render as scene_render_module
 from popcode_runtime import PopcodeError
 from popcode_runtime.geometry.camera import project_points
 from popcode_trainer.data.bop import load_models_info, read_bop_split
@@ -81,6 +83,31 @@ def test_depth_renderer_matches_written_depth(builtin_split: Path) -> None:
             assert np.abs(depth_mm[mask] - written_mm[mask]).max() <= DEPTH_SCALE_MM / 2 + 1e-3
     finally:
         renderer.close()
+
+
+def test_renderers_close_without_a_full_garbage_collection(builtin_split: Path) -> None:
+    """pyrender's ``OffscreenRenderer.delete`` ends in ``gc.collect()``, a walk of every object alive: a quarter of
+    a tiny demo's time went there, closing a renderer per model and split. popcode's renderers free their OpenGL
+    context without it (automatic collections are off here; an explicit one would still run)."""
+    mesh = load_mesh(read_bop_split(builtin_split, builtin_split / "models", obj_ids=[3]).model_path(3))
+    makers = [lambda: DepthRenderer(mesh.vertices, mesh.faces, 64, 48), lambda: render_module._SceneRenderer(64, 48),
+              lambda: scene_render_module._SceneRenderer(64, 48)]  # one at a time: each closes the EGL display
+    full = []
+
+    def count(phase: str, info: dict) -> None:
+        if phase == "start" and info["generation"] == 2:
+            full.append(info)
+
+    for make in makers:
+        renderer = make()
+        gc.disable()
+        gc.callbacks.append(count)
+        try:
+            renderer.close()
+        finally:
+            gc.callbacks.remove(count)
+            gc.enable()
+    assert full == []
 
 
 def test_visib_fract_filter_and_box_choice(builtin_split: Path, tmp_path: Path) -> None:

@@ -1,47 +1,26 @@
-"""The demo end to end at a tiny size: every file of the run folder, the report's links, resuming, the CLI."""
+"""The demo end to end at a tiny size: every file of the run folder, the report's links, resuming (its steps:
+test_demo_steps.py)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import shutil
 import subprocess
 import sys
-from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from calls import calls_of
+from tiny_demo import TINY
 
 from popcode_runtime import PoseEstimator
 from popcode_runtime.commands.cli import main as runtime_main
-from popcode_trainer.cli import main as cli_main
-from popcode_trainer.data import hull
-from popcode_trainer.data.render import render_builtin_split
 from popcode_trainer.demo import epoch_budget
-from popcode_trainer.demo.parts import builtin_parts
-from popcode_trainer.demo.plan import StagePlan
 from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
 from popcode_trainer.demo.run import run_demo
-from popcode_trainer.demo.steps import PipelineSize, in_processes, run_dir, small_config, train_and_export
-from popcode_trainer.detection.config import DetectorConfig
-from popcode_trainer.eval.reporting.overview_figures import nearest_equivalent
-from popcode_trainer.train import training_data
-from popcode_trainer.train.network import NetworkConfig
-from popcode_trainer.train.run_files import LAST_CHECKPOINT
 from tools.paths import ROOT
 
-TINY_NETWORK = NetworkConfig(conv_channels=(4, 4, 4), squeeze_channels=2, hidden=(16, 16, 16))
-# A detector that trains for a second and keeps its five best boxes a frame, however poor: the report's section
-# on the run's own eyes is filled either way.
-TINY_DETECTOR = DetectorConfig(input_width=128, input_height=96, widths=(4, 4, 8, 8, 8), fpn_channels=32,
-                               head_convs=1, batch_size=2, score_threshold=0.01, max_detections=5)
-TINY = PipelineSize(8, 2, small_config(epochs=1, n_axes=42, n_angles=12, network=TINY_NETWORK, sigma_deg=30.0,
-                                       batch_size=4), ("population_code", "single_variable"), cluttered_test_scenes=2,
-                    train_scenes=2, scene_share=0.5, detector_seconds=1.0, detector=TINY_DETECTOR, path_traced_images=1)
 BUDGET_MINUTES = 0.01  # less than the steps take: the epochs are fitted to the lowest bound, 2
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -185,65 +164,3 @@ def test_compare_demos_finds_a_changed_number_and_nothing_else(demo_run: tuple[P
     count, *differences = changed.stdout.splitlines()
     assert count.startswith("2 differences") and len(differences) == 2, changed.stdout
     assert "All objects.MSSD" in differences[0] and "train_loss" in differences[1]
-
-
-def test_train_and_export_reads_its_checkpoint_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Training computes each object's hull points once and stores them; the export (calibration, parity, int8)
-    reads the checkpoint it wrote once, and the split is read once for all of it."""
-    split = render_builtin_split(tmp_path / "split", 4, obj_ids=[3, 6], random_position=True)
-    loads, hulls = calls_of(monkeypatch, torch, "load"), calls_of(monkeypatch, hull, "hull_points_mm")
-    splits = calls_of(monkeypatch, training_data, "read_bop_split")
-    single_parts_only = dataclasses.replace(TINY, train_scenes=0, scene_share=0.0, detector_seconds=0.0)
-    train_and_export(single_parts_only, POPCODE, [3, 6], split, tmp_path, ("int8",))
-    assert [args[0] for args in loads] == [run_dir(tmp_path, POPCODE, [3, 6]) / LAST_CHECKPOINT]
-    assert len(hulls) == 2
-    assert [Path(args[0]) for args in splits] == [split]  # for training, parity crops and calibration alike
-
-
-def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None:
-    plan = StagePlan([("a", 10.0), ("b", 30.0)])
-    assert plan.remaining_s() == 40.0
-    plan.done["a"] = 20.0  # twice as slow as estimated
-    assert plan.scale == pytest.approx(2.0)
-    assert plan.remaining_s() == pytest.approx(60.0)
-    plan.revise({"a": 99.0, "b": 15.0})  # a finished step keeps its estimate
-    assert plan.remaining_s() == pytest.approx(30.0)
-    with plan.stage("b"):
-        pass
-    assert "[2/2] b: about 30 s; about 30 s left overall" in capsys.readouterr().out
-
-
-def test_nearest_equivalent_picks_the_symmetric_pose() -> None:
-    flip = np.diag([-1.0, -1.0, 1.0])  # 180 deg about z
-    info = {"symmetries_discrete": [np.pad(flip, ((0, 1), (0, 1))).ravel().tolist()]}
-    info["symmetries_discrete"][0][-1] = 1.0
-    R_true = np.eye(3)
-    assert np.allclose(nearest_equivalent(R_true, flip, info), flip)
-    assert np.allclose(nearest_equivalent(R_true, np.eye(3), info), np.eye(3))
-
-
-def test_cli_refuses_zero_epochs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert cli_main(["demo", "--out", str(tmp_path), "--epochs", "0"]) == 2
-    assert "--epochs must be at least 1" in capsys.readouterr().err
-    assert not any(tmp_path.iterdir())
-
-
-def test_cli_refuses_unknown_size(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    with pytest.raises(SystemExit) as exit_info:
-        cli_main(["demo", "--out", str(tmp_path), "--size", "huge"])
-    assert exit_info.value.code == 2
-    assert "invalid choice: 'huge'" in capsys.readouterr().err
-
-
-def test_splits_rendered_in_processes_equal_one_process(tmp_path: Path) -> None:
-    """The demo renders a large split's shards side by side; the split is the one a single process writes."""
-    seed = TINY.config.train.seed
-    parallel = in_processes(partial(builtin_parts().render_split, tmp_path / "parallel", 5, seed), False, 2)
-    single = builtin_parts().render_split(tmp_path / "single", 5, seed, False)
-    names = sorted(p.relative_to(parallel) for p in parallel.rglob("*") if p.is_file() and "records" not in p.parts)
-    assert names == sorted(p.relative_to(single) for p in single.rglob("*")
-                           if p.is_file() and "records" not in p.parts)
-    for name in names:
-        if name.suffix == ".json" and name.name != "popcode_render.json":
-            assert json.loads((parallel / name).read_text()) == json.loads((single / name).read_text()), name
-    assert len(list(parallel.glob("*/gray/*.png"))) == 6 * 5

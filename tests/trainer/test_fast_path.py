@@ -69,6 +69,7 @@ DEVICES = [CPU, pytest.param(torch.device("cuda"), marks=pytest.mark.skipif(not 
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.slow
 def test_compiled_and_eager_steps_give_the_same_loss(device):
     model, images = tiny_model_and_batch(device)
     path = StepPath(channels_last=True, precision="fp32", compiled=True, reason="test")

@@ -52,6 +52,7 @@ def test_every_kind_is_drawn_with_its_symmetry_class(parts: list) -> None:
     assert {p.kind for p in generate_parts(30, seed=3, kinds=("none", "look_alike"))} == {"none", "look_alike"}
 
 
+@pytest.mark.slow
 def test_declared_symmetries_map_each_mesh_onto_itself(parts: list) -> None:
     for part in parts:
         info = {**part.symmetries, "diameter": float(np.linalg.norm(part.mesh.extents))}
@@ -73,6 +74,7 @@ def test_look_alike_parts_nearly_have_a_symmetry(parts: list) -> None:
         assert look_alike_symmetries(sample, {"diameter": diameter}, _anchors_mm({}, diameter)), part.family
 
 
+@pytest.mark.slow
 def test_the_folder_passes_the_demo_checks(parts: list, tmp_path: Path) -> None:
     folder = write_generated_models(parts[:8], tmp_path / "models")
     with warnings.catch_warnings():

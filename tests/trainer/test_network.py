@@ -82,6 +82,7 @@ def test_unknown_trunk_is_refused() -> None:
 
 @pytest.mark.parametrize(("base", "input_size", "kernel"), [(TINY, 13, 5), (TINY, 100, 4), (TINY, 128, 100),
                                                              (TINY_RESIDUAL, 37, 5)])
+@pytest.mark.slow
 def test_the_hidden_layers_fit_the_trunk_for_any_crop_and_kernel(base, input_size: int, kernel: int) -> None:
     """Odd crop sides and even kernels do not halve exactly: the first dense layer is sized by the conv arithmetic."""
     config = replace(base, input_size=input_size, conv_kernel=kernel)

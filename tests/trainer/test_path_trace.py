@@ -55,6 +55,7 @@ def _images(split: Path) -> list[Path]:
     return sorted(split.glob("*/gray/*.png"))
 
 
+@pytest.mark.slow
 def test_a_part_is_traced_where_the_rasteriser_drew_it(rendered: dict[str, Path], traced: dict[str, Path]) -> None:
     """On black, the path-traced part covers the rendered silhouette: camera, pose and pixel centres agree (a
     mirrored camera fails the overlap; a principal point off by half a pixel, the centroid)."""
@@ -96,6 +97,7 @@ def test_a_bin_is_replayed_with_its_walls_distractors_and_sensor(rendered: dict[
         assert np.abs(np.diff(traced_image, axis=1)).mean() > 1.0  # sensor noise and render noise
 
 
+@pytest.mark.slow
 def test_an_interrupted_trace_resumes_with_what_is_missing(rendered: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "resumed"
     settings = PathTraceSettings(samples=2)

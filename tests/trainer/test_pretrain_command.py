@@ -26,6 +26,7 @@ def pretrained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_the_start_and_its_card(pretrained_run: Path) -> None:
     start = read_start(pretrained_run / "pretrained-start.pt")
     card = start.card

@@ -32,7 +32,7 @@ from popcode_runtime.geometry.camera import project_points
 from popcode_runtime.geometry.rotations import random_rotations
 
 from .bop import RENDER_MARKER, load_models_info, model_path
-from .gl import CentreSampledDepth, gl_pose, import_pyrender, offscreen, pyrender_camera
+from .gl import CentreSampledDepth, delete_offscreen, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
 from .scene_look import LightDraw, draw_lights
@@ -153,7 +153,7 @@ class _SceneRenderer:
 
     def close(self) -> None:
         self._depth.delete()
-        self._renderer.delete()
+        delete_offscreen(self._renderer)
 
 
 def add_lights(pyrender: Any, scene: Any, lights: list[LightDraw]) -> list[Any]:

@@ -36,7 +36,7 @@ from popcode_runtime.base.files import write_json_atomic, write_png_atomic
 
 from .bop import load_models_info, model_path
 from .depth_noise import apply_depth_noise, depth_noise_preset
-from .gl import CentreSampledDepth, PixelRegion, gl_pose, import_pyrender, offscreen, pyrender_camera
+from .gl import CentreSampledDepth, PixelRegion, delete_offscreen, gl_pose, import_pyrender, offscreen, pyrender_camera
 from .meshes import load_mesh
 from .objects import write_builtin_models
 from .render import (
@@ -180,7 +180,7 @@ class _SceneRenderer:
     def close(self) -> None:
         self._wide_depth.delete()
         self._depth.delete()
-        self._offscreen.delete()
+        delete_offscreen(self._offscreen)
 
 
 def _covered_region(mesh: trimesh.Trimesh, pose_gl: np.ndarray, K: np.ndarray, znear_mm: float,
