@@ -13,7 +13,7 @@ import trimesh
 from popcode_runtime import PopcodeError
 from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.cli import main
-from popcode_trainer.data.bop import read_bop_split
+from popcode_trainer.data.bop import RENDER_MARKER, read_bop_split
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.objects import model_info
@@ -173,6 +173,7 @@ def test_shards_are_disjoint_and_merge_into_the_unsharded_render(tiny_models: Pa
         assert stats.images == len(done[-1])
     assert done == [{"000000.json", "000002.json"}, {"000001.json", "000003.json"}]
     _check_empty_images(tiny_models, whole, settings, {1: True, 3: False})
+    assert json.loads((whole / RENDER_MARKER).read_text())["empty_share"] == 0.5
     merged = tmp_path / "merged"
     for index in range(2):
         render_scene_split(tiny_models, merged, settings, shard=(index, 2), progress=False)
@@ -211,6 +212,8 @@ def test_one_part_is_enough(tmp_path: Path) -> None:
                        progress=False)
     gts = json.loads((tmp_path / "split" / "000000" / "scene_gt.json").read_text())["0"]
     assert [gt["obj_id"] for gt in gts] == [7, 7, 7]
+    # no empty images, no entry: a split made before --empty-share existed is completed by the same settings
+    assert "empty_share" not in json.loads((tmp_path / "split" / RENDER_MARKER).read_text())
 
 
 def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
