@@ -241,8 +241,8 @@ def _camera_image(colour: np.ndarray, rng: np.random.Generator, settings: SceneS
 
 def empty_image(k: int, share: float) -> bool | None:
     """Whether image ``k`` of a split with ``share`` of its images empty holds no part: None when it holds parts,
-    else whether it keeps its distractors. Spread evenly by index (the first ``floor(n * share)`` of n images are
-    empty, every shard split draws the same) and alternating, so half the empty images are an empty bin."""
+    else whether it keeps its distractors. Spread evenly by index (of the first n images, ``floor(n * share)`` are
+    empty; every shard split draws the same) and alternating, so half the empty images are an empty bin."""
     empties_before = math.floor(k * share)
     if math.floor((k + 1) * share) == empties_before:
         return None
