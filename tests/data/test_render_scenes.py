@@ -237,11 +237,7 @@ def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys:
                 {"empty_share": 1.5}, {"empty_share": float("nan")}):
         with pytest.raises(PopcodeError):
             SceneSettings(**{"scenes": 1, **bad})
-    for share in ("-0.1", "1.01", "nan"):
-        assert main(["render", "--objects", str(tiny_models), "--out", str(tmp_path / "share"), "--scenes", "2",
-                     "--empty-share", share, "--quiet"]) == 2
-        lines = capsys.readouterr().err.strip().splitlines()
-        assert len(lines) == 1 and "--empty-share" in lines[0] and share in lines[0]
+    # the command's one line for a bad --empty-share: tests/trainer/test_hostile_trainer_inputs.py
     assert main(["render", "--objects", str(tiny_models), "--out", str(tmp_path / "share"), "--images", "2",
                  "--empty-share", "0.5"]) == 2
     assert "only with --scenes" in capsys.readouterr().err
