@@ -49,12 +49,13 @@ TRAIN_SEEDS = (21, 22)  # the first without a sensor model, the second with the 
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
 
-def render_scenes(out: Path, scenes: int, seed: int, sensor: str) -> Path:
-    """A bin split of the built-in parts (``popcode-train render --scenes``), rendered once into ``out``."""
+def render_scenes(out: Path, scenes: int, seed: int, sensor: str, empty_share: float = 0.0) -> Path:
+    """A bin split of the built-in parts (``popcode-train render --scenes``, ``empty_share`` of them without parts),
+    rendered once into ``out``."""
     if not (out / "000000" / "scene_gt.json").is_file():
         subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "render", "--objects", "builtin", "--out",
-                        str(out), "--scenes", str(scenes), "--seed", str(seed), "--sensor", sensor, "--quiet"],
-                       check=True)
+                        str(out), "--scenes", str(scenes), "--seed", str(seed), "--sensor", sensor, "--quiet",
+                        *(["--empty-share", f"{empty_share:g}"] if empty_share else [])], check=True)
     return out
 
 

@@ -13,14 +13,14 @@ import trimesh
 from popcode_runtime import PopcodeError
 from popcode_runtime.base.files import write_bytes_atomic, write_json_atomic
 from popcode_trainer.cli import main
-from popcode_trainer.data.bop import read_bop_split
+from popcode_trainer.data.bop import RENDER_MARKER, read_bop_split
 from popcode_trainer.data.gl import DepthRenderer
 from popcode_trainer.data.meshes import load_mesh
 from popcode_trainer.data.objects import model_info
 from popcode_trainer.data.scene_annotation import instance_gt_info
 from popcode_trainer.data.scene_content import Layouts, SceneContent, SceneSettings
 from popcode_trainer.data.scene_layout import PlacedObject
-from popcode_trainer.data.scene_render import render_emptied_scenes, render_scene_split
+from popcode_trainer.data.scene_render import empty_image, render_emptied_scenes, render_scene_split
 from popcode_trainer.metrics.visibility import depth_to_distance
 
 TINY = SceneSettings(scenes=4, width=96, height=72, seed=3, parts=(3, 5), distractors=(1, 2), bin_size_mm=90.0)
@@ -160,7 +160,9 @@ def _split_files(split: Path) -> dict[str, bytes]:
 
 
 def test_shards_are_disjoint_and_merge_into_the_unsharded_render(tiny_models: Path, tmp_path: Path) -> None:
-    settings = SceneSettings(scenes=3, width=48, height=40, seed=5, parts=(2, 3), bin_size_mm=90.0)
+    """With empty images too (images 1 and 3 of four at share 0.5): each shard draws the same ones."""
+    settings = SceneSettings(scenes=4, width=48, height=40, seed=5, parts=(2, 3), distractors=(1, 2),
+                             bin_size_mm=90.0, empty_share=0.5)
     whole = tmp_path / "whole"
     render_scene_split(tiny_models, whole, settings, progress=False)
     done = []
@@ -169,7 +171,9 @@ def test_shards_are_disjoint_and_merge_into_the_unsharded_render(tiny_models: Pa
                                    progress=False)
         done.append({p.name for p in (tmp_path / f"shard{index}").rglob(".popcode_records/*.json")})
         assert stats.images == len(done[-1])
-    assert done == [{"000000.json", "000002.json"}, {"000001.json"}]
+    assert done == [{"000000.json", "000002.json"}, {"000001.json", "000003.json"}]
+    _check_empty_images(tiny_models, whole, settings, {1: True, 3: False})
+    assert json.loads((whole / RENDER_MARKER).read_text())["empty_share"] == 0.5
     merged = tmp_path / "merged"
     for index in range(2):
         render_scene_split(tiny_models, merged, settings, shard=(index, 2), progress=False)
@@ -179,12 +183,37 @@ def test_shards_are_disjoint_and_merge_into_the_unsharded_render(tiny_models: Pa
         render_scene_split(tiny_models, merged, SceneSettings(scenes=3, width=48, height=40, seed=6), progress=False)
 
 
+def _check_empty_images(models: Path, split: Path, settings: SceneSettings, empty: dict[int, bool]) -> None:
+    """The images ``empty`` names (with whether they keep their distractors) list no object, have no mask and are
+    the split's emptied scenes pixel for pixel; the others hold parts; the pose reader finds no crop in them."""
+    scene = split / "000000"
+    gts, infos = (json.loads((scene / f"{name}.json").read_text()) for name in ("scene_gt", "scene_gt_info"))
+    for k in range(settings.scenes):
+        assert (gts[str(k)] == [] and infos[str(k)] == []) == (k in empty)
+        assert any((scene / "mask_visib").glob(f"{k:06d}_*.png")) == (k not in empty)
+    for k, keep_distractors in empty.items():
+        frame = render_emptied_scenes(models, settings, [k], keep_distractors)[0]
+        assert frame.tobytes() == _read(scene / "gray" / f"{k:06d}.png").tobytes()
+    crops = read_bop_split(split, models, min_visib_fract=0.0).instances
+    assert {instance.im_id for instance in crops} == set(range(settings.scenes)) - set(empty)
+
+
+def test_empty_share_is_exact_spread_and_half_without_distractors() -> None:
+    for scenes, share in ((10, 0.2), (7, 0.5), (20, 0.35), (5, 1.0), (5, 0.0)):
+        drawn = [empty_image(k, share) for k in range(scenes)]
+        empties = [keep for keep in drawn if keep is not None]
+        assert len(empties) == int(scenes * share)
+        assert empties.count(True) == (len(empties) + 1) // 2  # alternating, the first with its distractors
+
+
 def test_one_part_is_enough(tmp_path: Path) -> None:
     models = _write_models(tmp_path / "models", {7: trimesh.creation.box(extents=(20.0, 14.0, 8.0))})
     render_scene_split(models, tmp_path / "split", SceneSettings(scenes=1, width=48, height=40, parts=(3, 3)),
                        progress=False)
     gts = json.loads((tmp_path / "split" / "000000" / "scene_gt.json").read_text())["0"]
     assert [gt["obj_id"] for gt in gts] == [7, 7, 7]
+    # no empty images, no entry: a split made before --empty-share existed is completed by the same settings
+    assert "empty_share" not in json.loads((tmp_path / "split" / RENDER_MARKER).read_text())
 
 
 def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -204,9 +233,15 @@ def test_bad_input_is_one_clear_error(tiny_models: Path, tmp_path: Path, capsys:
         render_scene_split(flat, tmp_path / "flat_split", SceneSettings(scenes=1, width=32, height=32),
                            progress=False)
     for bad in ({"parts": (0, 2)}, {"parts": (3, 2)}, {"fill_range": (0.0, 1.0)}, {"max_tilt_deg": 90.0},
-                {"sensor": "fisheye"}, {"scenes": 0}, {"width": 100_000}):
+                {"sensor": "fisheye"}, {"scenes": 0}, {"width": 100_000}, {"empty_share": -0.1},
+                {"empty_share": 1.5}, {"empty_share": float("nan")}):
         with pytest.raises(PopcodeError):
             SceneSettings(**{"scenes": 1, **bad})
+    # the command's one line for a bad --empty-share: tests/trainer/test_hostile_trainer_inputs.py
+    assert main(["render", "--objects", str(tiny_models), "--out", str(tmp_path / "share"), "--images", "2",
+                 "--empty-share", "0.5"]) == 2
+    assert "only with --scenes" in capsys.readouterr().err
+    assert not (tmp_path / "share").exists()
 
 
 def test_an_emptied_scene_is_its_bin_without_its_parts(tiny_models, tiny_scenes):

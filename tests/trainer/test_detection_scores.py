@@ -110,6 +110,17 @@ def test_false_positives_lower_ap_only_when_they_outrank_the_hits(split: Path) -
     assert detection_scores(split, [*perfect(), behind]).coco["AP"] == pytest.approx(1.0)
 
 
+def test_a_box_on_an_image_without_parts_is_a_false_positive(tmp_path: Path) -> None:
+    """``render --empty-share`` writes images whose ground truth is an empty list: they are scored, with no
+    instance, so every box on them is a false positive."""
+    split = write_split(tmp_path / "split", {0: {0: [A, B], 1: []}})
+    on_empty = Detection(0, 1, 1, (10.0, 10.0, 20.0, 20.0), 0.95)
+    scores = detection_scores(split, [hit(0, 0, A), hit(0, 0, B), on_empty])
+    assert (scores.images, scores.instances, scores.detections) == (2, 2, 3)
+    assert scores.ap_per_object[1] < 1.0 and scores.ap_per_object[2] == pytest.approx(1.0)
+    assert scores.recall_goal.found == 2
+
+
 def test_an_instance_under_10_percent_visible_is_ignored(tmp_path: Path) -> None:
     split = write_split(tmp_path / "split", {0: {0: [A, FEW_VISIBLE]}})
     missed = detection_scores(split, [hit(0, 0, A)])

@@ -295,6 +295,10 @@ CASES = [
         "render", "--objects", "builtin", "--scenes", "1", "--bin-size-mm", value, "--out", str(f / "r")],
        f"0 <= bin_size_mm <= 100000 and 0 < visib_delta_mm <= 100000, got 35.0, {shown} and")
       for value, shown in (("nan", "nan"), ("inf", "inf"), ("-3.0", "-3.0"), ("1e9", "1000000000.0"))),
+    *((f"render-empty-share-{value}", lambda f, value=value: [
+        "render", "--objects", "builtin", "--scenes", "1", "--empty-share", value, "--out", str(f / "r")],
+       f"empty_share (--empty-share: the share of images without parts) must lie in [0, 1], got {shown}")
+      for value, shown in (("nan", "nan"), ("-0.1", "-0.1"), ("1.5", "1.5"))),
     # A split whose parts are too small to see used to be written and exit 0.
     ("render-scenes-nothing-visible", lambda f: ["render", "--objects", "builtin", "--scenes", "1", "--size", "64",
                                                  "48", "--bin-size-mm", "100000", "--out", str(f / "specks")],

@@ -20,7 +20,8 @@ from ..data.sensor import SENSOR_PRESETS
 
 SINGLE_OBJECT_SIZE = (128, 128)
 SCENE_SIZE = (720, 540)
-SCENE_OPTIONS = ("parts", "distractors", "bin", "bin_size_mm", "sensor")  # SceneSettings fields; None: its default
+# SceneSettings fields; None: its default
+SCENE_OPTIONS = ("parts", "distractors", "bin", "bin_size_mm", "sensor", "empty_share")
 SHARD_LOCK = ".render-{index}-of-{count}.lock"  # held in the split folder while a render writes that shard
 SHARD_LOCK_NAME = re.compile(r"\.render-\d+-of-\d+\.lock")
 
@@ -64,6 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="camera effects (noise, blur, exposure, gamma, JPEG) and a depth camera's depth "
                              "(noise, holes, quantisation) resembling a camera kind (default none: exact depth; "
                              "see the README)")
+    scenes.add_argument("--empty-share", type=float, metavar="P",
+                        help="share of the images without parts, half of them also without distractors (their "
+                             "ground-truth lists are empty): negatives for train-detector (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(handler=run)
 

@@ -38,6 +38,7 @@ class SceneSettings:
     max_tilt_deg: float = 35.0  # camera axis from the vertical
     visib_delta_mm: float = BOP_VISIB_DELTA_MM
     sensor: str = "none"  # a name in sensor.SENSOR_PRESETS
+    empty_share: float = 0.0  # images without parts (half of them without distractors too): a detector's negatives
 
     def __post_init__(self) -> None:
         check_count_and_seed(self.scenes, "scenes", self.seed)
@@ -55,6 +56,9 @@ class SceneSettings:
             raise PopcodeError(f"need 0 <= max_tilt_deg <= 70, 0 <= bin_size_mm <= {MAX_BIN_MM:g} and "
                                f"0 < visib_delta_mm <= {MAX_BIN_MM:g}, got {self.max_tilt_deg}, {self.bin_size_mm} "
                                f"and {self.visib_delta_mm}")
+        if not 0.0 <= self.empty_share <= 1.0:  # NaN fails this test too
+            raise PopcodeError(f"empty_share (--empty-share: the share of images without parts) must lie in [0, 1], "
+                               f"got {self.empty_share}")
         sensor_preset(self.sensor)
 
 

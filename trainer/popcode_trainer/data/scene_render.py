@@ -10,6 +10,10 @@ What an image holds is drawn by :mod:`.scene_content`; annotations are computed 
 visible (rare: the camera aims at the bin) is drawn again, up to :data:`MAX_CAMERA_TRIES` times;
 after that it is written as it is, every instance with ``visib_fract`` 0, which readers skip.
 
+A share of the images (``SceneSettings.empty_share``, :func:`empty_image`) holds no part: the image's first draw
+with its parts taken out, half of them with their distractors; their ``scene_gt`` and ``scene_gt_info`` lists are
+empty. They teach a detector what to leave alone; the pose models' readers find no instance in them.
+
 Masks and visibility are ground truth, computed from the exact rendered depth. The depth written to
 ``depth/`` is what the sensor preset's depth camera measures (:mod:`.depth_noise`: noise, holes,
 quantisation; exact with ``none``), as a real split's depth is; ``px_count_valid`` counts the written
@@ -20,6 +24,7 @@ exact depth.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -234,11 +239,32 @@ def _camera_image(colour: np.ndarray, rng: np.random.Generator, settings: SceneS
     return cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY) if settings.gray else colour
 
 
-def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
-                  k: int, settings: SceneSettings) -> int:
-    """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
-    rng = np.random.default_rng([settings.seed, k])
-    K = camera_matrix(settings.width, settings.height)
+def empty_image(k: int, share: float) -> bool | None:
+    """Whether image ``k`` of a split with ``share`` of its images empty holds no part: None when it holds parts,
+    else whether it keeps its distractors. Spread evenly by index (of the first n images, ``floor(n * share)`` are
+    empty; every shard split draws the same) and alternating, so half the empty images are an empty bin."""
+    empties_before = math.floor(k * share)
+    if math.floor((k + 1) * share) == empties_before:
+        return None
+    return empties_before % 2 == 0
+
+
+def _emptied_world(layouts: Layouts, rng: np.random.Generator, K: np.ndarray,
+                   keep_distractors: bool) -> tuple[SceneContent, SceneLook]:
+    """The first draw of an image's world and look with its target parts taken out (its distractors too unless
+    ``keep_distractors``), each object that stays with its own material."""
+    content = layouts.draw(rng, K)
+    look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
+    kept = content.distractors if keep_distractors else []
+    look = replace(look, objects=look.objects[len(content.targets):][:len(kept)])  # targets' come first
+    return replace(content, targets=[], distractors=kept), look
+
+
+def _render_parts(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], k: int,
+                  settings: SceneSettings, rng: np.random.Generator, K: np.ndarray
+                  ) -> tuple[SceneContent, np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray, dict]]]:
+    """Image ``k``'s world, colour, scene depth [mm] and each target's masks and ``scene_gt_info``, drawn again
+    while no target is visible."""
     for _ in range(MAX_CAMERA_TRIES):  # a draw that shows no target (rare) is drawn again
         content = layouts.draw(rng, K)
         look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
@@ -246,10 +272,23 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
         results = [instance_gt_info(alone, depth_scene_mm, K, settings.visib_delta_mm, count, box, region)
                    for (alone, region), (count, box) in zip(alone_mm, whole, strict=True)]
         if any(info["px_count_visib"] for _, _, info in results):
-            break
+            return content, colour, depth_scene_mm, results
+    raise PopcodeError(f"scene image {k}: no target part is visible in {MAX_CAMERA_TRIES} draws of the bin; are "
+                       "the models in millimetres and the bin (--bin-size-mm) in proportion to them?")
+
+
+def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
+                  k: int, settings: SceneSettings) -> int:
+    """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
+    rng = np.random.default_rng([settings.seed, k])
+    K = camera_matrix(settings.width, settings.height)
+    keep_distractors = empty_image(k, settings.empty_share)
+    if keep_distractors is not None:  # the first draw with its parts taken out, as render_emptied_scenes makes it
+        content, look = _emptied_world(layouts, rng, K, keep_distractors)
+        colour, depth_scene_mm, _, _ = renderer.render(content, look, meshes, K)
+        results = []
     else:
-        raise PopcodeError(f"scene image {k}: no target part is visible in {MAX_CAMERA_TRIES} draws of the bin; are "
-                           "the models in millimetres and the bin (--bin-size-mm) in proportion to them?")
+        content, colour, depth_scene_mm, results = _render_parts(renderer, layouts, meshes, k, settings, rng, K)
     scene_id, im_id = _location(k)
     scene_dir = out_dir / f"{scene_id:06d}"
     stem = f"{im_id:06d}"
@@ -314,7 +353,7 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
         raise PopcodeError(f"object ids {unknown or '[]'} are not in {models_dir / 'models_info.json'} "
                            f"(it lists {sorted(models_info)})")
     out_dir.mkdir(parents=True, exist_ok=True)
-    check_settings(out_dir, {**_plain(asdict(settings)), "obj_ids": obj_ids, "kind": "scenes",
+    check_settings(out_dir, {**_settings_record(settings), "obj_ids": obj_ids, "kind": "scenes",
                              **_depth_noise_record(settings.sensor),
                              "objects": models_digest(models_dir, models_info, obj_ids)})
     shard_index, shard_count = shard
@@ -346,6 +385,15 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
 
 def _plain(settings: dict[str, Any]) -> dict[str, Any]:
     return {key: list(value) if isinstance(value, tuple) else value for key, value in settings.items()}
+
+
+def _settings_record(settings: SceneSettings) -> dict[str, Any]:
+    """The settings as the split records them; a split without empty images has no ``empty_share`` entry, as
+    splits made before the option existed, so either can be completed."""
+    record = _plain(asdict(settings))
+    if not settings.empty_share:
+        del record["empty_share"]
+    return record
 
 
 def _depth_noise_record(sensor: str) -> dict[str, Any]:
@@ -393,11 +441,7 @@ def render_emptied_scenes(models_dir: str | Path, settings: SceneSettings, indic
     try:
         for k in indices:
             rng = np.random.default_rng([settings.seed, k])
-            content = layouts.draw(rng, K)
-            look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
-            kept = content.distractors if keep_distractors else []
-            look = replace(look, objects=look.objects[len(content.targets):][:len(kept)])  # targets' come first
-            colour = renderer.render(replace(content, targets=[], distractors=kept), look, meshes, K)[0]
+            colour = renderer.render(*_emptied_world(layouts, rng, K, keep_distractors), meshes, K)[0]
             frames.append(_camera_image(colour, rng, settings))
     finally:
         renderer.close()

@@ -43,7 +43,11 @@ class Frame:
 
 def read_frames(splits: Sequence[str | Path], obj_ids: Sequence[int], config: DetectorConfig) -> list[Frame]:
     """Every annotated image of the scene ``splits`` with its instances of ``obj_ids`` at least
-    ``config.min_visib_fract`` visible (the box of ``config.box_kind``), scaled to the detector's input."""
+    ``config.min_visib_fract`` visible (the box of ``config.box_kind``), scaled to the detector's input.
+
+    An image with no such instance (``render --empty-share`` writes some: an empty bin, distractors only) is a
+    frame with an empty target, all background to the detector's loss: the negatives that teach it to leave an
+    empty frame alone."""
     classes = {obj_id: index for index, obj_id in enumerate(obj_ids)}
     frames = []
     for split in map(Path, splits):
