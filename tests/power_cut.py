@@ -10,6 +10,10 @@ after the cut:
   a file never synced reads empty: delayed allocation had not even given its blocks a place);
 - a rename only once the folder it was made in is synced afterwards (otherwise the folder still names what it
   named before, here: nothing, since each test writes into a fresh folder).
+
+A ``syncfs`` of the file system (:func:`popcode_runtime.base.files.sync_file_system`, what a
+:class:`~popcode_runtime.base.files.SyncBatch` commits with) counts as an ``fsync`` of every file and folder; with
+``syncfs=False`` the model answers that the system has none, so the batch falls back to syncing file by file.
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+
+from popcode_runtime.base import files
 
 Inode = tuple[int, int]  # (st_dev, st_ino)
 
@@ -33,9 +39,10 @@ class PowerCut:
 
     events: list[tuple[str, Inode, Inode | None]] = field(default_factory=list)  # (what, file, its folder)
     synced_size: dict[Inode, int] = field(default_factory=dict)  # file -> bytes on disk
+    renamed_to: dict[Inode, Path] = field(default_factory=dict)  # file -> the name it was renamed to
 
-    def install(self, monkeypatch: pytest.MonkeyPatch) -> PowerCut:
-        real_fsync, real_replace = os.fsync, os.replace
+    def install(self, monkeypatch: pytest.MonkeyPatch, syncfs: bool = True) -> PowerCut:
+        real_fsync, real_replace, real_syncfs = os.fsync, os.replace, files.sync_file_system
 
         def fsync(descriptor: int) -> None:
             real_fsync(descriptor)
@@ -48,9 +55,20 @@ class PowerCut:
             real_replace(source, target, **arguments)
             folder = Path(os.path.abspath(target)).parent
             self.events.append(("replace", moved, _inode(os.stat(folder))))
+            self.renamed_to[moved] = Path(os.path.abspath(target))
+
+        def sync_file_system(folder: Path) -> bool:
+            if not syncfs or not real_syncfs(folder):
+                return False
+            self.events.append(("syncfs", (0, 0), None))
+            for inode, path in self.renamed_to.items():
+                if path.is_file() and _inode(path.stat()) == inode:
+                    self.synced_size[inode] = path.stat().st_size
+            return True
 
         monkeypatch.setattr(os, "fsync", fsync)
         monkeypatch.setattr(os, "replace", replace)
+        monkeypatch.setattr(files, "sync_file_system", sync_file_system)
         return self
 
     def renames(self) -> list[tuple[int, Inode, Inode]]:
@@ -69,14 +87,18 @@ class PowerCut:
                 unsafe.append(f"rename {at}: its folder was not synced after it")
         return unsafe
 
-    def survivor(self, path: Path) -> bytes | None:
+    def survivor(self, path: Path, journal_committed: bool = False, written_back: bool = False) -> bytes | None:
         """What a reader finds at ``path`` after a power cut now: None if the folder's entry for it is lost, else
-        its bytes that reached the disk."""
+        its bytes that reached the disk. ``journal_committed``: the file system's own periodic commit came just
+        before the cut, so every rename made is on disk whatever was synced; ``written_back``: so did the page
+        cache's writeback of this file's data (without it, data reaches the disk only by a sync). The two files of
+        an ordering are asked with opposite ``written_back``: the system writes files back in no promised order."""
         if not path.is_file():
             return None
         inode = _inode(path.stat())
-        durable = [at for at, moved, folder in self.renames()
-                   if moved == inode and ("fsync", folder, None) in self.events[at + 1:]]
+        durable = [at for at, moved, folder in self.renames() if moved == inode and (journal_committed or
+                   {("fsync", folder, None), ("syncfs", (0, 0), None)} & set(self.events[at + 1:]))]
         if not durable:
             return None
-        return path.read_bytes()[:self.synced_size.get(inode, 0)]
+        data = path.read_bytes()
+        return data if written_back else data[:self.synced_size.get(inode, 0)]

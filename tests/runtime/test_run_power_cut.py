@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from power_cut import PowerCut
 
-from popcode_runtime.base.files import atomic_path, write_bytes_atomic
+from popcode_runtime.base.files import SyncBatch, atomic_path, write_bytes_atomic
 from popcode_runtime.commands.cli import main
 from popcode_trainer.data.render import render_builtin_split
 
@@ -34,3 +34,18 @@ def test_a_write_that_fails_leaves_the_old_file_and_no_temporary(tmp_path: Path)
         temporary.write_bytes(b"half")
         raise RuntimeError("the writer failed")
     assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+@pytest.mark.parametrize("syncfs", [True, False], ids=["syncfs", "fsync-each-file"])
+def test_a_sync_batch_makes_its_files_durable_only_at_its_commit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                 syncfs: bool) -> None:
+    cut = PowerCut().install(monkeypatch, syncfs=syncfs)
+    batch = SyncBatch()
+    paths = [tmp_path / "a" / "one.png", tmp_path / "b" / "two.png"]
+    for path in paths:
+        path.parent.mkdir()
+        write_bytes_atomic(path, path.name.encode(), batch)
+    assert [cut.survivor(path) for path in paths] == [None, None]
+    assert [cut.survivor(path, journal_committed=True) for path in paths] == [b"", b""]  # renamed, data not synced
+    batch.commit()
+    assert [cut.survivor(path) for path in paths] == [b"one.png", b"two.png"]

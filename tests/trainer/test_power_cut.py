@@ -17,6 +17,7 @@ from power_cut import PowerCut
 from popcode_runtime.base.files import temporary_name
 from popcode_runtime.coding.population_code import CodeLayout
 from popcode_runtime.model.metadata import ModelMetadata, Representation
+from popcode_trainer.data import render
 from popcode_trainer.export.onnx_export import export_onnx
 from popcode_trainer.train import checkpoint
 from popcode_trainer.train.epoch_record import append_metrics
@@ -70,3 +71,69 @@ def test_a_checkpoint_save_removes_what_a_dead_writer_left(tmp_path: Path) -> No
     running.write_bytes(b"another run's checkpoint, being written")
     checkpoint.save_atomic({"epoch": 1}, path)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, running.name])
+
+
+@pytest.mark.parametrize("syncfs", [True, False], ids=["syncfs", "fsync-each-file"])
+def test_a_rendered_image_marked_done_survives_a_power_cut(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            syncfs: bool) -> None:
+    """A render renames its images unsynced and syncs them in batches (the per-file syncs cost it a third of its
+    time): a cut right after any record is written, even one after the file system wrote back that record but
+    not its images, must find every image that a record marks done whole (a record read back empty marks nothing
+    done: ``test_a_record_read_back_empty_is_rendered_again``)."""
+    cut = PowerCut().install(monkeypatch, syncfs=syncfs)
+    monkeypatch.setattr(render, "RECORD_BATCH", 2)  # several batches in a small split
+    real_write_json = render.write_json_atomic
+    checked = []
+
+    def write_record_then_cut(path: Path, data: object, batch: object = None) -> None:
+        real_write_json(path, data, batch)
+        if path.parent.name == render.RECORDS_FOLDER:
+            checked.append(_done_images_survive(cut, tmp_path / "split"))
+
+    monkeypatch.setattr(render, "write_json_atomic", write_record_then_cut)
+    render.render_builtin_split(tmp_path / "split", 5, size=(64, 64), obj_ids=[1])
+    assert checked and all(checked), "an image marked done was lost or empty after a power cut"
+    records = sorted((tmp_path / "split" / "000001" / render.RECORDS_FOLDER).glob("*.json"))
+    assert len(records) == 5 and all(cut.survivor(record) == record.read_bytes() for record in records)
+
+
+def _done_images_survive(cut: PowerCut, split: Path) -> bool:
+    """Whether, after a power cut now that finds every record written, the picture, depth and mask each one marks
+    done are whole though none of them was written back unsynced."""
+    scene = split / "000001"
+    for record in (scene / render.RECORDS_FOLDER).glob("*.json"):
+        if cut.survivor(record, journal_committed=True, written_back=True) is None:
+            continue
+        for image in (scene / "gray" / f"{record.stem}.png", scene / "depth" / f"{record.stem}.png",
+                      scene / "mask_visib" / f"{record.stem}_000000.png"):
+            if cut.survivor(image, journal_committed=True) != image.read_bytes():
+                return False
+    return True
+
+
+def test_a_stopped_render_keeps_the_images_it_finished(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Images wait for their batch's sync before their records are written; a render stopped mid-batch (Ctrl-C, an
+    error) still writes the records of those it finished, so a rerun does not render them again."""
+    real_render_one, rendered = render._render_one, []
+
+    def stop_after_three(*arguments: object) -> None:
+        if len(rendered) == 3:
+            raise KeyboardInterrupt
+        real_render_one(*arguments)
+        rendered.append(arguments[3])
+
+    monkeypatch.setattr(render, "_render_one", stop_after_three)
+    with pytest.raises(KeyboardInterrupt):
+        render.render_builtin_split(tmp_path / "split", 6, size=(64, 64), obj_ids=[1])
+    records = sorted(path.stem for path in (tmp_path / "split" / "000001" / render.RECORDS_FOLDER).glob("*.json"))
+    assert records == [f"{im_id:06d}" for im_id in rendered]
+
+
+def test_a_record_read_back_empty_is_rendered_again(tmp_path: Path) -> None:
+    split = render.render_builtin_split(tmp_path / "split", 3, size=(64, 64), obj_ids=[1])
+    record = split / "000001" / render.RECORDS_FOLDER / "000001.json"
+    whole = record.read_bytes()
+    record.write_bytes(b"")  # what a power cut before the batch's commit can leave
+    assert not render.image_done(record)
+    render.render_builtin_split(tmp_path / "split", 3, size=(64, 64), obj_ids=[1])
+    assert record.read_bytes() == whole

@@ -7,11 +7,16 @@ forms :func:`atomic_file`, :func:`write_bytes_atomic`, :func:`append_synced`): t
 unique to the writer in the same folder, are synced to disk, renamed over the target, and the folder is synced so
 the rename itself is on disk. A killed process only stops the page cache from being written back later; a power
 cut drops whatever was not synced, so without the syncs a renamed file could read back empty.
+
+A writer of many small files (a render's images) passes a :class:`SyncBatch` instead: each file is renamed into
+place unsynced and the batch makes them all durable at once (a sync a file cost a render a third of its time:
+bench/results/synced-writes-cost.md); such a writer marks its work done only after the batch's commit.
 """
 
 from __future__ import annotations
 
 import csv
+import ctypes
 import errno
 import io
 import json
@@ -20,6 +25,7 @@ import os
 import re
 import secrets
 import socket
+import sys
 import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -178,32 +184,79 @@ def sync_folder(folder: Path) -> None:
         os.close(descriptor)
 
 
+_LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+
+
+def sync_file_system(folder: Path) -> bool:
+    """Force everything written to ``folder``'s file system to disk with one ``syncfs`` (Linux); False where the
+    system has none or refuses it (the caller then syncs file by file)."""
+    syncfs = getattr(_LIBC, "syncfs", None)
+    if syncfs is None:
+        return False
+    descriptor = os.open(folder, os.O_RDONLY)
+    try:
+        return syncfs(descriptor) == 0
+    finally:
+        os.close(descriptor)
+
+
+class SyncBatch:
+    """Atomic writes whose syncs are paid once for many files: :func:`atomic_path` given a batch renames each file
+    into place unsynced and :meth:`commit` makes every file written so far durable (one ``syncfs`` per file system,
+    else an ``fsync`` of each file and folder). Until the commit a power cut may leave any of them empty, so a
+    writer marks its work done only after it."""
+
+    def __init__(self) -> None:
+        self._written: list[Path] = []
+
+    def add(self, path: Path) -> None:
+        self._written.append(path)
+
+    def commit(self) -> None:
+        written, self._written = self._written, []
+        by_device: dict[int, list[Path]] = {}
+        for path in written:
+            by_device.setdefault(path.parent.stat().st_dev, []).append(path)
+        for paths in by_device.values():
+            if not sync_file_system(paths[0].parent):
+                for path in paths:
+                    sync_file(path)
+                for folder in dict.fromkeys(path.parent for path in paths):
+                    sync_folder(folder)
+
+
 @contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, batch: SyncBatch | None = None) -> Iterator[Path]:
     """The one atomic write: yields a temporary path beside ``path`` for a writer that wants a file name
     (``torch.save``, ``np.lib.format.open_memmap``); when the block ends without an error the file is synced,
-    renamed over ``path`` and the folder synced; on an error it is removed and ``path`` keeps what it held."""
+    renamed over ``path`` and the folder synced (with a ``batch``: renamed, and synced by the batch's commit); on
+    an error it is removed and ``path`` keeps what it held."""
     path = Path(path)
     temporary = temporary_name(path)
     try:
         yield temporary
-        sync_file(temporary)
+        if batch is None:
+            sync_file(temporary)
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
-    sync_folder(path.parent)
+    if batch is None:
+        sync_folder(path.parent)
+    else:
+        batch.add(path)
 
 
 @contextmanager
-def atomic_file(path: str | os.PathLike, mode: str = "wb", **open_arguments: Any) -> Iterator[IO]:
+def atomic_file(path: str | os.PathLike, mode: str = "wb", batch: SyncBatch | None = None,
+                **open_arguments: Any) -> Iterator[IO]:
     """:func:`atomic_path` for a writer that wants an open handle (``np.save``, ``csv.writer``)."""
-    with atomic_path(path) as temporary, temporary.open(mode, **open_arguments) as handle:
+    with atomic_path(path, batch) as temporary, temporary.open(mode, **open_arguments) as handle:
         yield handle
 
 
-def write_bytes_atomic(path: Path, data: bytes) -> None:
+def write_bytes_atomic(path: Path, data: bytes, batch: SyncBatch | None = None) -> None:
     """``data`` as the whole of ``path``, written with :func:`atomic_path`."""
-    with atomic_file(path) as handle:
+    with atomic_file(path, batch=batch) as handle:
         handle.write(data)
 
 
@@ -241,8 +294,8 @@ def json_bytes(data: Any) -> bytes:
     return json.dumps(data, indent=1).encode()
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
-    write_bytes_atomic(path, json_bytes(data))
+def write_json_atomic(path: Path, data: Any, batch: SyncBatch | None = None) -> None:
+    write_bytes_atomic(path, json_bytes(data), batch)
 
 
 def check_writable_file(value: str | os.PathLike, what: str, inputs: Iterable[str | os.PathLike] = ()) -> Path:
@@ -310,7 +363,8 @@ def check_picture_path(value: str | os.PathLike, what: str = "picture path", inp
     return path
 
 
-def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray, params: Sequence[int] = ()) -> Path:
+def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray, params: Sequence[int] = (),
+                         batch: SyncBatch | None = None) -> Path:
     """Encode a BGR (or grey) uint8/uint16 image in the format its suffix names (OpenCV's ``params``, such as
     ``[cv2.IMWRITE_JPEG_QUALITY, 85]``) and write it atomically."""
     path = check_picture_path(path)
@@ -318,10 +372,10 @@ def write_picture_atomic(path: str | os.PathLike, image_bgr: np.ndarray, params:
         ok, encoded = cv2.imencode(path.suffix.lower(), np.ascontiguousarray(image_bgr), list(params))
     if not ok:
         raise PopcodeError(f"cannot encode {path.name} as {path.suffix.lstrip('.').upper()}")
-    write_bytes_atomic(path, encoded.tobytes())
+    write_bytes_atomic(path, encoded.tobytes(), batch)
     return path
 
 
-def write_png_atomic(path: Path, image: np.ndarray) -> None:
+def write_png_atomic(path: Path, image: np.ndarray, batch: SyncBatch | None = None) -> None:
     """PNG of a grey ``(H, W)`` or RGB ``(H, W, 3)`` uint8/uint16 image."""
-    write_picture_atomic(path, image[..., ::-1] if image.ndim == 3 else image)  # OpenCV writes BGR
+    write_picture_atomic(path, image[..., ::-1] if image.ndim == 3 else image, batch=batch)  # OpenCV writes BGR

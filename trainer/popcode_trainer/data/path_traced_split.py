@@ -41,7 +41,7 @@ from .path_trace import (
     plastic_bsdf,
     textured_bsdf,
 )
-from .render import BUILTIN_MODELS_FOLDER, RECORDS_FOLDER, check_settings, finalize_scene, models_digest
+from .render import BUILTIN_MODELS_FOLDER, RECORDS_FOLDER, check_settings, finalize_scene, image_done, models_digest
 from .scene_content import Layouts, SceneContent, SceneSettings
 from .scene_layout import model_to_camera
 from .scene_look import SceneLook, draw_scene_look
@@ -176,7 +176,7 @@ def path_trace_split(source: str | Path, out: str | Path, settings: PathTraceSet
     if (source / BUILTIN_MODELS_FOLDER).is_dir() and not (out / BUILTIN_MODELS_FOLDER / "models_info.json").is_file():
         _copy_models(source / BUILTIN_MODELS_FOLDER, out / BUILTIN_MODELS_FOLDER)
     todo = [(scene_id, im_id) for scene_id, im_id in _images(source)
-            if not (out / f"{scene_id:06d}" / RECORDS_FOLDER / f"{im_id:06d}.json").is_file()]
+            if not image_done(out / f"{scene_id:06d}" / RECORDS_FOLDER / f"{im_id:06d}.json")]
     start = time.perf_counter()
     if todo:
         mitsuba = import_mitsuba()

@@ -37,7 +37,7 @@ import trimesh
 from tqdm import tqdm
 
 from popcode_runtime.base.errors import PopcodeError
-from popcode_runtime.base.files import write_json_atomic, write_png_atomic
+from popcode_runtime.base.files import write_png_atomic
 
 from .bop import load_models_info, model_path
 from .depth_noise import apply_depth_noise, depth_noise_preset
@@ -48,10 +48,12 @@ from .render import (
     BUILTIN_MODELS_FOLDER,
     DEPTH_SCALE_MM,
     RECORDS_FOLDER,
+    ImageRecords,
     add_lights,
     camera_matrix,
     check_settings,
     finalize_scene,
+    image_done,
     models_digest,
 )
 from .scene_annotation import instance_gt_info, moved_box
@@ -278,7 +280,7 @@ def _render_parts(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
 
 
 def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, trimesh.Trimesh], out_dir: Path,
-                  k: int, settings: SceneSettings) -> int:
+                  k: int, settings: SceneSettings, records: ImageRecords) -> int:
     """Render and write image ``k`` with its masks and record; returns how many targets it shows."""
     rng = np.random.default_rng([settings.seed, k])
     K = camera_matrix(settings.width, settings.height)
@@ -293,20 +295,22 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
     scene_dir = out_dir / f"{scene_id:06d}"
     stem = f"{im_id:06d}"
     write_png_atomic(scene_dir / ("gray" if settings.gray else "rgb") / f"{stem}.png",
-                     _camera_image(colour, rng, settings))
+                     _camera_image(colour, rng, settings), records.files)
     # Drawn after every annotation: the ground truth above stays the exact depth's (module docstring).
     depth_noise = depth_noise_preset(settings.sensor)
     measured_mm = depth_scene_mm if depth_noise is None else apply_depth_noise(depth_scene_mm, K, colour, rng,
                                                                                depth_noise)
     depth_png = np.clip(np.round(measured_mm / DEPTH_SCALE_MM), 0, 65535).astype(np.uint16)
-    write_png_atomic(scene_dir / "depth" / f"{stem}.png", depth_png)
+    write_png_atomic(scene_dir / "depth" / f"{stem}.png", depth_png, records.files)
     if depth_noise is not None:
         for mask, _, info in results:
             info["px_count_valid"] = int((depth_png[mask] > 0).sum())
     scene_gt = []
     for gt_index, (placed, (mask, mask_visib, _)) in enumerate(zip(content.targets, results, strict=True)):
-        write_png_atomic(scene_dir / "mask" / f"{stem}_{gt_index:06d}.png", mask.astype(np.uint8) * 255)
-        write_png_atomic(scene_dir / "mask_visib" / f"{stem}_{gt_index:06d}.png", mask_visib.astype(np.uint8) * 255)
+        write_png_atomic(scene_dir / "mask" / f"{stem}_{gt_index:06d}.png", mask.astype(np.uint8) * 255,
+                         records.files)
+        write_png_atomic(scene_dir / "mask_visib" / f"{stem}_{gt_index:06d}.png", mask_visib.astype(np.uint8) * 255,
+                         records.files)
         R_m2c, t_m2c_mm = model_to_camera(placed, content.R_w2c, content.t_w2c_mm)
         scene_gt.append({"cam_R_m2c": R_m2c.ravel().tolist(), "cam_t_m2c": t_m2c_mm.tolist(), "obj_id": placed.key})
     record = {
@@ -315,7 +319,7 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
         "scene_camera": {"cam_K": K.ravel().tolist(), "depth_scale": DEPTH_SCALE_MM,
                          "cam_R_w2c": content.R_w2c.ravel().tolist(), "cam_t_w2c": content.t_w2c_mm.tolist()},
     }
-    write_json_atomic(scene_dir / RECORDS_FOLDER / f"{stem}.json", record)  # last: marks the image done
+    records.done(scene_dir / RECORDS_FOLDER / f"{stem}.json", record)
     return len(scene_gt)
 
 
@@ -358,7 +362,7 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
                              "objects": models_digest(models_dir, models_info, obj_ids)})
     shard_index, shard_count = shard
     todo = [k for k in range(shard_index, settings.scenes, shard_count)
-            if not (out_dir / f"{_location(k)[0]:06d}" / RECORDS_FOLDER / f"{_location(k)[1]:06d}.json").is_file()]
+            if not image_done(out_dir / f"{_location(k)[0]:06d}" / RECORDS_FOLDER / f"{_location(k)[1]:06d}.json")]
     start, instances = time.perf_counter(), 0
     if todo:
         meshes = load_scene_meshes(models_dir, obj_ids)  # every mesh read and checked before GL starts
@@ -370,10 +374,11 @@ def render_scene_split(models_dir: str | Path, out_dir: str | Path, settings: Sc
         try:
             # settings under which no part can be seen show in the first image: the bar opens after it, so their
             # refusal is the only line
-            instances += _render_image(renderer, layouts, meshes, out_dir, todo[0], settings)
-            for k in tqdm(todo[1:], desc="render scenes", unit="img", disable=not progress, initial=1,
-                          total=len(todo)):
-                instances += _render_image(renderer, layouts, meshes, out_dir, k, settings)
+            with ImageRecords() as records:
+                instances += _render_image(renderer, layouts, meshes, out_dir, todo[0], settings, records)
+                for k in tqdm(todo[1:], desc="render scenes", unit="img", disable=not progress, initial=1,
+                              total=len(todo)):
+                    instances += _render_image(renderer, layouts, meshes, out_dir, k, settings, records)
         finally:
             renderer.close()
     seconds = time.perf_counter() - start
