@@ -2,16 +2,19 @@
 the bin's MSSD end to end from its boxes beside the true and detector-like boxes, and the whole frame's latency.
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
-        [--set detector.KEY=VALUE ...] [--copy-to models/builtin-parts-detector.onnx] [--measure-only]
+        [--empty-scenes 0] [--snapshot-every 5] [--set detector.KEY=VALUE ...]
+        [--copy-to models/builtin-parts-detector.onnx] [--measure-only]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
-and exposure, as the demo's scenes; the sizes given by ``--scenes``), a validation bin split (seed 4000,
+and exposure, as the demo's scenes; the sizes given by ``--scenes``; ``--empty-scenes`` bins without parts, seed
+23 with the industrial camera, half of them with distractors), a validation bin split (seed 4000,
 industrial, 60 scenes: the project's cluttered validation seed) and the unseen bin split the shipped pose
 models are scored on (seed 6002, industrial, 30 scenes: ``models/README.md``); trains ``popcode-train
 train-detector`` for ``--epochs`` (rerun to resume: every step keeps what it finished); exports; scores the
 detector on both bin splits (COCO AP as the BOP toolkit) and the shipped pose models from its boxes
 (``popcode run``'s loop, matched by score as the toolkit does), and AP on the validation split of every
-snapshot in ``WORK/snapshots`` (checkpoints copied while the run went). Writes
+snapshot in ``WORK/snapshots`` (the checkpoint copied every ``--snapshot-every`` epochs while the run goes; a run
+with ``detector.ema_decay`` is scored with its averaged and its last step's weights). Writes
 ``bench/results/shipped-detector.{json,md}``; the whole frame's latency is ``bench.frame_latency``'s.
 """
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import subprocess
 import sys
 import time
@@ -26,8 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from popcode_runtime.base.files import copy_file_atomic
+from popcode_runtime.base.files import copy_file_atomic, write_bytes_atomic
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.detector import Detector
@@ -46,6 +51,7 @@ from tools.paths import RESULTS, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
 
 TRAIN_SEEDS = (21, 22)  # the first without a sensor model, the second with the industrial camera's
+EMPTY_SEED = 23  # the bins without parts (--empty-scenes)
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
 
@@ -100,18 +106,46 @@ def _score_split(detector: Path, split_dir: Path, work: Path) -> dict[str, Any]:
                      "own detector": None if own.poses is None else _mssd(own.poses)}}
 
 
+def _train_with_snapshots(command: list[str], run: Path, snapshots: Path, every: int) -> None:
+    """Run the training ``command``, copying its checkpoint to ``snapshots/epoch<N>.pt`` at every ``every``-th
+    epoch it reaches (polled; a checkpoint is replaced by rename, so a copy is always whole)."""
+    process = subprocess.Popen(command)
+    while process.poll() is None:
+        time.sleep(10)
+        _snapshot(run / "detector.pt", snapshots, every)
+    if process.returncode:
+        raise subprocess.CalledProcessError(process.returncode, command)
+
+
+def _snapshot(checkpoint: Path, snapshots: Path, every: int) -> None:
+    try:
+        data = checkpoint.read_bytes()
+    except FileNotFoundError:
+        return
+    epoch = int(torch.load(io.BytesIO(data), weights_only=False)["epoch"])
+    target = snapshots / f"epoch{epoch}.pt"
+    if epoch % every == 0 and not target.exists():
+        snapshots.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(target, data)
+
+
 def _curve(work: Path, split_dir: Path) -> list[dict[str, Any]]:
-    """AP on the validation split of each snapshot a run left in ``WORK/snapshots`` (checkpoints copied as the
-    run went: a run in progress, its rate not yet annealed) and of its end, against its training minutes."""
+    """AP on the validation split of each snapshot a run left in ``WORK/snapshots`` (a run in progress, its rate
+    not yet annealed) and of its end, against its training minutes; a run that averages its weights twice: the
+    average and the last step's weights (``last_step``)."""
     seconds = np.cumsum([float(row.split(",")[3]) for row in (work / "run" / "metrics.csv").read_text().split()[1:]])
     points = []
     for checkpoint in [*sorted((work / "snapshots").glob("epoch*.pt"), key=lambda p: int(p.stem[5:])),
                        work / "run" / "detector.pt"]:
-        onnx_path = checkpoint.with_suffix(".onnx")
-        export_detector(checkpoint, onnx_path)
-        epoch = int(load(checkpoint)["epoch"])
-        points.append({"epoch": epoch, "minutes": float(seconds[epoch - 1] / 60),
-                       **validation_scores(onnx_path, split_dir)})
+        state = load(checkpoint)
+        epoch = int(state["epoch"])
+        point: dict[str, Any] = {"epoch": epoch, "minutes": float(seconds[epoch - 1] / 60)}
+        for averaged in (True, False) if "ema" in state else (True,):
+            onnx_path = checkpoint.with_name(f"{checkpoint.stem}{'' if averaged else '-last-step'}.onnx")
+            export_detector(checkpoint, onnx_path, averaged=averaged)
+            scores = validation_scores(onnx_path, split_dir)
+            point.update(scores if averaged else {"last_step": scores})
+        points.append(point)
     return points
 
 
@@ -120,6 +154,8 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("runs/shipped_detector"))
     parser.add_argument("--epochs", type=int, default=40)
     parser.add_argument("--scenes", type=int, nargs=2, default=(600, 900), metavar=("PLAIN", "INDUSTRIAL"))
+    parser.add_argument("--empty-scenes", type=int, default=0, help="bins without parts among the training scenes")
+    parser.add_argument("--snapshot-every", type=int, default=5, help="epochs between the curve's snapshots")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
     parser.add_argument("--measure-only", action="store_true", help="score the detector already in WORK/run")
@@ -127,14 +163,17 @@ def main() -> None:
     work = args.work
     train = [render_scenes(work / f"train_{seed}", scenes, seed, sensor) for seed, scenes, sensor
              in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial"), strict=True)]
+    if args.empty_scenes:
+        train.append(render_scenes(work / "train_empty", args.empty_scenes, EMPTY_SEED, "industrial", 1.0))
     splits = {name: render_scenes(work / name, scenes, seed, "industrial")
               for name, (seed, scenes) in SPLITS.items()}
     run = work / "run"
     started = time.perf_counter()
     if not args.measure_only:
-        subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "train-detector", *(
+        _train_with_snapshots([sys.executable, "-m", "popcode_trainer.cli", "train-detector", *(
             item for split in train for item in ("--split", str(split))), "--out", str(run), "--set",
-            f"detector.epochs={args.epochs}", *(item for o in args.overrides for item in ("--set", o))], check=True)
+            f"detector.epochs={args.epochs}", *(item for o in args.overrides for item in ("--set", o))], run,
+            work / "snapshots", args.snapshot_every)
     detector = run / "detector.onnx"
     if args.copy_to:
         copy_file_atomic(detector, args.copy_to)
@@ -156,9 +195,14 @@ def _markdown(payload: dict[str, Any]) -> str:
                 mssd_rows.append([name, boxes, f"{100 * scored['MSSD']:.1f}",
                                   *(f"{100 * v:.1f}" for v in scored["by_visibility"].values())])
     bins = list(next(iter(payload["scores"].values()))["mssd"]["true boxes"]["by_visibility"])
-    curve = markdown_table(["epoch", "training minutes (2 cores)", "AP", "AP50", "recall ≥ 30 % visible"],
-                           [[str(p["epoch"]), f"{p['minutes']:.0f}", f"{100 * p['AP']:.1f}", f"{100 * p['AP50']:.1f}",
-                             f"{100 * p['recall_30']:.1f}"] for p in payload["curve"]])
+    last_step = any("last_step" in p for p in payload["curve"])
+    curve = markdown_table(
+        ["epoch", "training minutes (2 cores)", "AP", "AP50", "recall ≥ 30 % visible",
+         *(["AP, last step's weights", "recall, last step's weights"] if last_step else [])],
+        [[str(p["epoch"]), f"{p['minutes']:.0f}", f"{100 * p['AP']:.1f}", f"{100 * p['AP50']:.1f}",
+          f"{100 * p['recall_30']:.1f}", *([f"{100 * p['last_step']['AP']:.1f}",
+                                            f"{100 * p['last_step']['recall_30']:.1f}"] if last_step else [])]
+         for p in payload["curve"]])
     return "\n\n".join([
         "# The shipped detector (`python -m experiments.shipped_detector`)",
         markdown_table(["bin split", "AP", "AP50", "AP75", "AR100", "recall ≥ 30 % visible", "ms/frame"], rows),

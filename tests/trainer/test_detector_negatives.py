@@ -1,18 +1,20 @@
-"""Frames without parts (``render --scenes --empty-share``) as a detector's negatives: read as frames with an
-empty target, they reach the detector's loss, a box on them is a false positive, and the pose models' training
-finds no crop in them."""
+"""Frames without parts (``render --scenes --empty-share``, and generated ones: ``detector.negative_share``) as a
+detector's negatives: read as frames with an empty target, they reach the detector's loss, a box on them is a
+false positive, and the pose models' training finds no crop in them."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from popcode_trainer.cli import main as trainer
 from popcode_trainer.detection.config import DetectorConfig
-from popcode_trainer.detection.frames import FrameSet, collate, read_frames
+from popcode_trainer.detection.frames import FrameSet, collate, negative_frame, read_frames
 from popcode_trainer.detection.network import build_detector
 from popcode_trainer.train.checkpoint import load
 
@@ -72,3 +74,34 @@ def test_pose_training_ignores_frames_without_parts(split: Path, tmp_path: Path)
                 "train.compile": '"off"', "train.out_dir": f'"{tmp_path / "run"}"'}
     assert trainer(["train", *[arg for key, value in settings.items() for arg in ("--set", f"{key}={value}")]]) == 0
     assert (tmp_path / "run" / "last.pt").is_file()
+
+
+def test_generated_negatives_replace_a_share_of_the_training_frames(split: Path) -> None:
+    """``detector.negative_share``: that share of the training frames (drawn per epoch) becomes a generated frame
+    without parts, its target empty; validation frames stay as rendered."""
+    frames = [frame for frame in read_frames([split], OBJ_IDS, SMALL) if len(frame.boxes)] * 20
+    config = dataclasses.replace(SMALL, negative_share=0.5)
+    generated = [len(FrameSet(frames, config, augment=True, progress=False)[i][1]["boxes"]) == 0
+                 for i in range(len(frames))]
+    assert 0.3 < np.mean(generated) < 0.7
+    assert not any(len(FrameSet(frames, SMALL, augment=True, progress=False)[i][1]["boxes"]) == 0
+                   for i in range(len(frames)))  # share 0: every frame keeps its parts (a zoom keeps at least one)
+    assert all(len(FrameSet(frames, config, augment=False, progress=False)[i][1]["boxes"])
+               for i in range(len(frames)))
+
+
+def test_a_generated_negative_is_a_frame_of_every_kind() -> None:
+    rng = np.random.default_rng(0)
+    negatives = [negative_frame((96, 128), rng) for _ in range(40)]
+    assert all(n.shape == (96, 128) and n.dtype == np.float32 and 0 <= n.min() <= n.max() <= 1 for n in negatives)
+    spreads = sorted(float(n.std()) for n in negatives)
+    assert spreads[0] == 0.0 and spreads[-1] > 0.05  # flat levels and noisy or graded frames
+    assert len({round(float(n.mean()), 2) for n in negatives}) > 20  # at many levels
+
+
+@pytest.mark.parametrize("setting", ["detector.negative_share=0.95", "detector.negative_share=-0.1",
+                                     "detector.ema_decay=1", "detector.ema_decay=-0.5"])
+def test_out_of_range_negatives_and_averages_are_refused(split: Path, tmp_path: Path, capsys, setting: str) -> None:
+    assert trainer(["train-detector", "--split", str(split), "--out", str(tmp_path / "run"), "--set", setting]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and setting.split("=")[0].split(".")[1] in error

@@ -48,6 +48,12 @@ class DetectorConfig:
     nms_iou: float = 0.5
     max_detections: int = 100
     seed: int = 0
+    # the weights validated and exported: their moving average over the steps with this decay (0: the last step's;
+    # detection/averaging.py)
+    ema_decay: float = 0.0
+    # of the training frames, the share replaced each epoch by a generated frame without parts (flat, noise,
+    # gradients, textures): negatives besides the rendered empty bins of ``render --empty-share``
+    negative_share: float = 0.0
     # first weights: "auto" (the shipped detector start of this network shape, else random weights), "none"
     # (random weights) or a detector start file (detection/start.py)
     init: str = "auto"
@@ -68,9 +74,9 @@ class DetectorConfig:
             raise PopcodeError(f"need 0 <= head_convs <= 8, 1 <= epochs <= {MAX_DETECTOR_EPOCHS} and "
                                f"1 <= batch_size <= 256, got {self.head_convs}, {self.epochs}, {self.batch_size}")
         if not (0 < self.lr <= 1 and 0 <= self.weight_decay <= 1 and 0 <= self.min_visib_fract <= 1
-                and 0 <= self.val_fraction < 1):
-            raise PopcodeError("need 0 < lr <= 1, 0 <= weight_decay <= 1, 0 <= min_visib_fract <= 1 and "
-                               "0 <= val_fraction < 1")
+                and 0 <= self.val_fraction < 1 and 0 <= self.ema_decay < 1 and 0 <= self.negative_share <= 0.9):
+            raise PopcodeError("need 0 < lr <= 1, 0 <= weight_decay <= 1, 0 <= min_visib_fract <= 1, "
+                               "0 <= val_fraction < 1, 0 <= ema_decay < 1 and 0 <= negative_share <= 0.9")
         if not isinstance(self.init, str) or not self.init.strip():
             raise PopcodeError(f"detector init must be 'auto', 'none' or a start file, got {self.init!r}")
         if self.box_kind not in BOX_KINDS:

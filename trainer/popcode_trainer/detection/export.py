@@ -59,9 +59,10 @@ class ExportedDetector(nn.Module):
         return boxes[None], scores[None]
 
 
-def detector_metadata(state: dict[str, Any], config: DetectorConfig) -> DetectorMetadata:
+def detector_metadata(state: dict[str, Any], config: DetectorConfig, averaged: bool = False) -> DetectorMetadata:
     """What the file says of itself: objects, input size, default thresholds and what it was trained on."""
     training = {"config": config.to_dict(), "epochs": int(state["epoch"]), "frames": state.get("frames", {}),
+                "weights": "moving average of the steps" if averaged else "the last step's",
                 "architecture": "torchvision FCOS, plain backbone + FPN (P3-P5)",
                 "first_weights": str(state.get("start", "random weights (a run of an older trainer)")),
                 "git_revision": git_revision()}
@@ -69,8 +70,9 @@ def detector_metadata(state: dict[str, Any], config: DetectorConfig) -> Detector
                             config.score_threshold, config.nms_iou, config.max_detections, training)
 
 
-def load_detector(checkpoint: str | Path) -> tuple[nn.Module, DetectorConfig, dict[str, Any]]:
-    """The trained network of a detector checkpoint, its config and the checkpoint's state."""
+def load_detector(checkpoint: str | Path, averaged: bool = True) -> tuple[nn.Module, DetectorConfig, dict[str, Any]]:
+    """The trained network of a detector checkpoint, its config and the checkpoint's state; the moving average of
+    its weights where the run kept one (``detector.ema_decay``) unless not ``averaged``."""
     state = load(checkpoint)
     missing = {"model", "config", "obj_ids", "epoch"} - set(state)
     if missing:
@@ -78,14 +80,16 @@ def load_detector(checkpoint: str | Path) -> tuple[nn.Module, DetectorConfig, di
                            "checkpoints export with popcode-train export")
     config = DetectorConfig.from_dict(state["config"])
     model = build_detector(config, len(state["obj_ids"]))
-    model.load_state_dict(state["model"])
+    model.load_state_dict(state["ema"]["weights"] if averaged and "ema" in state else state["model"])
     return model.eval(), config, state
 
 
-def export_detector(checkpoint: str | Path, out_path: str | Path, check_frames: np.ndarray | None = None) -> Path:
-    """Write ``out_path`` from ``checkpoint``; ``check_frames`` ``(N, H, W)`` in [0, 1] (default: noise) are run
-    through torch and onnxruntime, which must agree."""
-    model, config, state = load_detector(checkpoint)
+def export_detector(checkpoint: str | Path, out_path: str | Path, check_frames: np.ndarray | None = None,
+                    averaged: bool = True) -> Path:
+    """Write ``out_path`` from ``checkpoint`` (its averaged weights where it has them, unless not ``averaged``);
+    ``check_frames`` ``(N, H, W)`` in [0, 1] (default: noise) are run through torch and onnxruntime, which must
+    agree."""
+    model, config, state = load_detector(checkpoint, averaged)
     exported = ExportedDetector(model, config).eval()
     frame = torch.zeros(1, 1, config.input_height, config.input_width)
     out_path = Path(out_path)
@@ -98,7 +102,7 @@ def export_detector(checkpoint: str | Path, out_path: str | Path, check_frames: 
                               output_names=[DETECTOR_BOXES, DETECTOR_SCORES], opset_version=ONNX_OPSET,
                               do_constant_folding=True, dynamo=False)
         graph = onnx.load(str(raw))
-    save_onnx(graph, detector_metadata(state, config), out_path)
+    save_onnx(graph, detector_metadata(state, config, averaged and "ema" in state), out_path)
     _check_parity(exported, out_path, config, check_frames)
     return out_path
 

@@ -4,7 +4,9 @@ letterboxed, its boxes with it), and augmented.
 
 The augmentation is what a camera changes and a render does not: zoom and framing (a crop of the frame, so parts
 appear larger and cut by its border), exposure, contrast, blur and sensor noise. No flips: a mirrored part is not
-a view of that part.
+a view of that part. With ``detector.negative_share`` some training frames are replaced by generated frames with
+nothing to find (:func:`negative_frame`): a detector that has only seen bins full of parts finds parts in a blank
+or noisy frame (issue 62, bench/results/empty-frames.md).
 """
 
 from __future__ import annotations
@@ -102,11 +104,39 @@ class FrameSet(Dataset):
         boxes, labels = self.boxes[index], self.frames[index].labels
         if self.augment:
             rng = np.random.default_rng([self.config.seed, self.epoch, index])
-            image, boxes, labels = _zoom(image, boxes, labels, rng)
+            if rng.random() < self.config.negative_share:
+                image, boxes, labels = negative_frame(image.shape, rng), boxes[:0], labels[:0]
+            else:
+                image, boxes, labels = _zoom(image, boxes, labels, rng)
             image = _camera_look(image, rng)
         return torch.from_numpy(np.ascontiguousarray(image))[None], {
             "boxes": torch.from_numpy(np.ascontiguousarray(boxes, np.float32)).reshape(-1, 4),
             "labels": torch.from_numpy(np.ascontiguousarray(labels, np.int64))}
+
+
+def negative_frame(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+    """A frame without parts, of one of four kinds: a flat level, a linear gradient, pixel noise (Gaussian about a
+    level or uniform over a range) or blurred noise (a texture at a random scale)."""
+    rows, cols = shape
+    kind = rng.integers(4)
+    if kind == 0:
+        return np.full(shape, rng.uniform(0.0, 1.0), np.float32)
+    if kind == 1:
+        angle, low, high = rng.uniform(0, 2 * np.pi), rng.uniform(0.0, 1.0), rng.uniform(0.0, 1.0)
+        ys, xs = np.mgrid[0:rows, 0:cols] / max(rows, cols)
+        ramp = xs * np.cos(angle) + ys * np.sin(angle)
+        ramp = (ramp - ramp.min()) / max(np.ptp(ramp), 1e-6)
+        return (low + (high - low) * ramp).astype(np.float32)
+    if kind == 2:
+        if rng.random() < 0.5:
+            noise = rng.normal(rng.uniform(0.0, 1.0), rng.uniform(0.0, 0.3), shape)
+        else:
+            low = rng.uniform(0.0, 1.0)
+            noise = rng.uniform(low, rng.uniform(low, 1.0), shape)
+        return np.clip(noise, 0.0, 1.0).astype(np.float32)
+    texture = cv2.GaussianBlur(rng.random(shape, np.float32), (0, 0), rng.uniform(1.0, 12.0))
+    texture = (texture - texture.mean()) / max(float(texture.std()), 1e-6)
+    return np.clip(rng.uniform(0.2, 0.8) + rng.uniform(0.05, 0.3) * texture, 0.0, 1.0).astype(np.float32)
 
 
 def _zoom(image: np.ndarray, boxes: np.ndarray, labels: np.ndarray,

@@ -23,6 +23,7 @@ from popcode_runtime.base.files import append_synced, csv_text, write_bytes_atom
 from popcode_runtime.base.output_lock import OutputLock
 
 from ..train.checkpoint import load, restore_rng_state, rng_state, save_atomic
+from .averaging import WeightAverage
 from .config import DetectorConfig
 from .frames import FrameSet, collate, held_out, read_frames
 from .network import build_detector
@@ -68,9 +69,10 @@ def learning_rate(config: DetectorConfig, progress: float) -> float:
 
 
 def _epoch_loss(model: torch.nn.Module, loader: DataLoader, optimizer: torch.optim.Optimizer | None,
-                config: DetectorConfig, epoch: int, bar: tqdm | None) -> float:
-    """One pass over ``loader``: training when ``optimizer`` is given, else the validation loss (batch norm
-    frozen, no gradients). torchvision's FCOS returns its losses only in training mode."""
+                config: DetectorConfig, epoch: int, bar: tqdm | None, average: WeightAverage | None = None) -> float:
+    """One pass over ``loader``: training when ``optimizer`` is given (``average`` updated after each step), else
+    the validation loss (batch norm frozen, no gradients). torchvision's FCOS returns its losses only in training
+    mode."""
     model.train()
     if optimizer is None:
         for module in model.modules():
@@ -91,6 +93,8 @@ def _epoch_loss(model: torch.nn.Module, loader: DataLoader, optimizer: torch.opt
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
             optimizer.step()
+            if average is not None:
+                average.update(model)
         total, count = total + loss.item() * len(images), count + len(images)
         if bar is not None:
             bar.update(len(images))
@@ -139,6 +143,8 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
             start = int(state["epoch"])
         else:
             _truncate_metrics(out_dir / METRICS)
+        average = WeightAverage(model, config.ema_decay, None if state is None else state.get("ema")) \
+            if config.ema_decay else None
         first_seconds, epoch, fit_times, most_epochs = None, start, [], config.epochs
         while epoch < config.epochs:
             started = time.perf_counter()
@@ -148,9 +154,10 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
                                 drop_last=len(train_set) > config.batch_size)
             with tqdm(total=len(loader) * config.batch_size, desc=f"detector epoch {epoch + 1}/{config.epochs}",
                       unit="img", disable=not progress, leave=False) as bar:
-                train_loss = _epoch_loss(model, loader, optimizer, config, epoch, bar)
-            val_loss = _epoch_loss(model, DataLoader(val_set, config.batch_size, collate_fn=collate), None, config,
-                                   epoch, None) if len(val_set) else math.nan
+                train_loss = _epoch_loss(model, loader, optimizer, config, epoch, bar, average)
+            validated = model if average is None else average.model  # the weights the export takes
+            val_loss = _epoch_loss(validated, DataLoader(val_set, config.batch_size, collate_fn=collate), None,
+                                   config, epoch, None) if len(val_set) else math.nan
             took = time.perf_counter() - started
             epoch += 1
             first_seconds = took if first_seconds is None else first_seconds
@@ -158,7 +165,7 @@ def train_detector(splits: Sequence[str | Path], obj_ids: Sequence[int], out_dir
                 fit_times.append(took)
                 config = replace(config, epochs=fitted_epochs(seconds, fit_times, most_epochs))
             save_atomic({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
-                         "start": start_line,
+                         "start": start_line, **({} if average is None else {"ema": average.state()}),
                          "config": config.to_dict(), "obj_ids": list(obj_ids), "rng": rng_state(),
                          "frames": {"train": len(train_set), "val": len(val_set),
                                     "splits": [str(Path(s)) for s in splits]}}, checkpoint)
