@@ -1,7 +1,7 @@
 """Boxes on frames that hold no part, against recall on the bin: the shipped detector's score threshold swept.
 
     OMP_NUM_THREADS=1 python -m experiments.empty_frames [--work runs/empty_frames] [--detector DET.onnx]
-        [--thresholds 0.2 0.25 ...] [--bins 30] [--scenes 60] [--poses]
+        [--thresholds 0.2 0.25 ...] [--bins 30] [--scenes 60] [--poses] [--name empty-frames]
 
 The empty frames (720 x 540, deterministic): uniform grey at nine levels from black to white; Gaussian noise
 about mid grey at four levels and uniform noise over [0, 1] and [0.4, 0.6], three seeds each; and the first
@@ -15,7 +15,7 @@ the bin COCO AP and AP50 as the BOP toolkit scores 2-D detection, recall at IoU 
 (``popcode run``'s loop, every instance scored, a missed one wrong), and the same sweep over the estimate's score
 that ``popcode run`` and ``FramePoseEstimator`` give (the detector's times the pose's calibrated confidence):
 estimates on the empty frames against AP and recall of the bin's boxes ranked and kept by that score. Writes
-``bench/results/empty-frames.{json,md}``.
+``bench/results/NAME.{json,md}`` (``--name``, ``empty-frames`` by default).
 """
 
 from __future__ import annotations
@@ -170,6 +170,8 @@ def main() -> None:
     parser.add_argument("--bins", type=int, default=30, help="emptied validation bins of each kind")
     parser.add_argument("--scenes", type=int, default=60, help="images of the validation bin split")
     parser.add_argument("--poses", action="store_true", help="also the shipped pose models' MSSD from the boxes")
+    parser.add_argument("--name", default="empty-frames", help="the results' name in bench/results (a candidate "
+                        "detector's beside the shipped one's)")
     args = parser.parse_args()
     split_dir = render_scenes(args.work / "validation", args.scenes, VALIDATION_SEED, "industrial")
     frames = {**synthetic_frames(), **emptied_bins(split_dir / "models", args.bins)}
@@ -194,7 +196,7 @@ def main() -> None:
                "max_score_per_object": {kind: highest_per_object(group) for kind, group in boxes.items()},
                "lowest_clearing_threshold": lowest_clearing(scores, args.thresholds), "rows": rows,
                "estimate_rows": estimates}
-    write_results(RESULTS, "empty-frames", payload, _markdown(payload, lowest))
+    write_results(RESULTS, args.name, payload, _markdown(payload, lowest))
 
 
 def _markdown(payload: dict[str, Any], lowest: float) -> str:

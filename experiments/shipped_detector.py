@@ -3,10 +3,11 @@ the bin's MSSD end to end from its boxes beside the true and detector-like boxes
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
         [--empty-scenes 0] [--snapshot-every 5] [--set detector.KEY=VALUE ...]
-        [--copy-to models/builtin-parts-detector.onnx] [--measure-only]
+        [--copy-to models/builtin-parts-detector.onnx] [--measure-only] [--name shipped-detector]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
-and exposure, as the demo's scenes; the sizes given by ``--scenes``; ``--empty-scenes`` bins without parts, seed
+and exposure, as the demo's scenes; the sizes given by ``--scenes``, whose third and fourth numbers add seeds
+24 and 25 likewise; ``--empty-scenes`` bins without parts, seed
 23 with the industrial camera, half of them with distractors), a validation bin split (seed 4000,
 industrial, 60 scenes: the project's cluttered validation seed) and the unseen bin split the shipped pose
 models are scored on (seed 6002, industrial, 30 scenes: ``models/README.md``); trains ``popcode-train
@@ -15,7 +16,8 @@ detector on both bin splits (COCO AP as the BOP toolkit) and the shipped pose mo
 (``popcode run``'s loop, matched by score as the toolkit does), and AP on the validation split of every
 snapshot in ``WORK/snapshots`` (the checkpoint copied every ``--snapshot-every`` epochs while the run goes; a run
 with ``detector.ema_decay`` is scored with its averaged and its last step's weights). Writes
-``bench/results/shipped-detector.{json,md}``; the whole frame's latency is ``bench.frame_latency``'s.
+``bench/results/NAME.{json,md}`` (``--name``, ``shipped-detector`` by default); the whole frame's latency is
+``bench.frame_latency``'s.
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ from tools.command import run_command
 from tools.paths import RESULTS, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
 
-TRAIN_SEEDS = (21, 22)  # the first without a sensor model, the second with the industrial camera's
+# the training scenes' seeds in pairs: the first without a sensor model, the second with the industrial camera's
+TRAIN_SEEDS = (21, 22, 24, 25)
 EMPTY_SEED = 23  # the bins without parts (--empty-scenes)
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
@@ -153,16 +156,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("runs/shipped_detector"))
     parser.add_argument("--epochs", type=int, default=40)
-    parser.add_argument("--scenes", type=int, nargs=2, default=(600, 900), metavar=("PLAIN", "INDUSTRIAL"))
+    parser.add_argument("--scenes", type=int, nargs="+", default=(600, 900), metavar="N",
+                        help="training scenes of seeds 21 (plain) and 22 (industrial camera), then optionally of "
+                             "seeds 24 and 25 likewise: two or four numbers")
     parser.add_argument("--empty-scenes", type=int, default=0, help="bins without parts among the training scenes")
     parser.add_argument("--snapshot-every", type=int, default=5, help="epochs between the curve's snapshots")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
     parser.add_argument("--measure-only", action="store_true", help="score the detector already in WORK/run")
+    parser.add_argument("--name", default="shipped-detector", help="the results' name in bench/results (a "
+                        "candidate's beside the shipped detector's)")
     args = parser.parse_args()
+    if len(args.scenes) not in (2, 4):
+        parser.error(f"--scenes takes two or four numbers, got {len(args.scenes)}")
     work = args.work
     train = [render_scenes(work / f"train_{seed}", scenes, seed, sensor) for seed, scenes, sensor
-             in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial"), strict=True)]
+             in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial") * 2, strict=False)]
     if args.empty_scenes:
         train.append(render_scenes(work / "train_empty", args.empty_scenes, EMPTY_SEED, "industrial", 1.0))
     splits = {name: render_scenes(work / name, scenes, seed, "industrial")
@@ -181,7 +190,7 @@ def main() -> None:
     scores = {name: _score_split(detector, split, work / f"scored_{name}") for name, split in splits.items()}
     payload = {"arguments": {k: str(v) for k, v in vars(args).items()}, "train_seconds": time.perf_counter() - started,
                "scores": scores, "curve": curve}
-    write_results(RESULTS, "shipped-detector", payload, _markdown(payload))
+    write_results(RESULTS, args.name, payload, _markdown(payload))
 
 
 def _markdown(payload: dict[str, Any]) -> str:
