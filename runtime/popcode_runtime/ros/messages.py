@@ -1,0 +1,99 @@
+"""popcode's estimates as ROS 2 messages: ``vision_msgs/msg/Detection3DArray`` and ``geometry_msgs/msg/PoseArray``.
+
+Conventions (docs/design.md#robot-formats): the camera frame is ROS's optical frame,
+which is OpenCV's, so ``R_m2c``/``t_m2c`` are the pose in the image's ``frame_id`` as they are; ROS carries
+metres and quaternions ``(x, y, z, w)``, popcode millimetres and matrices, converted here and nowhere else.
+A ``Detection3D`` per estimate: the image's header, ``results[0].hypothesis.class_id`` the object id as text,
+``score`` the estimate's (detector score x calibrated confidence, as ``popcode run``), ``results[0].pose.pose``
+the model-to-camera pose, ``bbox`` the object's 3-D box from its model info, centred at that pose.
+
+The ``vision_msgs`` definitions are registered from their message text, as ROS 2 Humble's vision_msgs 4.x
+defines them, in rosbags' Humble typestore (which has ``std_msgs``, ``geometry_msgs`` and ``sensor_msgs``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from ..geometry.rotations import matrix_to_quaternion
+from ..inference.frame import FramePose
+from .library import rosbags
+
+MM_PER_M = 1000.0
+DETECTIONS_TYPE = "vision_msgs/msg/Detection3DArray"
+POSES_TYPE = "geometry_msgs/msg/PoseArray"
+# vision_msgs 4.x (ROS 2 Humble), the fields as released; comments shortened.
+VISION_MSGS = {
+    "vision_msgs/msg/ObjectHypothesis": "# The unique ID of the object class.\nstring class_id\n"
+                                        "# The probability or confidence value.\nfloat64 score\n",
+    "vision_msgs/msg/ObjectHypothesisWithPose": "vision_msgs/ObjectHypothesis hypothesis\n"
+                                                "geometry_msgs/PoseWithCovariance pose\n",
+    "vision_msgs/msg/BoundingBox3D": "# The 3D position and orientation of the bounding box center\n"
+                                     "geometry_msgs/Pose center\n"
+                                     "# The total size of the bounding box, in meters\ngeometry_msgs/Vector3 size\n",
+    "vision_msgs/msg/Detection3D": "std_msgs/Header header\nObjectHypothesisWithPose[] results\n"
+                                   "BoundingBox3D bbox\nstring id\n",
+    DETECTIONS_TYPE: "std_msgs/Header header\nDetection3D[] detections\n",
+}
+
+
+@cache
+def typestore() -> Any:
+    """rosbags' ROS 2 Humble typestore with the ``vision_msgs`` types registered (one for the process)."""
+    typesys = rosbags("typesys")
+    store = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
+    for name, text in VISION_MSGS.items():
+        store.register(typesys.get_types_from_msg(text, name))
+    return store
+
+
+def _message(name: str, **fields: Any) -> Any:
+    return typestore().types[name](**fields)
+
+
+def pose_message(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> Any:
+    """A ``geometry_msgs/msg/Pose``: the translation [mm] in metres, the rotation as a unit quaternion."""
+    x, y, z = (float(v) / MM_PER_M for v in np.asarray(t_m2c_mm, dtype=np.float64))
+    qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(np.asarray(R_m2c, dtype=np.float64)))
+    return _message("geometry_msgs/msg/Pose", position=_message("geometry_msgs/msg/Point", x=x, y=y, z=z),
+                    orientation=_message("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw))
+
+
+def _box_message(pose: FramePose, info: Mapping[str, Any]) -> Any:
+    """The object's 3-D box (``models_info``'s ``min_*``/``size_*`` [mm]) at the pose; a point where they are
+    missing."""
+    prediction = pose.prediction
+    low = np.array([float(info.get(f"min_{axis}", 0.0)) for axis in "xyz"])
+    size = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
+    centre_mm = prediction.R_m2c @ (low + size / 2.0) + prediction.t_m2c_mm
+    x, y, z = (float(v) / MM_PER_M for v in size)
+    return _message("vision_msgs/msg/BoundingBox3D", center=pose_message(prediction.R_m2c, centre_mm),
+                    size=_message("geometry_msgs/msg/Vector3", x=x, y=y, z=z))
+
+
+def detection_array(header: Any, poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]]) -> Any:
+    """A ``Detection3DArray`` of a frame's poses (each with a translation), with the image's ``header``;
+    ``objects``: the models' object infos by id (their boxes)."""
+    detections = []
+    for pose in poses:
+        prediction = pose.prediction
+        hypothesis = _message("vision_msgs/msg/ObjectHypothesis", class_id=str(pose.detection.obj_id),
+                              score=float(pose.score))
+        covariance = np.zeros(36, dtype=np.float64)  # not estimated
+        result = _message("vision_msgs/msg/ObjectHypothesisWithPose", hypothesis=hypothesis,
+                          pose=_message("geometry_msgs/msg/PoseWithCovariance",
+                                        pose=pose_message(prediction.R_m2c, prediction.t_m2c_mm),
+                                        covariance=covariance))
+        detections.append(_message("vision_msgs/msg/Detection3D", header=header, results=[result],
+                                   bbox=_box_message(pose, objects.get(pose.detection.obj_id, {})), id=""))
+    return _message(DETECTIONS_TYPE, header=header, detections=detections)
+
+
+def pose_array(header: Any, poses: Sequence[FramePose]) -> Any:
+    """A ``PoseArray`` of a frame's poses, in the order of its ``Detection3DArray``."""
+    return _message(POSES_TYPE, header=header,
+                    poses=[pose_message(p.prediction.R_m2c, p.prediction.t_m2c_mm) for p in poses])
