@@ -1,9 +1,10 @@
 """The bag ``popcode bag`` writes: a rosbag2 folder (MCAP or SQLite3) of ``Detection3DArray`` and ``PoseArray``,
 written whole or not at all.
 
-rosbags writes a folder, so the atomic write is the folder's: the bag is written into a temporary folder beside
-the target (``.<name>.<pid>-<host>.<random>.tmp``, as :func:`~popcode_runtime.base.files.atomic_path` names
-its files), its files and the folder synced, then renamed to the target. An existing bag replaced with
+rosbags writes a folder, so the atomic write is the folder's: the bag is written, under its own name, inside a
+temporary folder beside the target (``.<name>.<pid>-<host>.<random>.tmp``, as
+:func:`~popcode_runtime.base.files.atomic_path` names its files), its files and folder synced, then renamed to
+the target. An existing bag replaced with
 ``--overwrite`` is moved aside first and removed after the rename; a failed or interrupted run removes its
 temporary folder and leaves the target as it was.
 """
@@ -50,7 +51,9 @@ class BagOutput:
                  objects: Mapping[int, Mapping[str, Any]]) -> None:
         rosbag2 = rosbags("rosbag2")
         self.out, self.objects = out, objects
-        self.temporary = temporary_name(out)
+        self.holder = temporary_name(out)  # the bag's files are named after its folder: out/out.mcap
+        self.holder.mkdir()
+        self.temporary = self.holder / out.name
         plugin = rosbag2.StoragePlugin.MCAP if storage == "mcap" else rosbag2.StoragePlugin.SQLITE3
         self.writer = rosbag2.Writer(self.temporary, version=rosbag2.Writer.VERSION_LATEST, storage_plugin=plugin)
         self.frames = 0
@@ -94,9 +97,10 @@ class BagOutput:
             os.rename(self.out, old)
         os.rename(self.temporary, self.out)
         sync_folder(self.out.parent if str(self.out.parent) else Path("."))
+        self.holder.rmdir()
         if old is not None:
             shutil.rmtree(old)
 
     def abort(self) -> None:
         """Remove the temporary folder; ``out`` keeps what it held."""
-        shutil.rmtree(self.temporary, ignore_errors=True)
+        shutil.rmtree(self.holder, ignore_errors=True)

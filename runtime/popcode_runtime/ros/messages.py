@@ -8,12 +8,14 @@ A ``Detection3D`` per estimate: the image's header, ``results[0].hypothesis.clas
 the model-to-camera pose, ``bbox`` the object's 3-D box from its model info, centred at that pose.
 
 The ``vision_msgs`` definitions are registered from their message text, as ROS 2 Humble's vision_msgs 4.x
-defines them, in rosbags' Humble typestore (which has ``std_msgs``, ``geometry_msgs`` and ``sensor_msgs``).
+defines them, in rosbags' Humble typestore (which has ``std_msgs``, ``geometry_msgs`` and ``sensor_msgs``). The
+message classes are looked up by name (``message_class``), so a ROS node builds the same messages from rclpy's
+classes (``rosidl_runtime_py.utilities.get_message``) as ``popcode bag`` writes with rosbags'.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from functools import cache
 from typing import Any
 
@@ -51,19 +53,24 @@ def typestore() -> Any:
     return store
 
 
-def _message(name: str, **fields: Any) -> Any:
-    return typestore().types[name](**fields)
+MessageClass = Callable[[str], Any]  # "geometry_msgs/msg/Pose" -> its class, whose keywords are the fields
 
 
-def pose_message(R_m2c: np.ndarray, t_m2c_mm: np.ndarray) -> Any:
+def rosbags_class(name: str) -> Any:
+    """A message class of rosbags' typestore (:func:`typestore`)."""
+    return typestore().types[name]
+
+
+def pose_message(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, message_class: MessageClass = rosbags_class) -> Any:
     """A ``geometry_msgs/msg/Pose``: the translation [mm] in metres, the rotation as a unit quaternion."""
     x, y, z = (float(v) / MM_PER_M for v in np.asarray(t_m2c_mm, dtype=np.float64))
     qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(np.asarray(R_m2c, dtype=np.float64)))
-    return _message("geometry_msgs/msg/Pose", position=_message("geometry_msgs/msg/Point", x=x, y=y, z=z),
-                    orientation=_message("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw))
+    return message_class("geometry_msgs/msg/Pose")(
+        position=message_class("geometry_msgs/msg/Point")(x=x, y=y, z=z),
+        orientation=message_class("geometry_msgs/msg/Quaternion")(x=qx, y=qy, z=qz, w=qw))
 
 
-def _box_message(pose: FramePose, info: Mapping[str, Any]) -> Any:
+def _box_message(pose: FramePose, info: Mapping[str, Any], message_class: MessageClass) -> Any:
     """The object's 3-D box (``models_info``'s ``min_*``/``size_*`` [mm]) at the pose; a point where they are
     missing."""
     prediction = pose.prediction
@@ -71,29 +78,31 @@ def _box_message(pose: FramePose, info: Mapping[str, Any]) -> Any:
     size = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
     centre_mm = prediction.R_m2c @ (low + size / 2.0) + prediction.t_m2c_mm
     x, y, z = (float(v) / MM_PER_M for v in size)
-    return _message("vision_msgs/msg/BoundingBox3D", center=pose_message(prediction.R_m2c, centre_mm),
-                    size=_message("geometry_msgs/msg/Vector3", x=x, y=y, z=z))
+    return message_class("vision_msgs/msg/BoundingBox3D")(
+        center=pose_message(prediction.R_m2c, centre_mm, message_class),
+        size=message_class("geometry_msgs/msg/Vector3")(x=x, y=y, z=z))
 
 
-def detection_array(header: Any, poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]]) -> Any:
+def detection_array(header: Any, poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]],
+                    message_class: MessageClass = rosbags_class) -> Any:
     """A ``Detection3DArray`` of a frame's poses (each with a translation), with the image's ``header``;
     ``objects``: the models' object infos by id (their boxes)."""
     detections = []
     for pose in poses:
         prediction = pose.prediction
-        hypothesis = _message("vision_msgs/msg/ObjectHypothesis", class_id=str(pose.detection.obj_id),
-                              score=float(pose.score))
-        covariance = np.zeros(36, dtype=np.float64)  # not estimated
-        result = _message("vision_msgs/msg/ObjectHypothesisWithPose", hypothesis=hypothesis,
-                          pose=_message("geometry_msgs/msg/PoseWithCovariance",
-                                        pose=pose_message(prediction.R_m2c, prediction.t_m2c_mm),
-                                        covariance=covariance))
-        detections.append(_message("vision_msgs/msg/Detection3D", header=header, results=[result],
-                                   bbox=_box_message(pose, objects.get(pose.detection.obj_id, {})), id=""))
-    return _message(DETECTIONS_TYPE, header=header, detections=detections)
+        hypothesis = message_class("vision_msgs/msg/ObjectHypothesis")(class_id=str(pose.detection.obj_id),
+                                                                       score=float(pose.score))
+        with_covariance = message_class("geometry_msgs/msg/PoseWithCovariance")(
+            pose=pose_message(prediction.R_m2c, prediction.t_m2c_mm, message_class),
+            covariance=np.zeros(36, dtype=np.float64))  # not estimated
+        result = message_class("vision_msgs/msg/ObjectHypothesisWithPose")(hypothesis=hypothesis, pose=with_covariance)
+        box = _box_message(pose, objects.get(pose.detection.obj_id, {}), message_class)
+        detections.append(message_class("vision_msgs/msg/Detection3D")(header=header, results=[result], bbox=box,
+                                                                       id=""))
+    return message_class(DETECTIONS_TYPE)(header=header, detections=detections)
 
 
-def pose_array(header: Any, poses: Sequence[FramePose]) -> Any:
+def pose_array(header: Any, poses: Sequence[FramePose], message_class: MessageClass = rosbags_class) -> Any:
     """A ``PoseArray`` of a frame's poses, in the order of its ``Detection3DArray``."""
-    return _message(POSES_TYPE, header=header,
-                    poses=[pose_message(p.prediction.R_m2c, p.prediction.t_m2c_mm) for p in poses])
+    return message_class(POSES_TYPE)(
+        header=header, poses=[pose_message(p.prediction.R_m2c, p.prediction.t_m2c_mm, message_class) for p in poses])
