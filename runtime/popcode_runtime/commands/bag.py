@@ -9,15 +9,18 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable
+from contextlib import nullcontext
 from pathlib import Path
 
 from ..base.errors import PopcodeError
+from ..base.files import check_output_file
 from ..base.output_lock import OutputLock
 from ..inference.estimator import PoseEstimator
 from ..inference.frame import FramePoseEstimator
 from ..model.decoding import DECODERS
 from ..ros.bag_input import BagFrames, Topics, open_bag
 from ..ros.bag_output import STORAGES, BagOutput, check_bag_output
+from ..ros.foxglove_scene import FoxgloveOutput
 from ..ros.library import INSTALL_HINT
 from .detect import add_detector_options, open_detector, skipped_line
 from .run_loop import Progress
@@ -50,6 +53,9 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
                      help="with --depth-topic: refine rotation and translation against the depth (needs "
                           "pip install ./runtime[depth])")
     bag.add_argument("--out", type=Path, required=True, metavar="OUT", help="the rosbag2 folder to write")
+    bag.add_argument("--foxglove", type=Path, metavar="FILE.mcap",
+                     help="also write the frames, their camera and every part's box and axes at its pose as an MCAP "
+                          "of Foxglove's schemas, to open in Foxglove")
     bag.add_argument("--storage", choices=STORAGES, default=STORAGES[0], help="the output bag's storage (default mcap)")
     bag.add_argument("--detections-topic", default=DEFAULT_DETECTIONS_TOPIC, metavar="TOPIC",
                      help=f"where the Detection3DArray go (default {DEFAULT_DETECTIONS_TOPIC})")
@@ -60,14 +66,18 @@ def register(commands: argparse._SubParsersAction, add_runtime_options: Callable
     bag.add_argument("--end", type=float, metavar="S", help="up to S seconds after the bag's start")
     bag.add_argument("--decoder", choices=DECODERS, default="argmax",
                      help="argmax: the paper's winning neuron (default); refined: sub-neuron estimate")
-    bag.add_argument("--overwrite", action="store_true", help="replace a bag at --out (never the input)")
+    bag.add_argument("--overwrite", action="store_true",
+                     help="replace a bag at --out and a file at --foxglove (never an input)")
     bag.add_argument("--quiet", action="store_true", help="no progress line")
     add_runtime_options(bag)
     bag.set_defaults(handler=handle)
 
 
 def handle(args: argparse.Namespace) -> int:
-    out = check_bag_output(args.out, [args.bag, args.detector, *args.models], args.overwrite)
+    inputs = [args.bag, args.detector, *args.models]
+    out = check_bag_output(args.out, inputs, args.overwrite)
+    if args.foxglove is not None:
+        check_output_file(args.foxglove, "--foxglove", [*inputs, out], args.overwrite)
     busy = f"another popcode bag is writing {out}; wait for it or choose another --out"
     started = time.perf_counter()
     with OutputLock(out.with_name(out.name + ".lock"), busy), open_bag(args.bag) as reader:
@@ -79,11 +89,14 @@ def handle(args: argparse.Namespace) -> int:
         bar = Progress(math.ceil(frames.image_count / args.every), not args.quiet, "popcode bag")
         skipped: Counter[int] = Counter()
         estimates = 0
-        with BagOutput(out, args.storage, args.detections_topic, args.poses_topic, objects) as output:
+        scene = nullcontext(None) if args.foxglove is None else FoxgloveOutput(args.foxglove, objects)
+        with BagOutput(out, args.storage, args.detections_topic, args.poses_topic, objects) as output, scene as view:
             for frame in frames.frames(args.every, args.start, args.end):
                 poses = estimator.estimate(frame.image, K=frame.K, depth=frame.depth, depth_scale=frame.depth_scale,
                                            refine_depth=args.refine)
                 output.add(frame, poses)
+                if view is not None:
+                    view.add(frame, poses)
                 skipped.update(estimator.last_skipped)
                 estimates += len(poses)
                 bar.step()
@@ -93,7 +106,8 @@ def handle(args: argparse.Namespace) -> int:
                                    + ": nothing to estimate")
             output.finish()
     print(f"wrote {out}: {estimates} estimates of {output.frames} frames on {args.detections_topic} and "
-          f"{args.poses_topic} in {time.perf_counter() - started:.1f} s")
+          f"{args.poses_topic} in {time.perf_counter() - started:.1f} s"
+          + ("" if args.foxglove is None else f"; {args.foxglove} for Foxglove"))
     if skipped:
         print(skipped_line(skipped))
     return 0

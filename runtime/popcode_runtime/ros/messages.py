@@ -70,14 +70,19 @@ def pose_message(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, message_class: Message
         orientation=message_class("geometry_msgs/msg/Quaternion")(x=qx, y=qy, z=qz, w=qw))
 
 
-def _box_message(pose: FramePose, info: Mapping[str, Any], message_class: MessageClass) -> Any:
-    """The object's 3-D box (``models_info``'s ``min_*``/``size_*`` [mm]) at the pose; a point where they are
-    missing."""
-    prediction = pose.prediction
+def box_centre_mm(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, info: Mapping[str, Any]) -> np.ndarray:
+    """The camera-frame centre [mm] of the object's 3-D box (``models_info``'s ``min_*``/``size_*`` [mm]) at the
+    pose; the model's origin where they are missing."""
     low = np.array([float(info.get(f"min_{axis}", 0.0)) for axis in "xyz"])
     size = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
-    centre_mm = prediction.R_m2c @ (low + size / 2.0) + prediction.t_m2c_mm
-    x, y, z = (float(v) / MM_PER_M for v in size)
+    return R_m2c @ (low + size / 2.0) + t_m2c_mm
+
+
+def _box_message(pose: FramePose, info: Mapping[str, Any], message_class: MessageClass) -> Any:
+    """The object's 3-D box at the pose (a point where its info has no box)."""
+    prediction = pose.prediction
+    centre_mm = box_centre_mm(prediction.R_m2c, prediction.t_m2c_mm, info)
+    x, y, z = (float(info.get(f"size_{axis}", 0.0)) / MM_PER_M for axis in "xyz")
     return message_class("vision_msgs/msg/BoundingBox3D")(
         center=pose_message(prediction.R_m2c, centre_mm, message_class),
         size=message_class("geometry_msgs/msg/Vector3")(x=x, y=y, z=z))

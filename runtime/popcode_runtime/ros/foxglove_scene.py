@@ -1,0 +1,136 @@
+"""The picture in 3-D: a bag's frames and poses as an MCAP file Foxglove shows (``popcode bag --foxglove``).
+
+Per frame, at the image's bag time, in the image's ``frame_id`` (the camera's optical frame; ``camera`` where
+the image names none), with the Foxglove SDK's own schemas:
+
+- ``/popcode/image``: the frame as popcode saw it (``foxglove.RawImage``; undistorted where its camera was);
+- ``/popcode/calibration``: its camera (``foxglove.CameraCalibration``: K, no distortion left), so the 3-D panel
+  draws the frustum and the image panel can overlay the scene;
+- ``/popcode/scene``: a ``foxglove.SceneUpdate`` that first deletes the previous frame's entities, then one entity
+  per part: its 3-D box at the estimated pose (translucent magenta, as ``--draw`` draws the hull), its axes (model
+  x, y, z in red, green, blue) and a label with the object id and score.
+
+The file is written with :func:`~popcode_runtime.base.files.atomic_path`: whole at the end or not at all.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..base.errors import library_step
+from ..base.files import atomic_path
+from ..inference.frame import FramePose
+from .bag_input import BagFrame
+from .library import optional_module
+from .messages import MM_PER_M, box_centre_mm, pose_message
+
+IMAGE_TOPIC, CALIBRATION_TOPIC, SCENE_TOPIC = "/popcode/image", "/popcode/calibration", "/popcode/scene"
+DEFAULT_FRAME = "camera"
+BOX_RGBA = (1.0, 0.0, 1.0, 0.35)
+AXIS_RGBA = ((1.0, 0.0, 0.0, 1.0), (0.0, 1.0, 0.0, 1.0), (0.0, 0.0, 1.0, 1.0))  # model x, y, z
+AXIS_SHARE = 0.6  # of the object's longest box side: the drawn axes' length
+LABEL_RGBA = (1.0, 1.0, 1.0, 1.0)
+RAW_ENCODINGS = {(np.dtype(np.uint8), 2): "mono8", (np.dtype(np.uint16), 2): "mono16", (np.dtype(np.uint8), 3): "rgb8"}
+
+
+def _vector(kind: Any, values_m: np.ndarray) -> Any:
+    """A Foxglove ``Vector3`` or ``Point3`` of three numbers [m]."""
+    x, y, z = (float(v) for v in values_m)
+    return kind(x=x, y=y, z=z)
+
+
+def _pose(messages: Any, R: np.ndarray, t_mm: np.ndarray) -> Any:
+    """A Foxglove ``Pose``: :func:`~popcode_runtime.ros.messages.pose_message` with Foxglove's classes, the one
+    conversion of millimetres and matrices."""
+    classes = {"geometry_msgs/msg/Pose": messages.Pose, "geometry_msgs/msg/Point": messages.Vector3,
+               "geometry_msgs/msg/Quaternion": messages.Quaternion}
+    return pose_message(R, t_mm, classes.__getitem__)
+
+
+def _colour(messages: Any, rgba: Sequence[float]) -> Any:
+    return messages.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+def _entity(messages: Any, index: int, pose: FramePose, info: Mapping[str, Any], stamp: Any, frame_id: str) -> Any:
+    """One part: its box, axes and label."""
+    R, t_mm = pose.prediction.R_m2c, pose.prediction.t_m2c_mm
+    size_mm = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
+    centre_mm = box_centre_mm(R, t_mm, info)
+    cube = messages.CubePrimitive(pose=_pose(messages, R, centre_mm),
+                                  size=_vector(messages.Vector3, size_mm / MM_PER_M),
+                                  color=_colour(messages, BOX_RGBA))
+    length_m = AXIS_SHARE * max(size_mm.max(), 1.0) / MM_PER_M
+    origin = _vector(messages.Point3, np.zeros(3))
+    ends = [_vector(messages.Point3, length_m * np.eye(3)[axis]) for axis in range(3)]
+    axes = messages.LinePrimitive(type=messages.LinePrimitiveLineType.LineList, pose=_pose(messages, R, t_mm),
+                                  thickness=3.0, scale_invariant=True,
+                                  points=[point for end in ends for point in (origin, end)],
+                                  colors=[_colour(messages, rgba) for rgba in AXIS_RGBA for _ in range(2)])
+    label = messages.TextPrimitive(pose=_pose(messages, np.eye(3), centre_mm), billboard=True, font_size=14.0,
+                                   scale_invariant=True, color=_colour(messages, LABEL_RGBA),
+                                   text=f"object {pose.detection.obj_id} ({pose.score:.2f})")
+    return messages.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"part {index}", frame_locked=True,
+                                metadata=[messages.KeyValuePair(key="object", value=str(pose.detection.obj_id))],
+                                cubes=[cube], lines=[axes], texts=[label])
+
+
+class FoxgloveOutput:
+    """The Foxglove MCAP of a run, open while frames are added; closed and renamed into place when the block
+    ends without an error, removed when it ends with one."""
+
+    def __init__(self, path: Path, objects: Mapping[int, Mapping[str, Any]]) -> None:
+        self.path, self.objects = path, objects
+
+    def __enter__(self) -> FoxgloveOutput:
+        foxglove = optional_module("foxglove")
+        channels, self.messages = optional_module("foxglove.channels"), optional_module("foxglove.messages")
+        self._stack = ExitStack()
+        try:
+            temporary = self._stack.enter_context(atomic_path(self.path))
+            self._context = context = foxglove.Context()  # its own: nothing goes to the global sinks; kept alive
+            with library_step(f"write {self.path} (Foxglove MCAP)"):
+                self._writer = foxglove.open_mcap(temporary, context=context)
+            self._stack.callback(self._close)
+            self.image = channels.RawImageChannel(IMAGE_TOPIC, context=context)
+            self.calibration = channels.CameraCalibrationChannel(CALIBRATION_TOPIC, context=context)
+            self.scene = channels.SceneUpdateChannel(SCENE_TOPIC, context=context)
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def _close(self) -> None:
+        with library_step(f"write {self.path} (Foxglove MCAP)"):
+            self._writer.close()
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self._stack.__exit__(*exc_info)
+
+    def add(self, frame: BagFrame, poses: Sequence[FramePose]) -> None:
+        """One frame: its image, its camera and its parts."""
+        messages = self.messages
+        stamp = messages.Timestamp(sec=int(frame.header.stamp.sec), nsec=int(frame.header.stamp.nanosec))
+        frame_id = str(frame.header.frame_id) or DEFAULT_FRAME
+        pixels = np.ascontiguousarray(frame.image)
+        height, width = pixels.shape[:2]
+        self.image.log(messages.RawImage(timestamp=stamp, frame_id=frame_id, width=width, height=height,
+                                         encoding=RAW_ENCODINGS[pixels.dtype, pixels.ndim],
+                                         step=pixels.strides[0], data=pixels.tobytes()),
+                       log_time=frame.time_ns)
+        K = frame.K
+        P = np.hstack([K, np.zeros((3, 1))])
+        self.calibration.log(messages.CameraCalibration(timestamp=stamp, frame_id=frame_id, width=width, height=height,
+                                                        distortion_model="", D=[], K=K.reshape(9).tolist(),
+                                                        R=np.eye(3).reshape(9).tolist(), P=P.reshape(12).tolist()),
+                             log_time=frame.time_ns)
+        clear = messages.SceneEntityDeletion(timestamp=stamp, type=messages.SceneEntityDeletionType.All)
+        entities = [_entity(messages, index, pose, self.objects.get(pose.detection.obj_id, {}), stamp, frame_id)
+                    for index, pose in enumerate(poses)]
+        self.scene.log(messages.SceneUpdate(deletions=[clear], entities=entities), log_time=frame.time_ns)
+
