@@ -15,7 +15,12 @@ import cv2
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from ros_bags import (
+
+from popcode_runtime import DetectedBox, FramePose, PoseEstimator, Prediction
+from popcode_runtime.commands.cli import main
+from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rotations
+from popcode_runtime.ros.messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_message, typestore
+from tools.ros_bags import (
     DEPTH_TOPIC,
     FRAME_ID,
     IMAGE_TOPIC,
@@ -29,11 +34,6 @@ from ros_bags import (
     read_topic,
     write_bag,
 )
-
-from popcode_runtime import DetectedBox, FramePose, PoseEstimator, Prediction
-from popcode_runtime.commands.cli import main
-from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rotations
-from popcode_runtime.ros.messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_message, typestore
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 POSE_MODELS = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-parts-3-6.onnx")]

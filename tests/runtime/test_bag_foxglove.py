@@ -13,11 +13,21 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
-from ros_bags import FRAME_ID, IMAGE_TOPIC, INFO_TOPIC, PERIOD_NS, START_NS, camera_info, image, read_topic, write_bag
 
 from popcode_runtime.commands.cli import main
 from popcode_runtime.ros.foxglove_scene import CALIBRATION_TOPIC, SCENE_TOPIC
 from popcode_runtime.ros.foxglove_scene import IMAGE_TOPIC as VIEW_IMAGE
+from tools.ros_bags import (
+    FRAME_ID,
+    IMAGE_TOPIC,
+    INFO_TOPIC,
+    PERIOD_NS,
+    START_NS,
+    camera_info,
+    image,
+    read_topic,
+    write_bag,
+)
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 POSE_MODELS = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-parts-3-6.onnx")]

@@ -1,4 +1,4 @@
-"""Real ROS 2 bags for the ``popcode bag`` tests, written by rosbags itself (SQLite3 or MCAP): camera images in
+"""Real ROS 2 bags for the ``popcode bag`` tests and benchmark, written by rosbags itself (SQLite3 or MCAP): camera images in
 each encoding, ``CameraInfo`` and depth, from arrays the tests choose; and the output bag read back with rosbags'
 deserialiser."""
 
