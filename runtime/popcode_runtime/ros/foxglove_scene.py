@@ -28,7 +28,7 @@ from ..base.files import atomic_path
 from ..inference.frame import FramePose
 from .bag_input import BagFrame
 from .library import optional_module
-from .messages import MM_PER_M, box_centre_mm, pose_message
+from .messages import MM_PER_M, frame_arrays, pose_messages
 
 IMAGE_TOPIC, CALIBRATION_TOPIC, SCENE_TOPIC = "/popcode/image", "/popcode/calibration", "/popcode/scene"
 DEFAULT_FRAME = "camera"
@@ -45,40 +45,45 @@ def _vector(kind: Any, values_m: np.ndarray) -> Any:
     return kind(x=x, y=y, z=z)
 
 
-def _pose(messages: Any, R: np.ndarray, t_mm: np.ndarray) -> Any:
-    """A Foxglove ``Pose``: :func:`~popcode_runtime.ros.messages.pose_message` with Foxglove's classes, the one
-    conversion of millimetres and matrices."""
+def _poses(messages: Any, R: np.ndarray, t_mm: np.ndarray) -> list[Any]:
+    """Foxglove ``Pose`` messages: :func:`~popcode_runtime.ros.messages.pose_messages` with Foxglove's classes, the
+    one conversion of millimetres and matrices."""
     classes = {"geometry_msgs/msg/Pose": messages.Pose, "geometry_msgs/msg/Point": messages.Vector3,
                "geometry_msgs/msg/Quaternion": messages.Quaternion}
-    return pose_message(R, t_mm, classes.__getitem__)
+    return pose_messages(R, t_mm, classes.__getitem__)
 
 
 def _colour(messages: Any, rgba: Sequence[float]) -> Any:
     return messages.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
 
 
-def _entity(messages: Any, index: int, pose: FramePose, info: Mapping[str, Any], stamp: Any, frame_id: str) -> Any:
-    """One part: its box, axes and label."""
-    R, t_mm = pose.prediction.R_m2c, pose.prediction.t_m2c_mm
-    size_mm = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
-    centre_mm = box_centre_mm(R, t_mm, info)
-    cube = messages.CubePrimitive(pose=_pose(messages, R, centre_mm),
-                                  size=_vector(messages.Vector3, size_mm / MM_PER_M),
-                                  color=_colour(messages, BOX_RGBA))
-    length_m = AXIS_SHARE * max(size_mm.max(), 1.0) / MM_PER_M
-    origin = _vector(messages.Point3, np.zeros(3))
-    ends = [_vector(messages.Point3, length_m * np.eye(3)[axis]) for axis in range(3)]
-    axes = messages.LinePrimitive(type=messages.LinePrimitiveLineType.LineList, pose=_pose(messages, R, t_mm),
-                                  thickness=3.0, scale_invariant=True,
-                                  points=[point for end in ends for point in (origin, end)],
-                                  colors=[_colour(messages, rgba) for rgba in AXIS_RGBA for _ in range(2)])
-    label = messages.TextPrimitive(pose=_pose(messages, np.eye(3), centre_mm), billboard=True, font_size=14.0,
-                                   scale_invariant=True, color=_colour(messages, LABEL_RGBA),
-                                   text=f"object {pose.detection.obj_id} ({pose.score:.2f})")
-    return messages.SceneEntity(timestamp=stamp, frame_id=frame_id, id=f"part {index}", frame_locked=True,
-                                metadata=[messages.KeyValuePair(key="object", value=str(pose.detection.obj_id))],
-                                cubes=[cube], lines=[axes], texts=[label])
-
+def _entities(messages: Any, poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]], stamp: Any,
+              frame_id: str) -> list[Any]:
+    """One entity a part: its box, axes and label."""
+    R, t_mm, centres = frame_arrays(poses, objects)
+    identity = np.broadcast_to(np.eye(3), R.shape)
+    entities = []
+    for index, (pose, box_pose, axes_pose, label_pose) in enumerate(zip(
+            poses, _poses(messages, R, centres), _poses(messages, R, t_mm), _poses(messages, identity, centres),
+            strict=True)):
+        info = objects.get(pose.detection.obj_id, {})
+        size_mm = np.array([float(info.get(f"size_{axis}", 0.0)) for axis in "xyz"])
+        cube = messages.CubePrimitive(pose=box_pose, size=_vector(messages.Vector3, size_mm / MM_PER_M),
+                                      color=_colour(messages, BOX_RGBA))
+        length_m = AXIS_SHARE * max(size_mm.max(), 1.0) / MM_PER_M
+        origin = _vector(messages.Point3, np.zeros(3))
+        ends = [_vector(messages.Point3, length_m * np.eye(3)[axis]) for axis in range(3)]
+        axes = messages.LinePrimitive(type=messages.LinePrimitiveLineType.LineList, pose=axes_pose, thickness=3.0,
+                                      scale_invariant=True, points=[point for end in ends for point in (origin, end)],
+                                      colors=[_colour(messages, rgba) for rgba in AXIS_RGBA for _ in range(2)])
+        label = messages.TextPrimitive(pose=label_pose, billboard=True, font_size=14.0, scale_invariant=True,
+                                       color=_colour(messages, LABEL_RGBA),
+                                       text=f"object {pose.detection.obj_id} ({pose.score:.2f})")
+        entities.append(messages.SceneEntity(
+            timestamp=stamp, frame_id=frame_id, id=f"part {index}", frame_locked=True,
+            metadata=[messages.KeyValuePair(key="object", value=str(pose.detection.obj_id))], cubes=[cube],
+            lines=[axes], texts=[label]))
+    return entities
 
 class FoxgloveOutput:
     """The Foxglove MCAP of a run, open while frames are added; closed and renamed into place when the block
@@ -130,7 +135,6 @@ class FoxgloveOutput:
                                                         R=np.eye(3).reshape(9).tolist(), P=P.reshape(12).tolist()),
                              log_time=frame.time_ns)
         clear = messages.SceneEntityDeletion(timestamp=stamp, type=messages.SceneEntityDeletionType.All)
-        entities = [_entity(messages, index, pose, self.objects.get(pose.detection.obj_id, {}), stamp, frame_id)
-                    for index, pose in enumerate(poses)]
+        entities = _entities(messages, poses, self.objects, stamp, frame_id)
         self.scene.log(messages.SceneUpdate(deletions=[clear], entities=entities), log_time=frame.time_ns)
 

@@ -61,13 +61,20 @@ def rosbags_class(name: str) -> Any:
     return typestore().types[name]
 
 
+def pose_messages(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, message_class: MessageClass = rosbags_class) -> list[Any]:
+    """``geometry_msgs/msg/Pose`` of poses ``(N, 3, 3)``, ``(N, 3)`` [mm]: the translations in metres, the rotations as
+    unit quaternions (computed in one call: a frame's parts cost one conversion, not one each)."""
+    R = np.asarray(R_m2c, dtype=np.float64).reshape(-1, 3, 3)
+    t_m = np.asarray(t_m2c_mm, dtype=np.float64).reshape(-1, 3) / MM_PER_M
+    pose, point, quaternion = (message_class(f"geometry_msgs/msg/{name}") for name in ("Pose", "Point", "Quaternion"))
+    return [pose(position=point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                 orientation=quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+            for t, q in zip(t_m, matrix_to_quaternion(R) if len(R) else np.zeros((0, 4)), strict=True)]
+
+
 def pose_message(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, message_class: MessageClass = rosbags_class) -> Any:
-    """A ``geometry_msgs/msg/Pose``: the translation [mm] in metres, the rotation as a unit quaternion."""
-    x, y, z = (float(v) / MM_PER_M for v in np.asarray(t_m2c_mm, dtype=np.float64))
-    qx, qy, qz, qw = (float(v) for v in matrix_to_quaternion(np.asarray(R_m2c, dtype=np.float64)))
-    return message_class("geometry_msgs/msg/Pose")(
-        position=message_class("geometry_msgs/msg/Point")(x=x, y=y, z=z),
-        orientation=message_class("geometry_msgs/msg/Quaternion")(x=qx, y=qy, z=qz, w=qw))
+    """One pose's ``geometry_msgs/msg/Pose`` (:func:`pose_messages`)."""
+    return pose_messages(R_m2c, t_m2c_mm, message_class)[0]
 
 
 def box_centre_mm(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, info: Mapping[str, Any]) -> np.ndarray:
@@ -78,30 +85,33 @@ def box_centre_mm(R_m2c: np.ndarray, t_m2c_mm: np.ndarray, info: Mapping[str, An
     return R_m2c @ (low + size / 2.0) + t_m2c_mm
 
 
-def _box_message(pose: FramePose, info: Mapping[str, Any], message_class: MessageClass) -> Any:
-    """The object's 3-D box at the pose (a point where its info has no box)."""
-    prediction = pose.prediction
-    centre_mm = box_centre_mm(prediction.R_m2c, prediction.t_m2c_mm, info)
-    x, y, z = (float(info.get(f"size_{axis}", 0.0)) / MM_PER_M for axis in "xyz")
-    return message_class("vision_msgs/msg/BoundingBox3D")(
-        center=pose_message(prediction.R_m2c, centre_mm, message_class),
-        size=message_class("geometry_msgs/msg/Vector3")(x=x, y=y, z=z))
+def frame_arrays(poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's rotations ``(N, 3, 3)``, translations and box centres ``(N, 3)`` [mm], in the order of ``poses``."""
+    R = np.array([p.prediction.R_m2c for p in poses], dtype=np.float64).reshape(-1, 3, 3)
+    t_mm = np.array([p.prediction.t_m2c_mm for p in poses], dtype=np.float64).reshape(-1, 3)
+    centres = np.array([box_centre_mm(p.prediction.R_m2c, p.prediction.t_m2c_mm, objects.get(p.detection.obj_id, {}))
+                        for p in poses], dtype=np.float64).reshape(-1, 3)
+    return R, t_mm, centres
 
 
 def detection_array(header: Any, poses: Sequence[FramePose], objects: Mapping[int, Mapping[str, Any]],
                     message_class: MessageClass = rosbags_class) -> Any:
     """A ``Detection3DArray`` of a frame's poses (each with a translation), with the image's ``header``;
-    ``objects``: the models' object infos by id (their boxes)."""
+    ``objects``: the models' object infos by id (their boxes; a point where an info has none)."""
+    R, t_mm, centres = frame_arrays(poses, objects)
     detections = []
-    for pose in poses:
-        prediction = pose.prediction
+    for pose, object_pose, centre in zip(poses, pose_messages(R, t_mm, message_class),
+                                         pose_messages(R, centres, message_class), strict=True):
         hypothesis = message_class("vision_msgs/msg/ObjectHypothesis")(class_id=str(pose.detection.obj_id),
                                                                        score=float(pose.score))
         with_covariance = message_class("geometry_msgs/msg/PoseWithCovariance")(
-            pose=pose_message(prediction.R_m2c, prediction.t_m2c_mm, message_class),
-            covariance=np.zeros(36, dtype=np.float64))  # not estimated
+            pose=object_pose, covariance=np.zeros(36, dtype=np.float64))  # not estimated
         result = message_class("vision_msgs/msg/ObjectHypothesisWithPose")(hypothesis=hypothesis, pose=with_covariance)
-        box = _box_message(pose, objects.get(pose.detection.obj_id, {}), message_class)
+        info = objects.get(pose.detection.obj_id, {})
+        x, y, z = (float(info.get(f"size_{axis}", 0.0)) / MM_PER_M for axis in "xyz")
+        size = message_class("geometry_msgs/msg/Vector3")(x=x, y=y, z=z)
+        box = message_class("vision_msgs/msg/BoundingBox3D")(center=centre, size=size)
         detections.append(message_class("vision_msgs/msg/Detection3D")(header=header, results=[result], bbox=box,
                                                                        id=""))
     return message_class(DETECTIONS_TYPE)(header=header, detections=detections)
@@ -109,5 +119,5 @@ def detection_array(header: Any, poses: Sequence[FramePose], objects: Mapping[in
 
 def pose_array(header: Any, poses: Sequence[FramePose], message_class: MessageClass = rosbags_class) -> Any:
     """A ``PoseArray`` of a frame's poses, in the order of its ``Detection3DArray``."""
-    return message_class(POSES_TYPE)(
-        header=header, poses=[pose_message(p.prediction.R_m2c, p.prediction.t_m2c_mm, message_class) for p in poses])
+    R, t_mm, _ = frame_arrays(poses, {})
+    return message_class(POSES_TYPE)(header=header, poses=pose_messages(R, t_mm, message_class))
