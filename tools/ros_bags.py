@@ -1,6 +1,6 @@
-"""Real ROS 2 bags for the ``popcode bag`` tests and benchmark, written by rosbags itself (SQLite3 or MCAP): camera images in
-each encoding, ``CameraInfo`` and depth, from arrays the tests choose; and the output bag read back with rosbags'
-deserialiser."""
+"""Real ROS 2 bags for the ``popcode bag`` tests and benchmark, written by rosbags itself (SQLite3 or MCAP):
+camera images in each encoding, ``CameraInfo`` and depth, from arrays the caller chooses; and the output bag read
+back with rosbags' deserialiser."""
 
 from __future__ import annotations
 

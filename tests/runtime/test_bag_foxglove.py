@@ -4,6 +4,10 @@ frame's image and camera as popcode saw them, and every part's box at the pose t
 
 from __future__ import annotations
 
+import base64
+import contextlib
+import json
+import struct
 import warnings
 from pathlib import Path
 from typing import Any
@@ -13,10 +17,15 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
+from websockets.sync.client import connect
 
+from popcode_runtime import DetectedBox, FramePose, Prediction
 from popcode_runtime.commands.cli import main
-from popcode_runtime.ros.foxglove_scene import CALIBRATION_TOPIC, SCENE_TOPIC
+from popcode_runtime.geometry.rotations import random_rotations
+from popcode_runtime.ros.bag_input import CameraFrame
+from popcode_runtime.ros.foxglove_scene import CALIBRATION_TOPIC, SCENE_TOPIC, serve_scene
 from popcode_runtime.ros.foxglove_scene import IMAGE_TOPIC as VIEW_IMAGE
+from popcode_runtime.ros.messages import detection_array
 from tools.ros_bags import (
     FRAME_ID,
     IMAGE_TOPIC,
@@ -24,6 +33,7 @@ from tools.ros_bags import (
     PERIOD_NS,
     START_NS,
     camera_info,
+    header,
     image,
     read_topic,
     write_bag,
@@ -34,6 +44,14 @@ POSE_MODELS = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-par
 DETECTOR = str(MODELS / "builtin-parts-detector.onnx")
 K_BIN = np.array([[864.0, 0.0, 359.5], [0.0, 864.0, 269.5], [0.0, 0.0, 1.0]])
 PLUMB_BOB = (-0.12, 0.05, 0.001, -0.002, 0.0)
+
+
+def _message_class(name: str, descriptors: bytes) -> Any:
+    """The protobuf class of schema ``name`` built from its serialised ``FileDescriptorSet`` alone."""
+    pool = descriptor_pool.DescriptorPool()
+    for file in descriptor_pb2.FileDescriptorSet.FromString(descriptors).file:
+        pool.Add(file)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
 
 
 def _decoded(path: Path) -> dict[str, list[tuple[int, Any]]]:
@@ -47,10 +65,7 @@ def _decoded(path: Path) -> dict[str, list[tuple[int, Any]]]:
             for schema, channel, message in make_reader(stream).iter_messages():
                 assert schema.encoding == channel.message_encoding == "protobuf"
                 if schema.id not in classes:
-                    pool = descriptor_pool.DescriptorPool()
-                    for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
-                        pool.Add(file)
-                    classes[schema.id] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+                    classes[schema.id] = _message_class(schema.name, schema.data)
                 found.setdefault(channel.topic, []).append((message.log_time, classes[schema.id].FromString(
                     message.data)))
     return found
@@ -142,3 +157,47 @@ def test_a_run_that_fails_midway_leaves_neither_file(tmp_path: Path, capsys: pyt
                  str(tmp_path / "view.mcap"), "--quiet"]) == 2
     assert "image 1 on /camera/image_raw" in capsys.readouterr().err
     assert sorted(path.name for path in tmp_path.iterdir()) == ["recorded"]
+
+
+def test_the_live_server_sends_the_scene_to_a_client_on_the_loopback_address() -> None:
+    """``serve_scene`` for a live camera: a WebSocket client (Foxglove's protocol, subprotocol foxglove.sdk.v1)
+    subscribes to what the server advertises and receives the frame's image, camera and parts, decoded by the
+    advertised schemas: the part's box where the Detection3D puts it."""
+    R = random_rotations(1, np.random.default_rng(11))[0]
+    pose = FramePose(DetectedBox(3, (10.0, 20.0, 30.0, 40.0), 0.8),
+                     Prediction(R, np.array([0.0, 0.0, 1.0]), 0.3, 0.9, (10.0, 20.0, 30.0, 40.0), 3,
+                                t_m2c_mm=np.array([12.0, -30.0, 480.0])))
+    objects = {3: {"min_x": -32.0, "size_x": 64.0, "min_y": -18.0, "size_y": 36.0, "min_z": -10.0, "size_z": 30.0}}
+    frame = CameraFrame(0, START_NS, header(START_NS), np.full((6, 8), 7, np.uint8),
+                        np.array([[5.0, 0.0, 3.5], [0.0, 5.0, 2.5], [0.0, 0.0, 1.0]]))
+    scene, server = serve_scene(objects, port=0)
+    try:
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=["foxglove.sdk.v1"], open_timeout=30) as client:
+            advertised = {}
+            while len(advertised) < 3:
+                message = json.loads(client.recv(timeout=30))
+                if message["op"] == "advertise":
+                    advertised.update({channel["id"]: channel for channel in message["channels"]})
+            client.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": cid, "channelId": cid}
+                                                                          for cid in advertised]}))
+            received: dict[str, Any] = {}
+            for _ in range(300):  # the subscription takes effect a moment after it is sent: log until it has
+                scene.add(frame, [pose])
+                with contextlib.suppress(TimeoutError):
+                    while len(received) < 3:
+                        data = client.recv(timeout=0.1)
+                        opcode, cid, log_time = struct.unpack_from("<BIQ", data)
+                        assert opcode == 1 and log_time == START_NS
+                        channel = advertised[cid]
+                        decoder = _message_class(channel["schemaName"], base64.b64decode(channel["schema"]))
+                        received[channel["topic"]] = decoder.FromString(data[13:])
+                if len(received) == 3:
+                    break
+    finally:
+        server.stop()
+    assert received[VIEW_IMAGE].data == bytes([7] * 48) and received[VIEW_IMAGE].encoding == "mono8"
+    assert list(received[CALIBRATION_TOPIC].K) == frame.K.reshape(9).tolist()
+    [entity] = received[SCENE_TOPIC].entities
+    centre = detection_array(frame.header, [pose], objects).detections[0].bbox.center.position
+    assert [entity.cubes[0].pose.position.x, entity.cubes[0].pose.position.y, entity.cubes[0].pose.position.z] == \
+        pytest.approx([centre.x, centre.y, centre.z], abs=1e-12)

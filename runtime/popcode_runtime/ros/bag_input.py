@@ -48,7 +48,7 @@ class Topics:
 
 
 @dataclass(frozen=True)
-class BagFrame:
+class CameraFrame:
     """One camera frame: its number on the image topic (from 0), the bag's time of it [ns], the image's header
     (stamp and ``frame_id``, for the messages about it), the image as popcode takes it, its camera and depth."""
 
@@ -127,7 +127,7 @@ class BagFrames:
             self._camera, self._camera_info = camera_from_info(info, where), key
         self._camera_frame = str(info.header.frame_id)
 
-    def frames(self, every: int = 1, start_s: float = 0.0, end_s: float | None = None) -> Iterator[BagFrame]:
+    def frames(self, every: int = 1, start_s: float = 0.0, end_s: float | None = None) -> Iterator[CameraFrame]:
         """Every ``every``-th image from ``start_s`` to ``end_s`` seconds after the bag's start, with its camera
         (and depth); ``CameraInfo`` is read from the bag's start, so a frame's camera may come before ``start_s``."""
         first = self.reader.start_time
@@ -190,12 +190,12 @@ class BagFrames:
                            "registered camera?")
 
     def _frame(self, index: int, time_ns: int, header: Any, image: np.ndarray, camera: Camera,
-               depth_msg: Any | None) -> BagFrame:
+               depth_msg: Any | None) -> CameraFrame:
         """The frame popcode estimates: image (and depth) undistorted into the camera's K."""
         if depth_msg is None:
-            return BagFrame(index, time_ns, header, camera.undistort(image), camera.K)
+            return CameraFrame(index, time_ns, header, camera.undistort(image), camera.K)
         where = f"the depth image of image {index} on {self.topics.depth}"
         depth, scale = depth_array(depth_msg, where)
         check_frame_size(camera, depth, where)
-        return BagFrame(index, time_ns, header, camera.undistort(image), camera.K,
+        return CameraFrame(index, time_ns, header, camera.undistort(image), camera.K,
                         camera.undistort(depth, nearest=True), scale)

@@ -20,7 +20,7 @@ from typing import Any
 from ..base.errors import PopcodeError, library_step
 from ..base.files import MAX_NAME_BYTES, refuse_existing, refuse_inputs, sync_file, sync_folder, temporary_name
 from ..inference.frame import FramePose
-from .bag_input import BagFrame
+from .bag_input import CameraFrame
 from .library import rosbags
 from .messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_array, typestore
 
@@ -74,7 +74,7 @@ class BagOutput:
         if kind is not None:
             self.abort()
 
-    def add(self, frame: BagFrame, poses: Sequence[FramePose]) -> None:
+    def add(self, frame: CameraFrame, poses: Sequence[FramePose]) -> None:
         """One frame's estimates, at the image's bag time, with its header (an empty array for a frame without
         parts: a listener learns the frame was looked at)."""
         store = typestore()

@@ -1,4 +1,5 @@
-"""The picture in 3-D: a bag's frames and poses as an MCAP file Foxglove shows (``popcode bag --foxglove``).
+"""The picture in 3-D: frames and poses as Foxglove shows them, in an MCAP file (``popcode bag --foxglove``) or
+live from Foxglove's WebSocket server (:func:`serve_scene`, for a camera).
 
 Per frame, at the image's bag time, in the image's ``frame_id`` (the camera's optical frame; ``camera`` where
 the image names none), with the Foxglove SDK's own schemas:
@@ -10,7 +11,8 @@ the image names none), with the Foxglove SDK's own schemas:
   per part: its 3-D box at the estimated pose (translucent magenta, as ``--draw`` draws the hull), its axes (model
   x, y, z in red, green, blue) and a label with the object id and score.
 
-The file is written with :func:`~popcode_runtime.base.files.atomic_path`: whole at the end or not at all.
+The file is written with :func:`~popcode_runtime.base.files.atomic_path`: whole at the end or not at all. Each
+sink has a Foxglove context of its own, so nothing goes to the SDK's global one.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import numpy as np
 from ..base.errors import library_step
 from ..base.files import atomic_path
 from ..inference.frame import FramePose
-from .bag_input import BagFrame
+from .bag_input import CameraFrame
 from .library import optional_module
 from .messages import MM_PER_M, frame_arrays, pose_messages
 
@@ -36,6 +38,7 @@ BOX_RGBA = (1.0, 0.0, 1.0, 0.35)
 AXIS_RGBA = ((1.0, 0.0, 0.0, 1.0), (0.0, 1.0, 0.0, 1.0), (0.0, 0.0, 1.0, 1.0))  # model x, y, z
 AXIS_SHARE = 0.6  # of the object's longest box side: the drawn axes' length
 LABEL_RGBA = (1.0, 1.0, 1.0, 1.0)
+LOOPBACK, DEFAULT_PORT = "127.0.0.1", 8765  # Foxglove's own default port
 RAW_ENCODINGS = {(np.dtype(np.uint8), 2): "mono8", (np.dtype(np.uint16), 2): "mono16", (np.dtype(np.uint8), 3): "rgb8"}
 
 
@@ -85,40 +88,21 @@ def _entities(messages: Any, poses: Sequence[FramePose], objects: Mapping[int, M
             lines=[axes], texts=[label]))
     return entities
 
-class FoxgloveOutput:
-    """The Foxglove MCAP of a run, open while frames are added; closed and renamed into place when the block
-    ends without an error, removed when it ends with one."""
 
-    def __init__(self, path: Path, objects: Mapping[int, Mapping[str, Any]]) -> None:
-        self.path, self.objects = path, objects
+class FoxgloveScene:
+    """The three channels of a frame's image, camera and parts on a Foxglove context: :meth:`add` logs one frame
+    to whatever that context's sinks are (an MCAP file, :class:`FoxgloveOutput`; a WebSocket server,
+    :func:`serve_scene`)."""
 
-    def __enter__(self) -> FoxgloveOutput:
-        foxglove = optional_module("foxglove")
+    def __init__(self, objects: Mapping[int, Mapping[str, Any]], context: Any) -> None:
         channels, self.messages = optional_module("foxglove.channels"), optional_module("foxglove.messages")
-        self._stack = ExitStack()
-        try:
-            temporary = self._stack.enter_context(atomic_path(self.path))
-            self._context = context = foxglove.Context()  # its own: nothing goes to the global sinks; kept alive
-            with library_step(f"write {self.path} (Foxglove MCAP)"):
-                self._writer = foxglove.open_mcap(temporary, context=context)
-            self._stack.callback(self._close)
-            self.image = channels.RawImageChannel(IMAGE_TOPIC, context=context)
-            self.calibration = channels.CameraCalibrationChannel(CALIBRATION_TOPIC, context=context)
-            self.scene = channels.SceneUpdateChannel(SCENE_TOPIC, context=context)
-        except BaseException:
-            self._stack.__exit__(*sys.exc_info())
-            raise
-        return self
+        self.objects, self.context = objects, context  # the context is kept: its channels close with it
+        self.image = channels.RawImageChannel(IMAGE_TOPIC, context=context)
+        self.calibration = channels.CameraCalibrationChannel(CALIBRATION_TOPIC, context=context)
+        self.scene = channels.SceneUpdateChannel(SCENE_TOPIC, context=context)
 
-    def _close(self) -> None:
-        with library_step(f"write {self.path} (Foxglove MCAP)"):
-            self._writer.close()
-
-    def __exit__(self, *exc_info: Any) -> None:
-        self._stack.__exit__(*exc_info)
-
-    def add(self, frame: BagFrame, poses: Sequence[FramePose]) -> None:
-        """One frame: its image, its camera and its parts."""
+    def add(self, frame: CameraFrame, poses: Sequence[FramePose]) -> None:
+        """One frame: its image, its camera and its parts (at ``frame.time_ns``, in its header's frame)."""
         messages = self.messages
         stamp = messages.Timestamp(sec=int(frame.header.stamp.sec), nsec=int(frame.header.stamp.nanosec))
         frame_id = str(frame.header.frame_id) or DEFAULT_FRAME
@@ -128,7 +112,7 @@ class FoxgloveOutput:
                                          encoding=RAW_ENCODINGS[pixels.dtype, pixels.ndim],
                                          step=pixels.strides[0], data=pixels.tobytes()),
                        log_time=frame.time_ns)
-        K = frame.K
+        K = np.asarray(frame.K, dtype=np.float64)
         P = np.hstack([K, np.zeros((3, 1))])
         self.calibration.log(messages.CameraCalibration(timestamp=stamp, frame_id=frame_id, width=width, height=height,
                                                         distortion_model="", D=[], K=K.reshape(9).tolist(),
@@ -138,3 +122,43 @@ class FoxgloveOutput:
         entities = _entities(messages, poses, self.objects, stamp, frame_id)
         self.scene.log(messages.SceneUpdate(deletions=[clear], entities=entities), log_time=frame.time_ns)
 
+
+class FoxgloveOutput:
+    """The Foxglove MCAP of a run: a :class:`FoxgloveScene` writing into a file while the block runs; closed and
+    renamed into place when it ends without an error, removed when it ends with one."""
+
+    def __init__(self, path: Path, objects: Mapping[int, Mapping[str, Any]]) -> None:
+        self.path, self.objects = path, objects
+
+    def __enter__(self) -> FoxgloveScene:
+        foxglove = optional_module("foxglove")
+        self._stack = ExitStack()
+        try:
+            temporary = self._stack.enter_context(atomic_path(self.path))
+            context = foxglove.Context()  # its own: nothing goes to the process's global sinks
+            with library_step(f"write {self.path} (Foxglove MCAP)"):
+                self._writer = foxglove.open_mcap(temporary, context=context)
+            self._stack.callback(self._close)
+            return FoxgloveScene(self.objects, context)
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())
+            raise
+
+    def _close(self) -> None:
+        with library_step(f"write {self.path} (Foxglove MCAP)"):
+            self._writer.close()
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self._stack.__exit__(*exc_info)
+
+
+def serve_scene(objects: Mapping[int, Mapping[str, Any]], host: str = LOOPBACK, port: int = DEFAULT_PORT
+                ) -> tuple[FoxgloveScene, Any]:
+    """A live view: a :class:`FoxgloveScene` whose frames go to Foxglove's WebSocket server on ``host:port``
+    (Foxglove connects to ``ws://host:port``; port 0 takes a free one, ``server.port`` says which). The loopback
+    address by default: serving every interface is the caller's choice. Stop it with ``server.stop()``."""
+    foxglove = optional_module("foxglove")
+    context = foxglove.Context()
+    with library_step(f"start Foxglove's WebSocket server on {host}:{port}"):
+        server = foxglove.start_server(name="popcode", host=host, port=port, context=context)
+    return FoxgloveScene(objects, context), server
