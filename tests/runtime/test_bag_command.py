@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 from popcode_runtime import DetectedBox, FramePose, PoseEstimator, Prediction
 from popcode_runtime.commands.cli import main
 from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rotations
+from popcode_runtime.ros.bag_input import MAX_WAITING
 from popcode_runtime.ros.messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_message, typestore
 from tools.ros_bags import (
     DEPTH_TOPIC,
@@ -186,10 +187,10 @@ def test_plumb_bob_distortion_is_undistorted_into_the_same_camera(pictures: dict
     _assert_same_poses(array.detections, pose_array.poses, _predict(tmp_path / "undistorted.png", capsys))
 
 
-def _blank_recording(count: int = 3) -> list[Message]:
+def _blank_recording(count: int = 3, start_ns: int = START_NS) -> list[Message]:
     frame = np.full(BLANK_SIZE[::-1], 90, np.uint8)
-    return [m for i in range(count) for m in (camera_info(START_NS + i * PERIOD_NS, K_BLANK, BLANK_SIZE),
-                                              image(START_NS + i * PERIOD_NS, frame, "mono8"))]
+    return [m for i in range(count) for m in (camera_info(start_ns + i * PERIOD_NS, K_BLANK, BLANK_SIZE),
+                                              image(start_ns + i * PERIOD_NS, frame, "mono8"))]
 
 
 @pytest.mark.parametrize("extra, times", [(["--every", "2"], [0, 2]), (["--start", "0.05"], [1, 2, 3]),
@@ -280,6 +281,15 @@ def _depth_of_another_stamp(folder: Path) -> Path:
     return write_bag(folder, [*_blank_recording(1), depth])
 
 
+def _depth_of_another_camera(folder: Path) -> Path:
+    """Depth images whose stamps never match the colour ones: the images waiting for theirs are bounded."""
+    depth = np.full(BLANK_SIZE[::-1], 500, np.uint16)
+    messages = [m for i in range(MAX_WAITING + 2) for m in (
+        *_blank_recording(1, START_NS + i * PERIOD_NS), image(START_NS + i * PERIOD_NS + 1, depth, "16UC1",
+                                                             DEPTH_TOPIC))]
+    return write_bag(folder, messages)
+
+
 # name -> (how the input is made in a folder, extra options, words of the one line)
 HOSTILE = {
     "not a bag": (_not_a_bag, [], "as a ROS 2 bag"),
@@ -306,7 +316,9 @@ HOSTILE = {
     "no images in the range": (lambda p: write_bag(p, _blank_recording(2)), ["--start", "5"],
                                "between --start and --end"),
     "depth of another stamp": (_depth_of_another_stamp, ["--depth-topic", DEPTH_TOPIC],
-                               "has no depth image of its header stamp"),
+                               f"has no depth image of its header stamp on {DEPTH_TOPIC} before the bag's end"),
+    "depth of another camera": (_depth_of_another_camera, ["--depth-topic", DEPTH_TOPIC],
+                                f"within the {MAX_WAITING} images after it"),
     "truncated": (_truncated, [], "cannot read"),
 }
 

@@ -172,9 +172,9 @@ class BagFrames:
             else:
                 waiting[stamp] = (index, time_ns, msg.header, image, self._camera)
                 if len(waiting) > MAX_WAITING:
-                    self._refuse_no_depth(waiting)
+                    self._refuse_no_depth(waiting, f"within the {MAX_WAITING} images after it")
         if waiting:
-            self._refuse_no_depth(waiting)
+            self._refuse_no_depth(waiting, "before the bag's end")
 
     def _check_frame_id(self, msg: Any, where: str) -> None:
         frame_id, camera_frame = str(msg.header.frame_id), self._camera_frame
@@ -182,12 +182,11 @@ class BagFrames:
             raise PopcodeError(f"{where} is in frame {frame_id!r} but the CameraInfo before it on "
                                f"{self.topics.camera_info} is of {camera_frame!r}: another camera's")
 
-    def _refuse_no_depth(self, waiting: OrderedDict) -> None:
-        """The first image still waiting for its depth, at the bag's end or once :data:`MAX_WAITING` wait."""
+    def _refuse_no_depth(self, waiting: OrderedDict, when: str) -> None:
+        """The first image still waiting for its depth (at the bag's end, or once :data:`MAX_WAITING` wait)."""
         index, time_ns = next(iter(waiting.values()))[:2]
         raise PopcodeError(f"image {index} on {self.topics.image} ({time_ns} ns) has no depth image of its header "
-                           f"stamp on {self.topics.depth} (within {MAX_WAITING} images): are the two topics one "
-                           "registered camera?")
+                           f"stamp on {self.topics.depth} {when}: are the two topics one registered camera?")
 
     def _frame(self, index: int, time_ns: int, header: Any, image: np.ndarray, camera: Camera,
                depth_msg: Any | None) -> CameraFrame:
