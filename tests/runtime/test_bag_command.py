@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -91,11 +92,12 @@ def _assert_same_poses(detections: list, poses: list, expected: list[dict]) -> N
 
 @pytest.fixture(scope="module")
 def pictures(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path]]:
-    """The frames as picture files for ``popcode predict``: grey, and tinted colour (BGR on disk)."""
+    """The frames as picture files for ``popcode predict``: grey (8 and 16 bits), and tinted colour (BGR on
+    disk)."""
     folder = tmp_path_factory.mktemp("frames")
-    files: dict[str, list[Path]] = {"grey": [], "colour": []}
+    files: dict[str, list[Path]] = {"grey": [], "grey16": [], "colour": []}
     for index, grey in enumerate(_bin_frames()):
-        for kind, pixels in (("grey", grey), ("colour", _tinted(grey))):
+        for kind, pixels in (("grey", grey), ("grey16", grey.astype(np.uint16) * 257), ("colour", _tinted(grey))):
             files[kind].append(folder / f"{kind}{index}.png")
             cv2.imwrite(str(files[kind][-1]), pixels)
     return files
@@ -109,13 +111,15 @@ def _recorded(encoding: str, frames: list[np.ndarray]) -> list[Message]:
         messages.append(camera_info(time_ns, K_BIN, (pixels.shape[1], pixels.shape[0])))
         if encoding == "png":
             messages.append(compressed_image(time_ns, pixels))
-        else:
-            messages.append(image(time_ns, pixels, encoding))
+        else:  # the pictures are BGR, as OpenCV reads them
+            messages.append(image(time_ns, np.ascontiguousarray(pixels[..., ::-1]) if encoding == "rgb8" else pixels,
+                                  encoding))
     return messages
 
 
 # (input storage, encoding on the image topic, pictures compared with, output storage)
 ROUND_TRIPS = [("sqlite3", "mono8", "grey", "mcap"), ("mcap", "bgr8", "colour", "sqlite3"),
+               ("sqlite3", "rgb8", "colour", "mcap"), ("mcap", "mono16", "grey16", "mcap"),
                ("mcap", "png", "colour", "mcap")]
 
 
@@ -258,11 +262,15 @@ def _info(**changes: object) -> list[Message]:
     return [camera_info(START_NS, **options), image(START_NS, frame, "mono8")]
 
 
-def _truncated(folder: Path) -> Path:
-    write_bag(folder, _blank_recording(3), "mcap")
-    data = (folder / f"{folder.name}.mcap").read_bytes()
-    (folder / f"{folder.name}.mcap").write_bytes(data[: len(data) // 2])
-    return folder
+def _truncated(storage: str) -> Callable[[Path], Path]:
+    """A bag whose one file lost its second half (a copy or a recording cut short)."""
+    def make(folder: Path) -> Path:
+        write_bag(folder, _blank_recording(3), storage)
+        [data_file] = [path for path in folder.iterdir() if path.name != "metadata.yaml"]
+        data = data_file.read_bytes()
+        data_file.write_bytes(data[: len(data) // 2])
+        return folder
+    return make
 
 
 def _not_a_bag(folder: Path) -> Path:
@@ -319,7 +327,8 @@ HOSTILE = {
                                f"has no depth image of its header stamp on {DEPTH_TOPIC} before the bag's end"),
     "depth of another camera": (_depth_of_another_camera, ["--depth-topic", DEPTH_TOPIC],
                                 f"within the {MAX_WAITING} images after it"),
-    "truncated": (_truncated, [], "cannot read"),
+    "truncated MCAP": (_truncated("mcap"), [], "cannot read"),
+    "truncated SQLite3": (_truncated("sqlite3"), [], "database disk image is malformed"),
 }
 
 
