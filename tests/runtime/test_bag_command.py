@@ -18,9 +18,11 @@ import pytest
 from mcap.reader import make_reader
 
 from popcode_runtime import DetectedBox, FramePose, PoseEstimator, Prediction
+from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.commands.cli import main
 from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rotations
 from popcode_runtime.ros.bag_input import MAX_WAITING
+from popcode_runtime.ros.images import IMAGE_TYPE, depth_array, image_array
 from popcode_runtime.ros.messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_message, typestore
 from tools.ros_bags import (
     DEPTH_TOPIC,
@@ -368,3 +370,22 @@ def test_without_rosbags_the_command_says_what_to_install(tmp_path: Path, capsys
     monkeypatch.setitem(sys.modules, "rosbags.rosbag2", None)  # what an install without the extra finds
     assert main(_bag_args(tmp_path / "recorded", tmp_path / "poses")) == 2
     assert "pip install ./runtime[ros]" in capsys.readouterr().err
+
+
+def test_image_messages_with_padded_rows_and_big_endian_pixels() -> None:
+    """Rows longer than their pixels (``step``) and big-endian 16-bit data: the pixels as they are."""
+    pixels = np.arange(5 * 7, dtype=np.uint16).reshape(5, 7) * 1000
+    message = image(START_NS, pixels, "mono16").msg
+    padded = np.zeros((5, 7 * 2 + 6), np.uint8)
+    padded[:, :14] = pixels.astype(">u2").view(np.uint8).reshape(5, 14)
+    message.data, message.step, message.is_bigendian = padded.reshape(-1), 20, 1
+    np.testing.assert_array_equal(image_array(message, IMAGE_TYPE, "image"), pixels)
+    message.data = message.data[:-1]  # one byte short of its last row
+    with pytest.raises(PopcodeError, match="holds 99 bytes in rows of 20"):
+        image_array(message, IMAGE_TYPE, "image")
+
+
+def test_depth_in_metres_reads_as_millimetres_with_nan_as_no_reading() -> None:
+    metres = np.array([[0.5, np.nan], [np.inf, 1.25]], np.float32)
+    depth, scale = depth_array(image(START_NS, metres, "32FC1").msg, "depth")
+    np.testing.assert_array_equal(depth * scale, [[500.0, 0.0], [0.0, 1250.0]])
