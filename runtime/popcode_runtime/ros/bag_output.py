@@ -4,9 +4,9 @@ written whole or not at all.
 rosbags writes a folder, so the atomic write is the folder's: the bag is written, under its own name, inside a
 temporary folder beside the target (``.<name>.<pid>-<host>.<random>.tmp``, as
 :func:`~popcode_runtime.base.files.atomic_path` names its files), its files and folder synced, then renamed to
-the target. An existing bag replaced with
-``--overwrite`` is moved aside first and removed after the rename; a failed or interrupted run removes its
-temporary folder and leaves the target as it was.
+the target. An existing bag replaced with ``--overwrite`` is moved aside first and removed after the rename (for
+that moment no bag is at the target); a failed or interrupted run removes its temporary folder and leaves the
+target as it was.
 """
 
 from __future__ import annotations
