@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 
 from popcode_runtime import DetectedBox, FramePose, PoseEstimator, Prediction
 from popcode_runtime.base.errors import PopcodeError
+from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.commands.cli import main
 from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rotations
 from popcode_runtime.ros.bag_input import MAX_WAITING
@@ -389,3 +390,13 @@ def test_depth_in_metres_reads_as_millimetres_with_nan_as_no_reading() -> None:
     metres = np.array([[0.5, np.nan], [np.inf, 1.25]], np.float32)
     depth, scale = depth_array(image(START_NS, metres, "32FC1").msg, "depth")
     np.testing.assert_array_equal(depth * scale, [[500.0, 0.0], [0.0, 1250.0]])
+
+
+def test_a_second_writer_of_the_same_out_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bag = write_bag(tmp_path / "recorded", _blank_recording(1))
+    out = tmp_path / "poses"
+    with OutputLock(tmp_path / "poses.lock", "held by the test"):  # what a running popcode bag holds
+        capsys.readouterr()
+        assert main(_bag_args(bag, out)) == 2
+    assert "another popcode bag is writing" in capsys.readouterr().err and not out.exists()
+    assert main(_bag_args(bag, out)) == 0  # released: the next run writes
