@@ -12,7 +12,7 @@ export PYOPENGL_PLATFORM ?= egl
 $(BIN)/.installed: pyproject.toml runtime/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet $(TORCH)
-	$(BIN)/python -m pip install --quiet -e "./runtime[depth]" -e ".[dev,pathtrace]"
+	$(BIN)/python -m pip install --quiet -e "./runtime[depth,ros]" -e ".[dev,pathtrace]"
 	# triton (a GPU compiler the CUDA build of torch brings) is never used on a CPU, and importing it beside Mesa's
 	# EGL can crash the process at random (bench/results/detector-choices.md): gone, as in torch's CPU builds.
 	$(BIN)/python -m pip uninstall --quiet --yes triton

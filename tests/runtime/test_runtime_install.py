@@ -114,6 +114,12 @@ def test_runtime_installs_and_predicts_without_torch(tmp_path):
     failing = subprocess.run([str(popcode), "info", str(tmp_path / "missing.onnx")], capture_output=True, text=True)
     assert failing.returncode == 2 and "not found" in failing.stderr and "Traceback" not in failing.stderr
 
+    # popcode bag needs the ros extra (rosbags, foxglove-sdk): without it, the line that says how to install it.
+    bag = subprocess.run([str(popcode), "bag", str(shipped), "--bag", str(tmp_path / "recorded"), "--detector",
+                          str(MODELS / "builtin-parts-detector.onnx"), "--image-topic", "/image", "--camera-info-topic",
+                          "/camera_info", "--out", str(tmp_path / "poses")], capture_output=True, text=True)
+    assert bag.returncode == 2 and "pip install ./runtime[ros]" in bag.stderr and "Traceback" not in bag.stderr
+
     # The hostile-input catalogue (issue 19) holds with the runtime alone too.
     hostile = write_hostile_files(tmp_path / "hostile")
     report = subprocess.run([str(python), "-c", CATALOGUE, str(TESTS), str(hostile)], check=True,

@@ -27,6 +27,7 @@ from ..inference.frame import FramePoseEstimator
 from ..inference.prediction import Prediction
 from ..model.decoding import DECODERS
 from ..model.detector_metadata import PREFIX as DETECTOR_PREFIX
+from . import bag as bag_command
 from . import detect as detect_command
 from . import run as run_command
 from .detect import add_detector_options, open_detector, skipped_line
@@ -301,6 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(handler=_bench)
     run_command.register(commands, _add_runtime_options)
     detect_command.register(commands, _add_runtime_options)
+    bag_command.register(commands, _add_runtime_options)
     return parser
 
 

@@ -9,6 +9,7 @@ for the same rules, naming the options a user typed.
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass
 
 from ..base.errors import PopcodeError
@@ -108,4 +109,18 @@ def _check_run(args: argparse.Namespace) -> None:
         raise PopcodeError(f"--min-visib-fract must lie in [0, 1], got {args.min_visib_fract}")
 
 
-CHECKS = {"predict": _check_predict, "bench": _check_bench, "run": _check_run, "detect": _check_detect}
+def _check_bag(args: argparse.Namespace) -> None:
+    if args.every < 1:
+        raise PopcodeError(f"--every must be at least 1, got {args.every}")
+    if not (math.isfinite(args.start) and args.start >= 0.0):
+        raise PopcodeError(f"--start must be a non-negative number of seconds, got {args.start}")
+    if args.end is not None and not (math.isfinite(args.end) and args.end > args.start):
+        raise PopcodeError(f"--end must be a number of seconds after --start ({args.start:g}), got {args.end}")
+    if args.refine and args.depth_topic is None:
+        raise PopcodeError("--refine refines the pose against the depth: add --depth-topic TOPIC")
+    if args.detections_topic == args.poses_topic:
+        raise PopcodeError(f"--detections-topic and --poses-topic are both {args.poses_topic}: one topic a type")
+
+
+CHECKS = {"predict": _check_predict, "bench": _check_bench, "run": _check_run, "detect": _check_detect,
+          "bag": _check_bag}
