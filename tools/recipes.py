@@ -12,6 +12,7 @@ from pathlib import Path
 from popcode_trainer.demo.report import POPCODE
 from popcode_trainer.demo.sizes import DEMO_SIZES, DemoSize
 from popcode_trainer.demo.steps import SMALL_NETWORK, PipelineSize
+from popcode_trainer.kit.budget import WIDE_NETWORK
 from popcode_trainer.train.fast_path import COMPILE_CHOICES
 from popcode_trainer.train.network import NetworkConfig
 
@@ -25,7 +26,7 @@ NETWORKS = {
     # The quick recipe's trunk 2x to 6x as wide, with the MLP they were measured with: the capacity question of
     # the bin (bench/results/network-width.md). Past 3x the curve flattens.
     "small-x2": replace(SMALL_NETWORK, conv_channels=(32, 64, 128), squeeze_channels=16, hidden=WIDTH_RUNS_HIDDEN),
-    "small-x3": replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=WIDTH_RUNS_HIDDEN),
+    "small-x3": WIDE_NETWORK,  # the shipped 3-6 model's trunk, which the kit trains from its third anchor on
     "small-x4": replace(SMALL_NETWORK, conv_channels=(64, 128, 256), squeeze_channels=32, hidden=WIDTH_RUNS_HIDDEN),
     "small-x6": replace(SMALL_NETWORK, conv_channels=(96, 192, 384), squeeze_channels=48, hidden=WIDTH_RUNS_HIDDEN),
     # 3x with a 512-wide first hidden layer (scored as the shipped small-x3 at its budget: head-width.md); the last

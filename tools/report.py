@@ -4,20 +4,13 @@ findings."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from popcode_runtime.base.files import write_bytes_atomic
-from popcode_runtime.inference.benchmark import machine_description
+from popcode_trainer.machine import machine
 
-
-def machine() -> dict[str, Any]:
-    """The runtime's machine description, torch's version and threads, and the load (other work skews timings)."""
-    return {**machine_description(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "load_average_1m": os.getloadavg()[0]}
+__all__ = ["machine", "machine_line", "write_results"]
 
 
 def machine_line(description: dict[str, Any]) -> str:

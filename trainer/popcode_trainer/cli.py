@@ -26,6 +26,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "train_detector",
     "export_detector",
     "demo",
+    "kit",
 )
 
 
