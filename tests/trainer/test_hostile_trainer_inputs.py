@@ -441,6 +441,10 @@ def _detector(files: Path, *options: str, split: str = "split", out: str | None 
             *options]
 
 
+def _kit(files: Path, out: str, hours: str = "1") -> list[str]:
+    return ["kit", "--objects", str(files / "bar_2fold"), "--out", out, "--hours", hours]
+
+
 CASES += [
     *((f"train-detector-{key}-{value}", lambda f, key=key, value=value: _detector(f, "--set",
                                                                                    f"detector.{key}={value}"),
@@ -469,6 +473,14 @@ CASES += [
                                             str(f / "bar_2fold" / "rendered")], "lies in the input"),
     ("demo-out-in-its-objects", lambda f: ["demo", "--objects", str(f / "bar_2fold"), "--out",
                                            str(f / "bar_2fold" / "demo")], "lies in the input"),
+    *((f"kit-hours-{name}", lambda f, hours=hours: _kit(f, str(f / "kit"), hours), expect) for name, hours, expect in (
+        ("nan", "nan", "--hours must be a positive number of hours, not nan"),
+        ("negative", "-1", "--hours must be a positive number of hours, not -1"),
+        ("too-few", "0.05", "too little to train anything: a kit needs at least 0.2 h (12 minutes"),
+        ("absurd", "1e9", "--hours 1e+09 is more than a kit can use: at most 168"))),
+    ("kit-out-in-its-objects", lambda f: _kit(f, str(f / "bar_2fold" / "kit")), "lies in the input"),
+    ("kit-out-holds-other-files", lambda f: _kit(f, str(f)), "holds files that are not a popcode kit's"),
+    ("kit-out-is-a-file", lambda f: _kit(f, str(f / "junk.pt")), "is a file, not a folder"),
     ("train-detector-start-with-flipped-bytes",
      lambda f: _detector(f, "--set", _flipped_init(f, "detector.init", "detector-start-e855fe97f1.pt",
                                                    "detector_start_flipped.pt")),

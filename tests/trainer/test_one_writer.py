@@ -22,6 +22,7 @@ from popcode_runtime.base.output_lock import OutputLock
 from popcode_trainer.cli import build_parser, main
 from popcode_trainer.commands.evaluate import EVALUATE_LOCK
 from popcode_trainer.demo.run import DEMO_LOCK
+from popcode_trainer.kit.run import KIT_LOCK
 from popcode_trainer.train.loop import train
 from popcode_trainer.train.run_files import RUN_LOCK
 from tools.paths import ROOT, SHIPPED_1_2
@@ -66,6 +67,10 @@ WRITERS = {
                    lambda d: d / "demo" / DEMO_LOCK,
                    "popcode_trainer.demo.run.render_splits",
                    lambda d: (str(d / "demo"), "--out")),
+    "kit": Writer(lambda d: ["kit", "--objects", "builtin", "--out", str(d / "kit"), "--hours", "1", "--size", "smoke"],
+                  lambda d: d / "kit" / KIT_LOCK,
+                  "popcode_trainer.kit.run.run_demo",
+                  lambda d: (str(d / "kit"), "--out")),
 }
 
 
