@@ -22,7 +22,7 @@ TRAINER = ROOT / "trainer" / "popcode_trainer"
 
 # Lowest first: a room may import itself and the rooms before it (the trainer's also the runtime), nothing after it.
 RUNTIME_ROOMS = ("base", "geometry", "coding", "depth", "bop", "model", "inference", "ros", "commands")
-TRAINER_ROOMS = ("metrics", "data", "train", "export", "detection", "eval", "demo", "commands")
+TRAINER_ROOMS = ("metrics", "data", "train", "export", "detection", "eval", "demo", "kit", "commands")
 # Inside eval the same rule: the pipeline computes results, reporting only writes them.
 EVAL_PARTS = ("pipeline", "reporting")
 # Packages each part may import besides the standard library and its own package.

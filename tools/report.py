@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from popcode_runtime.base.files import write_bytes_atomic
-from popcode_trainer.machine import machine
+from popcode_trainer.eval.reporting.machine import machine
 
 __all__ = ["machine", "machine_line", "write_results"]
 

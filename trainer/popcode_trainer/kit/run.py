@@ -26,7 +26,7 @@ from ..demo.report import POPCODE
 from ..demo.run import prepare_parts, run_demo
 from ..demo.sizes import HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
 from ..demo.steps import PipelineSize
-from ..machine import machine
+from ..eval.reporting.machine import machine
 from .budget import DETECTOR_SHARE, check_hours, kit_size
 from .layout import write_kit
 
