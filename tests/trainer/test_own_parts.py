@@ -88,8 +88,8 @@ def _pointed(words: list[str], paths: dict[str, Path]) -> list[str]:
 
 def test_the_section_has_the_one_command_first_then_the_steps() -> None:
     order = [words[1] for words in COMMANDS]
-    assert order == ["demo", "demo", "render", "preview", "train", "export", "predict"]
-    assert "--check" in COMMANDS[1] and "--check" not in COMMANDS[0]
+    assert order == ["demo", "kit", "demo", "render", "preview", "train", "export", "predict"]
+    assert "--check" in COMMANDS[2] and "--check" not in COMMANDS[0]
     assert "rgb/" not in SECTION and "about a minute per part" not in SECTION
 
 
