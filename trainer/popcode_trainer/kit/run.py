@@ -10,7 +10,6 @@ no ``kit.json`` is another program's and is refused too. One kit command writes 
 
 from __future__ import annotations
 
-import hashlib
 import shlex
 from dataclasses import replace
 from pathlib import Path
@@ -19,12 +18,13 @@ from typing import Any
 from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import read_json, refuse_inputs, write_json_atomic
 from popcode_runtime.base.output_lock import OutputLock
+from popcode_runtime.commands.run_fingerprint import file_digest
 
 from ..demo.parts import MODELS_INFO, Parts
-from ..demo.plan import minutes_text
+from ..demo.plan import minutes_text, plan
 from ..demo.report import POPCODE
 from ..demo.run import prepare_parts, run_demo
-from ..demo.sizes import HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
+from ..demo.sizes import HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS, DemoSize
 from ..demo.steps import PipelineSize
 from ..eval.reporting.machine import machine
 from .budget import DETECTOR_SHARE, check_hours, kit_size
@@ -35,6 +35,7 @@ KIT_LOCK = "kit.lock"
 WORK_FOLDER = "work"
 BUDGET = "budget"  # the size a kit takes from its --hours (the hidden sizes are for tests)
 LATENCY_ITERATIONS = 50
+LOWEST_EPOCHS = DemoSize.epoch_bounds[0]  # the fewest epochs a budget's fit trains (the demo's default bounds)
 
 
 def run_kit(objects: str | Path, out: str | Path, hours: float, size_name: str = BUDGET) -> dict[str, Any]:
@@ -49,7 +50,9 @@ def run_kit(objects: str | Path, out: str | Path, hours: float, size_name: str =
     size = kit_size(hours) if size_name == BUDGET else replace(HIDDEN_SIZES[size_name].pipeline,
                                                                  representations=(POPCODE,))
     print(f"checking the parts of {objects}", flush=True)
-    parts, _ = prepare_parts(objects, size.config.code)
+    parts, codes = prepare_parts(objects, size.config.code)
+    least_s = plan(size.with_epochs(LOWEST_EPOCHS), [list(g.obj_ids) for g in codes], len(parts.obj_ids),
+                   fit_epochs=True).remaining_s()
     started = {"objects": str(Path(objects).resolve()), "hours": hours, "size": size_name,
                "files": fingerprint(parts)}
     command = " ".join(["popcode-train kit", "--objects", shlex.quote(str(objects)), "--out", shlex.quote(str(out)),
@@ -62,6 +65,10 @@ def run_kit(objects: str | Path, out: str | Path, hours: float, size_name: str =
             print(f"{out} is complete: {record['kit']['card']}", flush=True)
             return record
         print(plan_text(size, hours, size_name), flush=True)
+        if size_name == BUDGET and least_s > 3600.0 * hours:
+            print(f"note: with {len(parts.obj_ids)} parts the steps and the lowest {LOWEST_EPOCHS} epochs take about "
+                  f"{minutes_text(least_s)} on a 2-core CPU, more than --hours {hours:g}: the kit will take longer "
+                  "on a machine like that", flush=True)
         minutes = 60.0 * hours if size_name == BUDGET else None
         iterations = LATENCY_ITERATIONS if size_name == BUDGET else SMOKE_LATENCY_ITERATIONS
         summary = run_demo(f"kit {hours:g} h", out / WORK_FOLDER, size, latency_iterations=iterations,
@@ -90,15 +97,7 @@ def fingerprint(parts: Parts) -> dict[str, str]:
     if parts.source is None:
         return {}
     names = [MODELS_INFO, *(f"obj_{obj_id:06d}.ply" for obj_id in parts.obj_ids)]
-    return {name: _sha256(parts.source / name) for name in names}
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return {name: file_digest(parts.source / name) for name in names}
 
 
 def _text(value: Any) -> str:
