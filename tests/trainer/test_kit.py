@@ -110,3 +110,21 @@ def test_the_budget_grows_the_data_between_the_anchors() -> None:
     assert sizes[-1].config.network == WIDE_NETWORK and sizes[2].config.network != WIDE_NETWORK
     assert sizes[-1].traced_train_images and not kit_size(MAX_HOURS, path_tracing=False).traced_train_images
     assert all(s.representations == ("population_code",) for s in sizes)
+
+
+@pytest.mark.slow
+def test_an_interrupted_kit_resumes_without_training_again(kit: tuple[Path, Path], tmp_path: Path) -> None:
+    """A copy of the kit as a run cut off after its models were trained leaves it: no card, no files laid out."""
+    models, finished = kit
+    out = shutil.copytree(finished, tmp_path / "kit")
+    record = json.loads((out / KIT_FILE).read_text())
+    del record["kit"]
+    (out / KIT_FILE).write_text(json.dumps(record))
+    for path in [out / CARD_FILE, *out.glob("parts-*.onnx")]:
+        path.unlink()
+    trained = sorted((out / WORK_FOLDER / "runs").glob("*/*.onnx"))
+    before = {p: p.stat().st_mtime_ns for p in trained}
+    assert main(_kit(models, out)) == 0
+    assert {p: p.stat().st_mtime_ns for p in trained} == before
+    assert (out / CARD_FILE).is_file() and "kit" in json.loads((out / KIT_FILE).read_text())
+    assert sorted(p.name for p in out.glob("parts-*.onnx")) == sorted(p.name for p in finished.glob("parts-*.onnx"))

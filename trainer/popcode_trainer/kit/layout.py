@@ -141,6 +141,7 @@ def _accuracy(summary: Mapping[str, Any], kind: str) -> str:
     shipped = POPCODE if kind == FLOAT else f"{POPCODE} ({QUANTISATION})"
     rows = [_row(f"clean ({settings['test_images_per_object']} images a part), the shipped files",
                  _all(clean.get(shipped))),
+            *([_row("clean, float copies", _all(clean.get(POPCODE)))] if kind != FLOAT else []),
             _row("clean, float copies, refined decoder", _all(clean.get(f"{POPCODE} (refined)")))]
     if cluttered:
         scenes = settings["cluttered_test_scenes"]
