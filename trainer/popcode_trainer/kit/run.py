@@ -20,6 +20,7 @@ from popcode_runtime.base.files import read_json, refuse_inputs, write_json_atom
 from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.commands.run_fingerprint import file_digest
 
+from ..data.path_trace import INSTALL_HINT
 from ..demo.parts import MODELS_INFO, Parts
 from ..demo.plan import minutes_text, plan
 from ..demo.report import POPCODE
@@ -85,6 +86,8 @@ def plan_text(size: PipelineSize, hours: float, size_name: str) -> str:
         return f"kit at the hidden size {size_name} (its scores mean nothing)"
     traced = (f", {size.traced_train_images} path-traced images a part" if size.traced_train_images
               else ", no path-traced training images")
+    if not size.traced_train_images and kit_size(hours, path_tracing=True).traced_train_images:
+        traced += f" (the budget buys them, but the path tracer is not installed: {INSTALL_HINT})"
     return (f"kit for {hours:g} h ({minutes_text(3600.0 * hours)}): {size.train_images_per_object} images a part, "
             f"{size.train_scenes} bin scenes{traced}; trunk {list(size.config.network.conv_channels)}; the detector "
             f"{minutes_text(size.detector_seconds)} ({100 * DETECTOR_SHARE:g} %); the pose models' epochs fitted to "
