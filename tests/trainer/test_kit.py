@@ -18,6 +18,7 @@ from popcode_trainer.data.objects import write_builtin_models
 from popcode_trainer.kit.budget import ANCHORS, MAX_HOURS, MIN_HOURS, WIDE_NETWORK, kit_size
 from popcode_trainer.kit.layout import CARD_FILE, DETECTOR_NAME, SAMPLES_FOLDER
 from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER
+from tools.paths import ROOT
 
 HOURS = "1"
 
@@ -128,3 +129,11 @@ def test_an_interrupted_kit_resumes_without_training_again(kit: tuple[Path, Path
     assert {p: p.stat().st_mtime_ns for p in trained} == before
     assert (out / CARD_FILE).is_file() and "kit" in json.loads((out / KIT_FILE).read_text())
     assert sorted(p.name for p in out.glob("parts-*.onnx")) == sorted(p.name for p in finished.glob("parts-*.onnx"))
+
+
+def test_the_docs_table_of_the_budget_is_the_code_s() -> None:
+    text = (ROOT / "docs" / "training.md").read_text()
+    for anchor in ANCHORS:
+        hours = f"{anchor.hours:g}" + (" and more" if anchor is ANCHORS[-1] else "")
+        assert (f"| {hours} | {anchor.train_images} | {anchor.train_scenes} | {anchor.test_images} / "
+                f"{anchor.cluttered_test_scenes} |") in text, hours
