@@ -77,10 +77,11 @@ def test_info_of_a_detector_says_what_it_finds_and_how_it_was_trained(capsys):
     assert "objects          1, 2, 3, 4, 5, 6" in lines and "input            256x192 grey frame" in "\n".join(lines)
     config_line = next(line for line in lines if line.startswith("training.config"))
     assert "settings (input_width, " in config_line and ", ..." in config_line and "--json" in config_line
-    # issue 62: the shipped detector predates detector starts; what it began from, and its export's dirty tree
-    assert "first weights    random weights (trained from scratch)" in lines
-    assert ("training.git_revision f6ca9553ddaef27b3df7a0070d7ab7546fc21691+dirty (exported from a tree with "
-            "uncommitted changes beside that commit)") in lines
+    # what it began from (the commit shortened, the line kept to one line), which weights it carries, its revision
+    assert ("first weights    the shipped detector start detector-start-e855fe97f1.pt (200 generated parts, 100 "
+            "epochs, commit 62c3c6c0eddc+dirty)") in lines
+    assert "training.weights  moving average of the steps" in lines
+    assert "training.git_revision 6e23cc549c3338d470a87630e81db9f45f622007" in lines
     assert main(["info", str(detector), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["kind"] == "detector" and info["obj_ids"] == [1, 2, 3, 4, 5, 6]

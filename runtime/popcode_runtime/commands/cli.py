@@ -182,10 +182,11 @@ def _detector_info(args: argparse.Namespace) -> int:
 
 
 def _first_weights(training: dict[str, object]) -> str:
-    """What a detector's training began from. Detectors exported before detector starts existed (the shipped one
-    among them) say it only in their architecture line, "trained from scratch"."""
+    """What a detector's training began from, a commit in it shortened to 12 digits (the line stays one line; the
+    whole is in ``--json``). Detectors exported before detector starts existed say it only in their architecture
+    line, "trained from scratch"."""
     if "first_weights" in training:
-        return str(training["first_weights"])
+        return re.sub(r"\b([0-9a-f]{12})[0-9a-f]{28}\b", r"\1", str(training["first_weights"]))
     if "trained from scratch" in str(training.get("architecture", "")):
         return "random weights (trained from scratch)"
     return "not recorded"

@@ -104,7 +104,8 @@ class FrameSet(Dataset):
         boxes, labels = self.boxes[index], self.frames[index].labels
         if self.augment:
             rng = np.random.default_rng([self.config.seed, self.epoch, index])
-            if rng.random() < self.config.negative_share:
+            # no draw at 0: the same augmentation stream as before the option
+            if self.config.negative_share and rng.random() < self.config.negative_share:
                 image, boxes, labels = negative_frame(image.shape, rng), boxes[:0], labels[:0]
             else:
                 image, boxes, labels = _zoom(image, boxes, labels, rng)
