@@ -29,18 +29,25 @@ from popcode_runtime.ros.bag_output import BagOutput
 from popcode_runtime.ros.foxglove_scene import FoxgloveOutput
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from tools.command import run_command
-from tools.paths import MODELS_DIR, RESULTS, SHIPPED_MODELS
+from tools.paths import MODELS_DIR, RESULTS, SHIPPED_DETECTOR, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
-from tools.ros_bags import IMAGE_TOPIC, INFO_TOPIC, PERIOD_NS, START_NS, camera_info, image, write_bag
+from tools.ros_bags import (
+    IMAGE_TOPIC,
+    INFO_TOPIC,
+    PERIOD_NS,
+    SAMPLE_BIN_K,
+    START_NS,
+    camera_info,
+    image,
+    write_bag,
+)
 
-DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
 BIN = MODELS_DIR / "samples" / "bin.png"
-K_BIN = np.array([[864.0, 0.0, 359.5], [0.0, 864.0, 269.5], [0.0, 0.0, 1.0]])
 
 
 def _recording(folder: Path, frames: int, storage: str) -> Path:
     grey = cv2.imread(str(BIN), cv2.IMREAD_UNCHANGED)
-    messages = [m for i in range(frames) for m in (camera_info(START_NS + i * PERIOD_NS, K_BIN, (720, 540)),
+    messages = [m for i in range(frames) for m in (camera_info(START_NS + i * PERIOD_NS, SAMPLE_BIN_K, (720, 540)),
                                                     image(START_NS + i * PERIOD_NS, grey, "mono8"))]
     return write_bag(folder / f"recorded-{storage}", messages, storage)
 
@@ -50,7 +57,7 @@ def _alone(estimator: FramePoseEstimator, frames: int) -> float:
     grey = cv2.imread(str(BIN), cv2.IMREAD_UNCHANGED)
     started = time.perf_counter()
     for _ in range(frames):
-        estimator.estimate(grey, K=K_BIN)
+        estimator.estimate(grey, K=SAMPLE_BIN_K)
     return time.perf_counter() - started
 
 
@@ -77,7 +84,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     estimators = [PoseEstimator(path, threads=args.threads) for path in SHIPPED_MODELS]
-    estimator = FramePoseEstimator(Detector(DETECTOR, threads=args.threads, max_detections=args.parts), estimators)
+    detector = Detector(SHIPPED_DETECTOR, threads=args.threads, max_detections=args.parts)
+    estimator = FramePoseEstimator(detector, estimators)
     objects = {obj_id: info for e in estimators for obj_id, info in e.metadata.objects.items()}
     _alone(estimator, 3)  # warm-up
     seconds: dict[str, list[float]] = {}

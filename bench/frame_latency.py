@@ -20,10 +20,10 @@ import numpy as np
 from popcode_runtime import Detector, FramePoseEstimator, PoseEstimator, read_image
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from tools.command import run_command
-from tools.paths import MODELS_DIR, RESULTS, SHIPPED_MODELS
+from tools.paths import MODELS_DIR, RESULTS, SHIPPED_DETECTOR, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
 
-DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
+DETECTOR = SHIPPED_DETECTOR
 SAMPLE = MODELS_DIR / "samples" / "samples.json"
 
 

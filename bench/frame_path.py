@@ -30,10 +30,10 @@ from popcode_runtime.model.detector_metadata import DETECTOR_INPUT_MEAN
 from popcode_trainer.data.box_noise import box_intersection, box_iou
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from tools.command import run_command
-from tools.paths import MODELS_DIR, RESULTS
+from tools.paths import MODELS_DIR, RESULTS, SHIPPED_DETECTOR
 from tools.report import machine, machine_line, write_results
 
-DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
+DETECTOR = SHIPPED_DETECTOR
 SAMPLE = MODELS_DIR / "samples" / "samples.json"
 CROPS = {"16:9 top": (0, 0, 720, 405), "16:9 bottom": (0, 135, 720, 405), "3:4 left": (0, 0, 405, 540),
          "3:4 right": (315, 0, 405, 540)}  # x, y, width, height in the 720 x 540 frame

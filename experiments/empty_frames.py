@@ -47,12 +47,12 @@ from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.detection_scores import detection_scores
 from tools.command import run_command
-from tools.paths import MODELS_DIR, RESULTS, SHIPPED_MODELS
+from tools.paths import RESULTS, SHIPPED_DETECTOR, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
 
 from .shipped_detector import render_scenes
 
-DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
+DETECTOR = SHIPPED_DETECTOR
 VALIDATION_SEED = 4000  # the project's cluttered validation seed (industrial camera)
 FRAME_SIZE = (720, 540)  # the bin splits' (width, height)
 GREY_LEVELS = (0, 32, 64, 96, 128, 160, 192, 224, 255)

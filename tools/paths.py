@@ -10,4 +10,5 @@ MODELS_DIR = ROOT / "models"
 SHIPPED_1_2 = MODELS_DIR / "builtin-parts-1-2.onnx"
 SHIPPED_3_6 = MODELS_DIR / "builtin-parts-3-6.onnx"
 SHIPPED_MODELS = (SHIPPED_1_2, SHIPPED_3_6)
+SHIPPED_DETECTOR = MODELS_DIR / "builtin-parts-detector.onnx"
 RESULTS = ROOT / "bench" / "results"  # one place for the numbers of benchmarks, experiments and fuzzers alike

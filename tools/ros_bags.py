@@ -20,6 +20,8 @@ IMAGE_TOPIC, INFO_TOPIC, DEPTH_TOPIC = "/camera/image_raw", "/camera/camera_info
 FRAME_ID = "camera_optical_frame"
 PERIOD_NS = 100_000_000  # 10 frames a second
 START_NS = 1_700_000_000 * 1_000_000_000
+# the camera of models/samples/bin.png (720 x 540; the README's --K)
+SAMPLE_BIN_K = np.array([[864.0, 0.0, 359.5], [0.0, 864.0, 269.5], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)

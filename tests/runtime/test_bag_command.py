@@ -25,12 +25,14 @@ from popcode_runtime.geometry.rotations import quaternion_to_matrix, random_rota
 from popcode_runtime.ros.bag_input import MAX_WAITING
 from popcode_runtime.ros.images import IMAGE_TYPE, depth_array, image_array
 from popcode_runtime.ros.messages import DETECTIONS_TYPE, POSES_TYPE, detection_array, pose_message, typestore
+from tools.paths import MODELS_DIR, SHIPPED_DETECTOR, SHIPPED_MODELS
 from tools.ros_bags import (
     DEPTH_TOPIC,
     FRAME_ID,
     IMAGE_TOPIC,
     INFO_TOPIC,
     PERIOD_NS,
+    SAMPLE_BIN_K,
     START_NS,
     Message,
     camera_info,
@@ -40,11 +42,10 @@ from tools.ros_bags import (
     write_bag,
 )
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
-POSE_MODELS = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-parts-3-6.onnx")]
-DETECTOR = str(MODELS / "builtin-parts-detector.onnx")
-BIN = MODELS / "samples" / "bin.png"  # 720 x 540 grey; its camera is the README's
-K_BIN = np.array([[864.0, 0.0, 359.5], [0.0, 864.0, 269.5], [0.0, 0.0, 1.0]])
+POSE_MODELS = [str(path) for path in SHIPPED_MODELS]
+DETECTOR = str(SHIPPED_DETECTOR)
+BIN = MODELS_DIR / "samples" / "bin.png"  # 720 x 540 grey; its camera is the README's
+K_BIN = SAMPLE_BIN_K
 DETECTIONS, POSES = "/popcode/detections", "/popcode/poses"
 BLANK_SIZE = (320, 240)  # frames where the detector finds nothing: the tests of the bag's plumbing stay cheap
 K_BLANK = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])

@@ -26,11 +26,13 @@ from popcode_runtime.ros.bag_input import CameraFrame
 from popcode_runtime.ros.foxglove_scene import CALIBRATION_TOPIC, SCENE_TOPIC, serve_scene
 from popcode_runtime.ros.foxglove_scene import IMAGE_TOPIC as VIEW_IMAGE
 from popcode_runtime.ros.messages import detection_array
+from tools.paths import MODELS_DIR, SHIPPED_DETECTOR, SHIPPED_MODELS
 from tools.ros_bags import (
     FRAME_ID,
     IMAGE_TOPIC,
     INFO_TOPIC,
     PERIOD_NS,
+    SAMPLE_BIN_K,
     START_NS,
     camera_info,
     header,
@@ -39,10 +41,9 @@ from tools.ros_bags import (
     write_bag,
 )
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
-POSE_MODELS = [str(MODELS / "builtin-parts-1-2.onnx"), str(MODELS / "builtin-parts-3-6.onnx")]
-DETECTOR = str(MODELS / "builtin-parts-detector.onnx")
-K_BIN = np.array([[864.0, 0.0, 359.5], [0.0, 864.0, 269.5], [0.0, 0.0, 1.0]])
+POSE_MODELS = [str(path) for path in SHIPPED_MODELS]
+DETECTOR = str(SHIPPED_DETECTOR)
+K_BIN = SAMPLE_BIN_K
 PLUMB_BOB = (-0.12, 0.05, 0.001, -0.002, 0.0)
 
 
@@ -76,7 +77,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[np.n
     """A two-frame bag of the bin (the second mirrored) through ``popcode bag --foxglove``; its camera has
     plumb_bob distortion, so the file shows the undistorted frames."""
     folder = tmp_path_factory.mktemp("foxglove")
-    grey = cv2.imread(str(MODELS / "samples" / "bin.png"), cv2.IMREAD_UNCHANGED)
+    grey = cv2.imread(str(MODELS_DIR / "samples" / "bin.png"), cv2.IMREAD_UNCHANGED)
     frames = [grey, np.ascontiguousarray(grey[:, ::-1])]
     messages = [m for i, f in enumerate(frames) for m in (
         camera_info(START_NS + i * PERIOD_NS, K_BIN, (720, 540), d=PLUMB_BOB),
