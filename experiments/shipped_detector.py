@@ -2,13 +2,16 @@
 the bin's MSSD end to end from its boxes beside the true and detector-like boxes, and the whole frame's latency.
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
-        [--empty-scenes 0] [--snapshot-every 5] [--set detector.KEY=VALUE ...]
+        [--empty-scenes 0] [--traced-scenes 0 0] [--traced-samples 8] [--snapshot-every 5]
+        [--set detector.KEY=VALUE ...]
         [--copy-to models/builtin-parts-detector.onnx] [--measure-only] [--name shipped-detector]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
 and exposure, as the demo's scenes; the sizes given by ``--scenes``, whose third and fourth numbers add seeds
 24 and 25 likewise; ``--empty-scenes`` bins without parts, seed
-23 with the industrial camera, half of them with distractors), a validation bin split (seed 4000,
+23 with the industrial camera, half of them with distractors; ``--traced-scenes N M``: N bins of seed 26 and M
+empty bins of seed 27, industrial camera, rendered and then path traced by ``popcode-train path-trace`` at
+``--traced-samples`` samples a pixel, the traced copies trained on), a validation bin split (seed 4000,
 industrial, 60 scenes: the project's cluttered validation seed) and the unseen bin split the shipped pose
 models are scored on (seed 6002, industrial, 30 scenes: ``models/README.md``); trains ``popcode-train
 train-detector`` for ``--epochs`` (rerun to resume: every step keeps what it finished); exports; scores the
@@ -55,6 +58,7 @@ from tools.report import machine, machine_line, write_results
 # the training scenes' seeds in pairs: the first without a sensor model, the second with the industrial camera's
 TRAIN_SEEDS = (21, 22, 24, 25)
 EMPTY_SEED = 23  # the bins without parts (--empty-scenes)
+TRACED_SEEDS = (26, 27)  # the path-traced bins with and without parts (--traced-scenes)
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
 
@@ -65,6 +69,13 @@ def render_scenes(out: Path, scenes: int, seed: int, sensor: str, empty_share: f
         subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "render", "--objects", "builtin", "--out",
                         str(out), "--scenes", str(scenes), "--seed", str(seed), "--sensor", sensor, "--quiet",
                         *(["--empty-share", f"{empty_share:g}"] if empty_share else [])], check=True)
+    return out
+
+
+def trace_scenes(source: Path, out: Path, samples: int) -> Path:
+    """``source`` path traced into ``out`` (``popcode-train path-trace``; a rerun skips the images it finished)."""
+    subprocess.run([sys.executable, "-m", "popcode_trainer.cli", "path-trace", "--split", str(source), "--out",
+                    str(out), "--samples", str(samples), "--quiet"], check=True)
     return out
 
 
@@ -160,6 +171,9 @@ def main() -> None:
                         help="training scenes of seeds 21 (plain) and 22 (industrial camera), then optionally of "
                              "seeds 24 and 25 likewise: two or four numbers")
     parser.add_argument("--empty-scenes", type=int, default=0, help="bins without parts among the training scenes")
+    parser.add_argument("--traced-scenes", type=int, nargs=2, default=(0, 0), metavar=("N", "M"),
+                        help="path-traced training bins with parts (seed 26) and without (seed 27)")
+    parser.add_argument("--traced-samples", type=int, default=8, help="the path tracer's samples a pixel")
     parser.add_argument("--snapshot-every", type=int, default=5, help="epochs between the curve's snapshots")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
@@ -174,6 +188,11 @@ def main() -> None:
              in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial") * 2, strict=False)]
     if args.empty_scenes:
         train.append(render_scenes(work / "train_empty", args.empty_scenes, EMPTY_SEED, "industrial", 1.0))
+    for seed, scenes, empty_share in zip(TRACED_SEEDS, args.traced_scenes, (0.0, 1.0), strict=True):
+        if scenes:
+            kind = "empty_" if empty_share else ""
+            source = render_scenes(work / f"source_{kind}{seed}", scenes, seed, "industrial", empty_share)
+            train.append(trace_scenes(source, work / f"traced_{kind}{seed}", args.traced_samples))
     splits = {name: render_scenes(work / name, scenes, seed, "industrial")
               for name, (seed, scenes) in SPLITS.items()}
     run = work / "run"

@@ -97,6 +97,20 @@ def test_a_bin_is_replayed_with_its_walls_distractors_and_sensor(rendered: dict[
         assert np.abs(np.diff(traced_image, axis=1)).mean() > 1.0  # sensor noise and render noise
 
 
+def test_bins_without_parts_are_traced_too(tmp_path: Path) -> None:
+    """A split of emptied bins (``--empty-share``: a detector's negatives, one with its distractors, one bare) is
+    replayed from its camera, not refused for holding no part: the traced frames show the bin, no instance."""
+    source, out = tmp_path / "empty", tmp_path / "empty_traced"
+    assert trainer(["render", "--objects", "builtin", "--out", str(source), "--scenes", "2", "--size", "160", "120",
+                    "--seed", "5", "--empty-share", "1", "--quiet"]) == 0
+    assert trainer(["path-trace", "--split", str(source), "--out", str(out), "--samples", "2", "--quiet"]) == 0
+    images = _images(out)
+    assert len(images) == 2
+    for image_path in images:
+        assert (cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE) < 3).mean() < 0.2
+    assert all(not gt for gt in json.loads((out / "000000" / "scene_gt.json").read_text()).values())
+
+
 @pytest.mark.slow
 def test_an_interrupted_trace_resumes_with_what_is_missing(rendered: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "resumed"

@@ -45,7 +45,7 @@ from .render import BUILTIN_MODELS_FOLDER, RECORDS_FOLDER, check_settings, final
 from .scene_content import Layouts, SceneContent, SceneSettings
 from .scene_layout import model_to_camera
 from .scene_look import SceneLook, draw_scene_look
-from .scene_render import IMAGES_PER_SCENE_FOLDER, MAX_CAMERA_TRIES, load_scene_meshes
+from .scene_render import IMAGES_PER_SCENE_FOLDER, MAX_CAMERA_TRIES, emptied_world, empty_image, load_scene_meshes
 from .sensor import apply_sensor_effects, sensor_preset
 
 PATH_TRACED_KEY = "path_traced"  # in the written split's settings: how it was path traced
@@ -84,17 +84,30 @@ class _SceneReplay:
         self.meshes = meshes
         self.layouts = Layouts(meshes, self.settings)
 
-    def draw(self, k: int, K: np.ndarray, recorded: list[dict[str, Any]]
+    def draw(self, k: int, K: np.ndarray, record: dict[str, Any]
              ) -> tuple[SceneContent, SceneLook, np.random.Generator]:
-        """The content and look whose targets lie where the record says, and the generator after them."""
+        """The content and look whose targets lie where the image's record says (an image without parts: whose
+        camera does), and the generator after them."""
         rng = np.random.default_rng([self.settings.seed, k])
-        for _ in range(MAX_CAMERA_TRIES):
-            content = self.layouts.draw(rng, K)
-            look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
-            if self._matches(content, recorded):
+        keep_distractors = empty_image(k, self.settings.empty_share)
+        if keep_distractors is not None:  # the first draw with its parts taken out, as the rasteriser drew it
+            content, look = emptied_world(self.layouts, rng, K, keep_distractors)
+            if not record["scene_gt"] and self._camera_matches(content, record["scene_camera"]):
                 return content, look, rng
+        else:
+            for _ in range(MAX_CAMERA_TRIES):
+                content = self.layouts.draw(rng, K)
+                look = draw_scene_look(rng, len(content.targets) + len(content.distractors))
+                if self._matches(content, record["scene_gt"]):
+                    return content, look, rng
         raise PopcodeError("its recorded poses are not what the split's settings draw (was it rendered by another "
                            "version of popcode, or edited?)")
+
+    @staticmethod
+    def _camera_matches(content: SceneContent, camera: dict[str, Any]) -> bool:
+        recorded = _pose(np.asarray(camera["cam_R_w2c"], np.float64).reshape(3, 3),
+                         np.asarray(camera["cam_t_w2c"], np.float64))
+        return bool(np.allclose(_pose(content.R_w2c, content.t_w2c_mm), recorded, atol=POSE_TOLERANCE))
 
     @staticmethod
     def _matches(content: SceneContent, recorded: list[dict[str, Any]]) -> bool:
@@ -209,10 +222,12 @@ def _path_trace_image(mitsuba: Any, source: Path, out: Path, scene_id: int, im_i
             raise PopcodeError(f"object {gt['obj_id']} is not among the split's objects")
         surfaces = [Surface(meshes[gt["obj_id"]], _record_pose(gt), draw_part_bsdf(look_rng)[1])]
     else:
-        content, look, sensor_rng = replay.draw(scene_id * IMAGES_PER_SCENE_FOLDER + im_id, K, record["scene_gt"])
+        content, look, sensor_rng = replay.draw(scene_id * IMAGES_PER_SCENE_FOLDER + im_id, K, record)
         surfaces = replay.surfaces(content, look, look_rng, mitsuba)
-    targets_mm = np.array([surface.model_to_camera[:3, 3] for surface in surfaces[:max(len(record["scene_gt"]), 1)]])
-    lights = draw_lights(look_rng, targets_mm.mean(axis=0))
+    # the lights aim at the parts, or at the world's origin (the bin's floor) where there are none
+    aims_mm = [surface.model_to_camera[:3, 3] for surface in surfaces[:len(record["scene_gt"])]] or \
+        [content.t_w2c_mm]
+    lights = draw_lights(look_rng, np.mean(aims_mm, axis=0))
     linear = path_trace(mitsuba, surfaces, lights, K, size, settings, int(look_rng.integers(2**32)))
     rgb = expose(linear, look_rng)
     gray = bool(source_settings.get("gray", True))

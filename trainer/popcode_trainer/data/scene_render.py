@@ -251,7 +251,7 @@ def empty_image(k: int, share: float) -> bool | None:
     return empties_before % 2 == 0
 
 
-def _emptied_world(layouts: Layouts, rng: np.random.Generator, K: np.ndarray,
+def emptied_world(layouts: Layouts, rng: np.random.Generator, K: np.ndarray,
                    keep_distractors: bool) -> tuple[SceneContent, SceneLook]:
     """The first draw of an image's world and look with its target parts taken out (its distractors too unless
     ``keep_distractors``), each object that stays with its own material."""
@@ -286,7 +286,7 @@ def _render_image(renderer: _SceneRenderer, layouts: Layouts, meshes: dict[int, 
     K = camera_matrix(settings.width, settings.height)
     keep_distractors = empty_image(k, settings.empty_share)
     if keep_distractors is not None:  # the first draw with its parts taken out, as render_emptied_scenes makes it
-        content, look = _emptied_world(layouts, rng, K, keep_distractors)
+        content, look = emptied_world(layouts, rng, K, keep_distractors)
         colour, depth_scene_mm, _, _ = renderer.render(content, look, meshes, K)
         results = []
     else:
@@ -446,7 +446,7 @@ def render_emptied_scenes(models_dir: str | Path, settings: SceneSettings, indic
     try:
         for k in indices:
             rng = np.random.default_rng([settings.seed, k])
-            colour = renderer.render(*_emptied_world(layouts, rng, K, keep_distractors), meshes, K)[0]
+            colour = renderer.render(*emptied_world(layouts, rng, K, keep_distractors), meshes, K)[0]
             frames.append(_camera_image(colour, rng, settings))
     finally:
         renderer.close()
