@@ -16,7 +16,7 @@ from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_trainer.cli import main
 from popcode_trainer.data.objects import write_builtin_models
-from popcode_trainer.demo.report import SUMMARY_FILE
+from popcode_trainer.demo.files import SUMMARY_FILE
 from popcode_trainer.kit.budget import ANCHORS, MAX_HOURS, MIN_HOURS, WIDE_NETWORK, kit_size
 from popcode_trainer.kit.layout import CARD_FILE, DETECTOR_NAME, SAMPLES_FOLDER
 from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER

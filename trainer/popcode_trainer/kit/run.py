@@ -22,9 +22,10 @@ from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.commands.run_fingerprint import file_digest
 
 from ..data.path_trace import INSTALL_HINT
+from ..demo.files import REPORT_FILE, SUMMARY_FILE
 from ..demo.parts import MODELS_INFO, Parts
 from ..demo.plan import minutes_text, plan
-from ..demo.report import POPCODE, REPORT_FILE, SUMMARY_FILE
+from ..demo.report import POPCODE
 from ..demo.run import prepare_parts, run_demo
 from ..demo.sizes import HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS, DemoSize
 from ..demo.steps import PipelineSize
