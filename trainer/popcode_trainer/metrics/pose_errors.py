@@ -80,7 +80,8 @@ def _max_symmetric_distance(
             pts_gt = pts @ np.swapaxes(R_sym, -1, -2) + t_sym[:, :, None]  # (n, k, P, 3)
             if K is not None:
                 pts_gt = project_camera_points(pts_gt, K)
-            dist = np.linalg.norm(pts_est[:, None] - pts_gt, axis=-1).max(axis=-1)
+            offsets = pts_est[:, None] - pts_gt
+            dist = np.sqrt(np.einsum("nkpi,nkpi->nkp", offsets, offsets).max(axis=-1))  # one root per (n, k)
             best = np.minimum(best, dist.min(axis=-1))
         errors[sl] = best
     return errors.reshape(shape)
