@@ -19,7 +19,7 @@ from popcode_trainer.data.objects import write_builtin_models
 from popcode_trainer.demo.files import SUMMARY_FILE
 from popcode_trainer.kit.budget import ANCHORS, MAX_HOURS, MIN_HOURS, WIDE_NETWORK, kit_size
 from popcode_trainer.kit.layout import CARD_FILE, DETECTOR_NAME, SAMPLES_FOLDER
-from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER
+from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER, finished_demo
 from tools.paths import ROOT
 
 HOURS = "1"
@@ -154,6 +154,27 @@ def test_an_interrupted_kit_resumes_without_running_its_demo_again(kit: tuple[Pa
 def _without_load(card: str) -> str:
     """The card but the machine's load when it was written."""
     return re.sub(r", load [0-9.]+,", ", load,", card)
+
+
+def test_a_summary_the_kit_cannot_use_leaves_the_demo_to_run(tmp_path: Path) -> None:
+    """No summary, one of another folder, one whose model is gone, one without the models: the demo runs (its
+    steps resume); a summary of this folder whose files are there is used."""
+    work = tmp_path / WORK_FOLDER
+    work.mkdir()
+    model, samples = work / "model.onnx", work / "samples.json"
+    model.write_bytes(b"onnx")
+    samples.write_text("{}")
+    usable = {"report": str(work / "report.md"), "models": {"population_code": [str(model)]},
+              "quantised_models": [], "samples": str(samples)}
+    assert finished_demo(work) is None
+    for summary in ({**usable, "report": str(tmp_path / "elsewhere" / "report.md")}, {**usable, "samples": None},
+                    {key: value for key, value in usable.items() if key != "models"}, []):
+        (work / SUMMARY_FILE).write_text(json.dumps(summary))
+        assert finished_demo(work) is None, summary
+    (work / SUMMARY_FILE).write_text(json.dumps(usable))
+    assert finished_demo(work) == usable
+    model.unlink()
+    assert finished_demo(work) is None
 
 
 def test_the_docs_table_of_the_budget_is_the_code_s() -> None:

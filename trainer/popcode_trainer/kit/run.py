@@ -101,15 +101,19 @@ def finished_demo(work: Path) -> dict[str, Any] | None:
     """The summary of the demo that finished in ``work`` (the demo writes it last, atomically), so that a kit cut off
     after its demo resumes in seconds instead of evaluating, timing and drawing again; None where the demo has not
     finished there, where the summary names another folder (a moved kit: the demo runs again, its training
-    resumes) or where a file the kit copies is gone."""
+    resumes), where a file the kit copies is gone or where the summary lacks what the kit reads (another
+    version's)."""
     path = work / SUMMARY_FILE
     if not path.is_file():
         return None
     summary = read_json(path)
-    if Path(summary["report"]).resolve() != (work / REPORT_FILE).resolve():
+    try:
+        here = Path(summary["report"]).resolve() == (work / REPORT_FILE).resolve()
+        copied = [*summary["models"][POPCODE], *summary["quantised_models"], summary["samples"]]
+        present = all(Path(p).is_file() for p in copied)
+    except (KeyError, TypeError):
         return None
-    copied = [*summary["models"][POPCODE], *summary["quantised_models"], summary["samples"]]
-    return summary if all(Path(p).is_file() for p in copied) else None
+    return summary if here and present else None
 
 
 def fingerprint(parts: Parts) -> dict[str, str]:
