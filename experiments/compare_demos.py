@@ -26,7 +26,7 @@ import onnx
 from onnx import numpy_helper
 
 from popcode_runtime.base.files import read_json
-from popcode_trainer.demo.report import SUMMARY_FILE
+from popcode_trainer.demo.files import SUMMARY_FILE
 from popcode_trainer.train.run_files import METRICS_FILE, read_metrics
 from tools.command import run_command
 

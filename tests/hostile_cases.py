@@ -148,6 +148,8 @@ METADATA_CASES: dict[str, tuple[str, str | None, str]] = {
                                        "surface_points_mm must be a list"),
     "surface_normals_not_unit": ("popcode.objects", _objects(surface_points_mm=SURFACE,
                                                              surface_normals=[[0, 0, 2]] * 16), "unit vectors"),
+    "surface_one_point": ("popcode.objects", _objects(surface_points_mm=[[1e6, -1e6, 3.0]] * 16,
+                                                      surface_normals=NORMALS), "surface_points_mm are all one point"),
     # issue 50: bounds and declarations
     "symmetry_numbers_as_text": ("popcode.objects", _objects(symmetries_discrete=[[str(v) for v in OBJECT[
         "symmetries_discrete"][0]]]), "symmetries_discrete[0] is not a list of numbers: got ['-1.0', "),

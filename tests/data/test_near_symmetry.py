@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from popcode_runtime.geometry.rotations import axis_angle_to_matrix
 from popcode_trainer.data import symmetry_check
 from popcode_trainer.data.near_symmetry import LookAlike, look_alike_rotations, look_alike_symmetries
 from popcode_trainer.data.objects import BUILTIN_PARTS, build_part, model_info
-from popcode_trainer.data.surface_sample import diameter_mm, surface_sample
+from popcode_trainer.data.surface_sample import SurfaceSample, diameter_mm, surface_distance, surface_sample
 from popcode_trainer.data.symmetry_check import _anchors_mm, check_object_symmetries
 
 
@@ -45,6 +46,35 @@ def test_declared_symmetries_and_built_in_parts_give_no_look_alike() -> None:
         assert _look_alikes(mesh, model_info(mesh, part.symmetries)) == [], part.name
     bracket = next(p for p in BUILTIN_PARTS if not p.symmetries)  # asymmetric: nothing looks alike either
     assert _look_alikes(build_part(bracket.obj_id), model_info(build_part(bracket.obj_id), {})) == []
+
+
+def test_a_distance_asked_within_a_bound_is_the_full_one_up_to_it() -> None:
+    """Turns about the look-alike axis of the plate with a pin, from fitting to far off: the bounded distance is
+    the full one where that is within the bound (the pin's samples, farther, looked up in full), and more than
+    the bound where it is not."""
+    mesh = _plate_with_pin()
+    sample = surface_sample(mesh, diameter_mm(mesh, {}), "test")
+    within = 0.02
+    full, bounded, farthest = [], [], []
+    for degrees in np.linspace(85.0, 95.0, 21):
+        R = axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.radians(degrees))
+        for percentile in (90.0, 99.0):
+            full.append(surface_distance(sample, R, np.zeros(3), percentile))
+            bounded.append(surface_distance(sample, R, np.zeros(3), percentile, within=within))
+            farthest.append(surface_distance(sample, R, np.zeros(3), 100.0))
+    full, bounded, farthest = np.array(full), np.array(bounded), np.array(farthest)
+    fits = full <= within
+    assert np.array_equal(bounded[fits], full[fits]) and (farthest[fits] > within).any()
+    assert np.all(bounded[~fits] > within) and np.isinf(bounded).any()
+
+
+def test_a_percentile_between_a_near_and_a_far_sample_is_not_cut_by_the_bound() -> None:
+    """900 samples on the surface and 100 far off: the 90th percentile lies a tenth of the way to the far ones,
+    within the bound though its upper neighbour is beyond it."""
+    near, far = np.zeros((900, 3)), np.tile([1000.0, 0.0, 0.0], (100, 1))
+    sample = SurfaceSample(np.concatenate([near, far]), cKDTree(near[:1]), 10_000.0, np.zeros(3))
+    assert surface_distance(sample, np.eye(3), np.zeros(3), 90.0, within=0.02) == pytest.approx(0.01)
+    assert surface_distance(sample, np.eye(3), np.zeros(3), 90.0, within=0.005) > 0.005
 
 
 def test_the_symmetry_check_warns_with_the_fix(tmp_path: Path) -> None:

@@ -60,6 +60,16 @@ def box_translation(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return translation_from_box(R, bracket_box(R, t), K, HULL)
 
 
+def test_a_surface_s_diameter_is_its_largest_distance_between_two_points():
+    """The Gram-matrix diameter against every pair's difference, on a cloud far from the origin."""
+    points = np.random.default_rng(0).normal(size=(512, 3)) * [30.0, 20.0, 5.0] + 1e7
+    info = {"surface_points_mm": points.tolist(), "surface_normals": np.tile([0.0, 0.0, 1.0], (512, 1)).tolist()}
+    pairwise = np.linalg.norm(points[:, None] - points[None], axis=-1).max()
+    assert object_surface(info).diameter_mm == pytest.approx(pairwise, rel=1e-9)
+    assert SURFACE.diameter_mm == pytest.approx(np.linalg.norm(SURFACE.points_mm[:, None] - SURFACE.points_mm[None],
+                                                              axis=-1).max(), rel=1e-12)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_translation_from_exact_depth_is_within_a_millimetre(seed):
     """With the true rotation the depth places the bracket to well under a millimetre, the bin floor behind it."""

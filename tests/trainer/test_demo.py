@@ -17,7 +17,8 @@ from tiny_demo import TINY
 from popcode_runtime import PoseEstimator
 from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.demo import epoch_budget
-from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
+from popcode_trainer.demo.files import SUMMARY_FILE
+from popcode_trainer.demo.report import POPCODE
 from popcode_trainer.demo.run import run_demo
 from tools.paths import ROOT
 

@@ -1,10 +1,11 @@
-"""``popcode-train kit`` at the hidden smoke size on the built-in parts written out as a user's models folder: the
+"""``popcode-train kit`` at the hidden smoke size on three built-in parts written out as a user's models folder: the
 kit's layout, its models in the runtime, its card, a rerun that redoes nothing, and the refusals of a kit folder
 that belongs to another kit or whose models folder changed (the budget's refusals: the hostile catalogue)."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -15,12 +16,14 @@ from popcode_runtime.inference.detector import Detector
 from popcode_runtime.inference.estimator import PoseEstimator
 from popcode_trainer.cli import main
 from popcode_trainer.data.objects import write_builtin_models
+from popcode_trainer.demo.files import SUMMARY_FILE
 from popcode_trainer.kit.budget import ANCHORS, MAX_HOURS, MIN_HOURS, WIDE_NETWORK, kit_size
 from popcode_trainer.kit.layout import CARD_FILE, DETECTOR_NAME, SAMPLES_FOLDER
-from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER
+from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER, finished_demo
 from tools.paths import ROOT
 
 HOURS = "1"
+PARTS = [1, 2, 6]  # two models: the two parts of a continuous symmetry together, the asymmetric bracket alone
 
 
 def _kit(models: Path, out: Path, hours: str = HOURS) -> list[str]:
@@ -31,9 +34,20 @@ def _kit(models: Path, out: Path, hours: str = HOURS) -> list[str]:
 def kit(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """The models folder and the finished kit."""
     folder = tmp_path_factory.mktemp("kit")
-    models = write_builtin_models(folder / "models")
+    models = _builtin_parts(folder / "models", PARTS)
     assert main(_kit(models, folder / "kit")) == 0
     return models, folder / "kit"
+
+
+def _builtin_parts(folder: Path, obj_ids: list[int]) -> Path:
+    """Those built-in parts alone as a user's models folder (fewer parts: a third less work than all six)."""
+    write_builtin_models(folder)
+    info = json.loads((folder / "models_info.json").read_text())
+    for obj_id in [int(key) for key in info if int(key) not in obj_ids]:
+        del info[str(obj_id)]
+        (folder / f"obj_{obj_id:06d}.ply").unlink()
+    (folder / "models_info.json").write_text(json.dumps(info))
+    return folder
 
 
 @pytest.mark.slow
@@ -45,12 +59,12 @@ def test_the_kit_is_laid_out_as_models_and_loads_in_the_runtime(kit: tuple[Path,
     assert {p.name for p in out.iterdir()} == {*pose_files, DETECTOR_NAME, SAMPLES_FOLDER, CARD_FILE, KIT_FILE,
                                                WORK_FOLDER}
     covered = [obj_id for name in pose_files for obj_id in PoseEstimator(out / name).metadata.objects]
-    assert sorted(covered) == [1, 2, 3, 4, 5, 6]  # every part in exactly one model
+    assert sorted(covered) == PARTS and len(pose_files) == 2  # every part in exactly one model
     assert all(name == f"parts-{'-'.join(map(str, sorted(PoseEstimator(out / name).metadata.objects)))}.onnx"
                for name in pose_files)
-    assert sorted(Detector(out / DETECTOR_NAME).metadata.obj_ids) == [1, 2, 3, 4, 5, 6]
+    assert sorted(Detector(out / DETECTOR_NAME).metadata.obj_ids) == PARTS
     samples = json.loads((out / SAMPLES_FOLDER / "samples.json").read_text())
-    assert [s["obj_id"] for s in samples["samples"]] == [1, 2, 3, 4, 5, 6]
+    assert [s["obj_id"] for s in samples["samples"]] == PARTS
     assert samples["bin"]["instances"] and (out / SAMPLES_FOLDER / samples["bin"]["image"]).is_file()
     assert all((out / SAMPLES_FOLDER / s["image"]).is_file() for s in samples["samples"])
 
@@ -114,8 +128,10 @@ def test_the_budget_grows_the_data_between_the_anchors() -> None:
 
 
 @pytest.mark.slow
-def test_an_interrupted_kit_resumes_without_training_again(kit: tuple[Path, Path], tmp_path: Path) -> None:
-    """A copy of the kit as a run cut off after its models were trained leaves it: no card, no files laid out."""
+def test_an_interrupted_kit_resumes_without_running_its_demo_again(kit: tuple[Path, Path], tmp_path: Path) -> None:
+    """A copy of the kit as a run cut off after its demo finished leaves it (no card, no files laid out; the demo's
+    summary names the copy's folder, as in the folder it ran in): the kit is laid out from the summary, with the
+    same card, and nothing in the work folder is trained, evaluated or written again."""
     models, finished = kit
     out = shutil.copytree(finished, tmp_path / "kit")
     record = json.loads((out / KIT_FILE).read_text())
@@ -123,12 +139,42 @@ def test_an_interrupted_kit_resumes_without_training_again(kit: tuple[Path, Path
     (out / KIT_FILE).write_text(json.dumps(record))
     for path in [out / CARD_FILE, *out.glob("parts-*.onnx")]:
         path.unlink()
-    trained = sorted((out / WORK_FOLDER / "runs").glob("*/*.onnx"))
-    before = {p: p.stat().st_mtime_ns for p in trained}
+    summary = out / WORK_FOLDER / SUMMARY_FILE
+    summary.write_text(summary.read_text().replace(str(finished), str(out)))
+    work = sorted(p for p in (out / WORK_FOLDER).rglob("*") if p.is_file())
+    before = {p: p.stat().st_mtime_ns for p in work}
     assert main(_kit(models, out)) == 0
-    assert {p: p.stat().st_mtime_ns for p in trained} == before
-    assert (out / CARD_FILE).is_file() and "kit" in json.loads((out / KIT_FILE).read_text())
+    assert {p: p.stat().st_mtime_ns for p in work} == before
+    assert "kit" in json.loads((out / KIT_FILE).read_text())
     assert sorted(p.name for p in out.glob("parts-*.onnx")) == sorted(p.name for p in finished.glob("parts-*.onnx"))
+    assert _without_load((out / CARD_FILE).read_text()) == _without_load(
+        (finished / CARD_FILE).read_text().replace(str(finished), str(out)))
+
+
+def _without_load(card: str) -> str:
+    """The card but the machine's load when it was written."""
+    return re.sub(r", load [0-9.]+,", ", load,", card)
+
+
+def test_a_summary_the_kit_cannot_use_leaves_the_demo_to_run(tmp_path: Path) -> None:
+    """No summary, one of another folder, one whose model is gone, one without the models: the demo runs (its
+    steps resume); a summary of this folder whose files are there is used."""
+    work = tmp_path / WORK_FOLDER
+    work.mkdir()
+    model, samples = work / "model.onnx", work / "samples.json"
+    model.write_bytes(b"onnx")
+    samples.write_text("{}")
+    usable = {"report": str(work / "report.md"), "models": {"population_code": [str(model)]},
+              "quantised_models": [], "samples": str(samples)}
+    assert finished_demo(work) is None
+    for summary in ({**usable, "report": str(tmp_path / "elsewhere" / "report.md")}, {**usable, "samples": None},
+                    {key: value for key, value in usable.items() if key != "models"}, []):
+        (work / SUMMARY_FILE).write_text(json.dumps(summary))
+        assert finished_demo(work) is None, summary
+    (work / SUMMARY_FILE).write_text(json.dumps(usable))
+    assert finished_demo(work) == usable
+    model.unlink()
+    assert finished_demo(work) is None
 
 
 def test_the_docs_table_of_the_budget_is_the_code_s() -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -177,7 +178,8 @@ def test_the_training_loop_holds_its_run_folder(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_a_second_demo_on_one_out_is_refused_while_the_first_runs(tmp_path: Path) -> None:
     """Two real processes at the smoke size: the second is refused, the first killed, and its lock file holds
-    nobody back."""
+    nobody back. The first is stopped once it renders, holding its lock, so that it does not render and train on
+    the CPU the second needs."""
     out = tmp_path / "demo"
     command = [sys.executable, "-m", "popcode_trainer.cli", "demo", "--size", "smoke", "--out", str(out)]
     first = subprocess.Popen(command, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -185,6 +187,7 @@ def test_a_second_demo_on_one_out_is_refused_while_the_first_runs(tmp_path: Path
         while not (out / "train").exists():  # rendering began
             assert first.poll() is None, "the first demo ended before it rendered"
             time.sleep(0.05)
+        first.send_signal(signal.SIGSTOP)
         second = subprocess.run(command, env=ENV, capture_output=True, text=True, timeout=600)
     finally:
         first.kill()

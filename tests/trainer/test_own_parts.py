@@ -22,9 +22,10 @@ from popcode_runtime.commands.cli import main as runtime_main
 from popcode_trainer.cli import main
 from popcode_trainer.data.bop import read_bop_split
 from popcode_trainer.data.objects import BUILTIN_PARTS, model_info
+from popcode_trainer.demo.files import SUMMARY_FILE
 from popcode_trainer.demo.group_codes import choose_group_code, choose_group_codes, finer_grids
 from popcode_trainer.demo.parts import check_models_folder
-from popcode_trainer.demo.report import POPCODE, SUMMARY_FILE
+from popcode_trainer.demo.report import POPCODE
 from popcode_trainer.demo.sizes import DEMO_SIZES
 from popcode_trainer.demo.steps import small_config
 from popcode_trainer.train.config import load_config

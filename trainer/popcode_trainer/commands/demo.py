@@ -11,8 +11,8 @@ from popcode_runtime.base.errors import PopcodeError
 from popcode_runtime.base.files import refuse_inputs
 
 from ..data.render import MAX_RENDERED_IMAGES
+from ..demo.files import REPORT_FILE
 from ..demo.parts import BUILTIN
-from ..demo.report import REPORT_FILE
 from ..demo.run import describe_parts, prepare_parts, run_demo
 from ..demo.sizes import DEMO_SIZES, HIDDEN_SIZES, SMOKE_LATENCY_ITERATIONS
 from ..train.config import MAX_EPOCHS

@@ -96,7 +96,7 @@ def look_alike_symmetries(sample: SurfaceSample, info: Mapping[str, Any], anchor
         for order in sorted(ORDERS, reverse=True):
             R = axis_angle_to_matrix(axis, 2 * np.pi / order)
             t = centre - R @ centre
-            share = surface_distance(sample, R, t, LOOK_ALIKE_PERCENTILE)
+            share = surface_distance(sample, R, t, LOOK_ALIKE_PERCENTILE, within=LOOK_ALIKE_TOLERANCE)
             if share <= LOOK_ALIKE_TOLERANCE:
                 if not _declared(R, t, info, anchors_mm, SAME_TRANSFORM * diameter):
                     found.append(LookAlike(order, axis, share * diameter, diameter))

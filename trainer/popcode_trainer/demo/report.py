@@ -29,6 +29,7 @@ from ..train.network import NetworkConfig
 from .detector_section import own_detector_markdown
 from .detector_step import DETECTIONS_FILE, DETECTOR_STAGE, OWN_DETECTOR_FOLDER, OwnDetectorResults
 from .epoch_budget import EpochFit
+from .files import MODEL_CARD_FILE, REPORT_FILE, SAMPLES_FILE, SUMMARY_FILE
 from .look_alike_section import look_alike_markdown
 from .path_traced_section import path_traced_markdown, path_traced_summary
 from .path_traced_step import TRACED_FOLDER, PathTracedResults
@@ -38,10 +39,6 @@ from .targets import DETECTOR_TARGET, clutter_targets, targets_markdown, targets
 
 POPCODE = Representation.POPULATION_CODE
 QUANTISATION = "int8"
-REPORT_FILE = "report.md"
-MODEL_CARD_FILE = "model_card.md"
-SUMMARY_FILE = "summary.json"
-SAMPLES_FILE = "samples.json"
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,8 @@ import numpy as np
 from popcode_runtime.base.files import copy_file_atomic, read_json, write_bytes_atomic, write_json_atomic
 
 from ..data.render import BUILTIN_MODELS_FOLDER
-from ..demo.report import POPCODE, QUANTISATION, SAMPLES_FILE, network_summary, symmetry_name
+from ..demo.files import SAMPLES_FILE
+from ..demo.report import POPCODE, QUANTISATION, network_summary, symmetry_name
 from ..eval.pipeline.split import read_eval_split
 from ..eval.reporting.markdown import markdown_table
 from ..export.model_io import read_onnx_metadata

@@ -3,7 +3,8 @@
 a card (:mod:`popcode_trainer.kit.layout`).
 
 ``KIT/kit.json`` records what the kit was started with (the models folder, a fingerprint of its files, the
-budget) before the long work, so rerunning the same command resumes it (every step of the demo resumes), and a
+budget) before the long work, so rerunning the same command resumes it (every step of the demo resumes; a demo that
+finished, its ``summary.json`` written, is not run again: the kit is laid out from that summary), and a
 changed command or models folder is refused in one line that names the change. A folder that holds files but
 no ``kit.json`` is another program's and is refused too. One kit command writes a folder at a time.
 """
@@ -21,6 +22,7 @@ from popcode_runtime.base.output_lock import OutputLock
 from popcode_runtime.commands.run_fingerprint import file_digest
 
 from ..data.path_trace import INSTALL_HINT
+from ..demo.files import REPORT_FILE, SUMMARY_FILE
 from ..demo.parts import MODELS_INFO, Parts
 from ..demo.plan import minutes_text, plan
 from ..demo.report import POPCODE
@@ -72,8 +74,9 @@ def run_kit(objects: str | Path, out: str | Path, hours: float, size_name: str =
                   "on a machine like that", flush=True)
         minutes = 60.0 * hours if size_name == BUDGET else None
         iterations = LATENCY_ITERATIONS if size_name == BUDGET else SMOKE_LATENCY_ITERATIONS
-        summary = run_demo(f"kit {hours:g} h", out / WORK_FOLDER, size, latency_iterations=iterations,
-                           minutes=minutes, objects=objects)
+        summary = finished_demo(out / WORK_FOLDER) or run_demo(
+            f"kit {hours:g} h", out / WORK_FOLDER, size, latency_iterations=iterations, minutes=minutes,
+            objects=objects)
         record = {**record, "kit": write_kit(summary, out, command, machine())}
         write_json_atomic(out / KIT_FILE, record)
         print(f"kit written to {out}: card {record['kit']['card']}", flush=True)
@@ -92,6 +95,25 @@ def plan_text(size: PipelineSize, hours: float, size_name: str) -> str:
             f"{size.train_scenes} bin scenes{traced}; trunk {list(size.config.network.conv_channels)}; the detector "
             f"{minutes_text(size.detector_seconds)} ({100 * DETECTOR_SHARE:g} %); the pose models' epochs fitted to "
             "what is left on this machine (the mapping of hours to sizes is not measured yet: docs/training.md#kit)")
+
+
+def finished_demo(work: Path) -> dict[str, Any] | None:
+    """The summary of the demo that finished in ``work`` (the demo writes it last, atomically), so that a kit cut off
+    after its demo resumes in seconds instead of evaluating, timing and drawing again; None where the demo has not
+    finished there, where the summary names another folder (a moved kit: the demo runs again, its training
+    resumes), where a file the kit copies is gone or where the summary lacks what the kit reads (another
+    version's)."""
+    path = work / SUMMARY_FILE
+    if not path.is_file():
+        return None
+    summary = read_json(path)
+    try:
+        here = Path(summary["report"]).resolve() == (work / REPORT_FILE).resolve()
+        copied = [*summary["models"][POPCODE], *summary["quantised_models"], summary["samples"]]
+        present = all(Path(p).is_file() for p in copied)
+    except (KeyError, TypeError):
+        return None
+    return summary if here and present else None
 
 
 def fingerprint(parts: Parts) -> dict[str, str]:

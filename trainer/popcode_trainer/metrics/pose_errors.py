@@ -70,17 +70,18 @@ def _max_symmetric_distance(
     errors = np.empty(len(R_e))
     for p0 in range(0, len(R_e), pose_chunk):
         sl = slice(p0, p0 + pose_chunk)
-        pts_est = np.einsum("nij,pj->npi", R_e[sl], pts) + t_e[sl, None]  # (n, P, 3)
+        pts_est = pts @ np.swapaxes(R_e[sl], -1, -2) + t_e[sl, None]  # (n, P, 3); matmul: BLAS, not einsum's loop
         if K is not None:
             pts_est = project_camera_points(pts_est, K)
         best = np.full(len(pts_est), np.inf)
         for k0 in range(0, len(sym_R), sym_chunk):
             R_sym = np.einsum("nij,kjl->nkil", R_g[sl], sym_R[k0 : k0 + sym_chunk])
             t_sym = np.einsum("nij,kj->nki", R_g[sl], sym_t[k0 : k0 + sym_chunk]) + t_g[sl, None]
-            pts_gt = np.einsum("nkij,pj->nkpi", R_sym, pts) + t_sym[:, :, None]  # (n, k, P, 3)
+            pts_gt = pts @ np.swapaxes(R_sym, -1, -2) + t_sym[:, :, None]  # (n, k, P, 3)
             if K is not None:
                 pts_gt = project_camera_points(pts_gt, K)
-            dist = np.linalg.norm(pts_est[:, None] - pts_gt, axis=-1).max(axis=-1)
+            offsets = pts_est[:, None] - pts_gt
+            dist = np.sqrt(np.einsum("nkpi,nkpi->nkp", offsets, offsets).max(axis=-1))  # one root per (n, k)
             best = np.minimum(best, dist.min(axis=-1))
         errors[sl] = best
     return errors.reshape(shape)
