@@ -1,13 +1,14 @@
 """Detector files side by side on the validation bins, rendered and path traced: which one to ship (issue 61).
 
     OMP_NUM_THREADS=1 python -m experiments.detector_candidates --split runs/shipped_detector2/validation
-        --path-traced runs/pt/validation --detector NAME=FILE.onnx [--detector ...] [--poses]
+        --path-traced runs/pt/validation --detector NAME=FILE.onnx [--detector ...] [--poses] [--name NAME]
 
 Each detector at its file's score threshold: COCO AP and AP50 (as the BOP toolkit scores 2-D detection), recall at
 IoU 0.5 of parts at least 30 % and 90 % visible and boxes per instance (``experiments.empty_frames.bin_scores``),
 with ``--poses`` also the shipped pose models' MSSD from its boxes (every instance scored, a missed one wrong), on
 each split given: validation splits only (the bin of seed 4000 and ``popcode-train path-trace`` of it). Writes
-``bench/results/detector-candidates.{json,md}``.
+``bench/results/NAME.{json,md}`` (``--name``, ``detector-candidates`` by default: a later comparison beside an
+earlier one).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ def main() -> None:
                         help="a candidate, named (repeat)")
     parser.add_argument("--poses", action="store_true", help="also the shipped pose models' MSSD from the boxes")
     parser.add_argument("--work", type=Path, default=Path("runs/detector_candidates"))
+    parser.add_argument("--name", default="detector-candidates", help="the results' name in bench/results")
     args = parser.parse_args()
     splits = {"rendered": args.split, **({"path-traced": args.path_traced} if args.path_traced else {})}
     rows = []
@@ -48,7 +50,7 @@ def main() -> None:
                          **bin_scores(Detector(path, threads=1), split_dir, work, args.poses)})
     payload = {"command": shlex.join(["python", "-m", "experiments.detector_candidates", *sys.argv[1:]]),
                "threads": os.environ.get("OMP_NUM_THREADS"), "rows": rows}
-    write_results(RESULTS, "detector-candidates", payload, _markdown(payload))
+    write_results(RESULTS, args.name, payload, _markdown(payload))
 
 
 def _markdown(payload: dict[str, Any]) -> str:
