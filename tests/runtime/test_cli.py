@@ -81,7 +81,7 @@ def test_info_of_a_detector_says_what_it_finds_and_how_it_was_trained(capsys):
     assert ("first weights    the shipped detector start detector-start-e855fe97f1.pt (200 generated parts, 100 "
             "epochs, commit 62c3c6c0eddc+dirty)") in lines
     assert "training.weights  moving average of the steps" in lines
-    assert "training.git_revision 6e23cc549c3338d470a87630e81db9f45f622007" in lines
+    assert "training.git_revision ac63828fa15b138454ef7ce6b6796e832f0e3941" in lines
     assert main(["info", str(detector), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["kind"] == "detector" and info["obj_ids"] == [1, 2, 3, 4, 5, 6]
