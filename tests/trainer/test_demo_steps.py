@@ -52,6 +52,16 @@ def test_stage_plan_rescales_what_is_left(capsys: pytest.CaptureFixture) -> None
     assert "[2/2] b: about 30 s; about 30 s left overall" in capsys.readouterr().out
 
 
+def test_a_fixed_step_neither_sets_nor_takes_the_scale() -> None:
+    """A step of given seconds (the detector's training) took them on a machine twice as fast as the estimates:
+    the scale is the other steps' 0.5, not pulled towards 1, and a fixed step still to come keeps its seconds."""
+    plan = StagePlan([("render", 100.0), ("detector", 150.0), ("score", 40.0), ("detector 2", 60.0)],
+                     fixed=["detector", "detector 2"])
+    plan.done.update({"render": 50.0, "detector": 150.0})
+    assert plan.scale == pytest.approx(0.5)
+    assert plan.remaining_s() == pytest.approx(0.5 * 40.0 + 60.0)
+
+
 def test_nearest_equivalent_picks_the_symmetric_pose() -> None:
     flip = np.diag([-1.0, -1.0, 1.0])  # 180 deg about z
     info = {"symmetries_discrete": [np.pad(flip, ((0, 1), (0, 1))).ravel().tolist()]}

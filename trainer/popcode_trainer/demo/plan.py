@@ -7,7 +7,7 @@ the plan rescales what is left by how long the finished steps really took.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 
 import numpy as np
@@ -39,22 +39,27 @@ class StagePlan:
     """Named steps with estimated seconds; announces each with the time left overall.
 
     The estimate of what is left is scaled by (time taken / time estimated) of
-    the finished steps, so a faster or slower machine corrects it as it goes.
+    the finished steps, so a faster or slower machine corrects it as it goes. A ``fixed`` step takes the
+    seconds it is given on any machine (the detector trains for a time budget): it says nothing of the
+    machine's speed, so it neither sets the scale nor is scaled (counted, it pulled the scale towards 1 and a
+    fast machine's demo reserved twice what its scoring steps took: bench/results/demo-minutes.md).
     """
 
-    def __init__(self, stages: Sequence[tuple[str, float]]) -> None:
+    def __init__(self, stages: Sequence[tuple[str, float]], fixed: Collection[str] = ()) -> None:
         self.estimates = dict(stages)
+        self.fixed = frozenset(fixed)
         self.done: dict[str, float] = {}
 
     @property
     def scale(self) -> float:
-        """Seconds taken per second estimated over the finished steps (1 before any)."""
-        estimated_done = sum(self.estimates[name] for name in self.done)
-        return sum(self.done.values()) / estimated_done if estimated_done > 0 else 1.0
+        """Seconds taken per second estimated over the finished steps but the fixed ones (1 before any)."""
+        measured = [name for name in self.done if name not in self.fixed]
+        estimated_done = sum(self.estimates[name] for name in measured)
+        return sum(self.done[name] for name in measured) / estimated_done if estimated_done > 0 else 1.0
 
     def remaining_s(self, after: Sequence[str] = ()) -> float:
         left = [name for name in self.estimates if name not in self.done and name not in after]
-        return self.scale * sum(self.estimates[name] for name in left)
+        return sum(self.estimates[name] * (1.0 if name in self.fixed else self.scale) for name in left)
 
     def revise(self, estimates: Mapping[str, float]) -> None:
         """New estimates for steps not yet done (the finished ones keep theirs, which set the scale)."""
@@ -104,7 +109,7 @@ def plan(size: PipelineSize, groups: Sequence[Sequence[int]], objects: int, fit_
         stages.append((PATH_TRACED_STAGE, objects * size.path_traced_images
                        * (SECONDS_PER_TRACED_IMAGE + 2 * SECONDS_PER_EVALUATED_INSTANCE)))
     stages += [("latency", SECONDS_LATENCY), ("figures", SECONDS_FIGURES)]
-    return StagePlan(stages)
+    return StagePlan(stages, fixed=[DETECTOR_STAGE] if size.detector_seconds else [])
 
 
 def train_stage(representation: str, obj_ids: Sequence[int]) -> str:
