@@ -12,12 +12,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hostile_cases import error_lines
+from hostile_cases import error_lines, refused_in_one_line, run_cli
 
 from popcode_runtime.base.errors import PopcodeError
 from popcode_trainer.cli import main as trainer
 from popcode_trainer.data.path_trace import PathTraceSettings
 from popcode_trainer.data.path_traced_split import path_trace_split
+from popcode_trainer.data.render import RECORDS_FOLDER
 from popcode_trainer.demo.steps import (
     PipelineSize,
     render_splits,
@@ -109,6 +110,13 @@ def test_bins_without_parts_are_traced_too(tmp_path: Path) -> None:
     for image_path in images:
         assert (cv2.imread(str(image_path), cv2.IMREAD_GRAYSCALE) < 3).mean() < 0.2
     assert all(not gt for gt in json.loads((out / "000000" / "scene_gt.json").read_text()).values())
+    record = source / "000000" / RECORDS_FOLDER / "000001.json"
+    edited = json.loads(record.read_text())
+    del edited["scene_camera"]["cam_t_w2c"]  # a record without its camera's pose: named, not a traceback
+    record.write_text(json.dumps(edited))
+    code, _, stderr = run_cli(["path-trace", "--split", str(source), "--out", str(tmp_path / "again"), "--samples",
+                               "2", "--quiet"], trainer)
+    assert refused_in_one_line(code, stderr, "scene 000000 image 000001 cannot be path traced")
 
 
 @pytest.mark.slow

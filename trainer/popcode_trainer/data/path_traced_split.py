@@ -105,8 +105,11 @@ class _SceneReplay:
 
     @staticmethod
     def _camera_matches(content: SceneContent, camera: dict[str, Any]) -> bool:
-        recorded = _pose(np.asarray(camera["cam_R_w2c"], np.float64).reshape(3, 3),
-                         np.asarray(camera["cam_t_w2c"], np.float64))
+        try:  # an edited record without the camera's pose matches nothing, as one with other poses
+            recorded = _pose(np.asarray(camera["cam_R_w2c"], np.float64).reshape(3, 3),
+                             np.asarray(camera["cam_t_w2c"], np.float64))
+        except (KeyError, TypeError, ValueError):
+            return False
         return bool(np.allclose(_pose(content.R_w2c, content.t_w2c_mm), recorded, atol=POSE_TOLERANCE))
 
     @staticmethod
