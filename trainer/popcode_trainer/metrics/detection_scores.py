@@ -114,7 +114,7 @@ class DetectionScores:
 
 
 @dataclass(frozen=True)
-class _Instance:
+class GroundTruthInstance:
     image: tuple[int, int]  # scene id, image id
     obj_id: int
     box: tuple[float, float, float, float]  # COCO's: w and h count pixels
@@ -150,7 +150,7 @@ def detection_scores(split_dir: str | Path, detections: Sequence[Detection], box
         raise PopcodeError(f"box must be one of {list(BOX_TYPES)}, got {box!r}")
     min_score = number(min_score, "min_score", 0.0, 1.0)
     split_dir = Path(split_dir)
-    images, instances = _ground_truth(split_dir, box)
+    images, instances = ground_truth_instances(split_dir, box)
     _refuse_other_images(detections, images, split_dir)
     scored = [instance for instance in instances if instance.visib_fract >= IGNORE_BELOW_VISIB_FRACT]
     if not scored:
@@ -178,13 +178,13 @@ def detection_scores(split_dir: str | Path, detections: Sequence[Detection], box
     )
 
 
-def _ground_truth(split_dir: Path, box: str) -> tuple[list[tuple[int, int]], list[_Instance]]:
+def ground_truth_instances(split_dir: Path, box: str) -> tuple[list[tuple[int, int]], list[GroundTruthInstance]]:
     """The split's annotated images (those with an image file and a ``scene_gt.json`` entry) and their
     instances with a visible pixel, boxes in COCO's convention."""
     files = split_images(split_dir)
     box_kind = "bbox_obj" if box == "amodal" else "bbox_visib"
     images: list[tuple[int, int]] = []
-    instances: list[_Instance] = []
+    instances: list[GroundTruthInstance] = []
     for scene_dir in scene_folders(split_dir):
         info_path = scene_dir / "scene_gt_info.json"
         infos = int_keys(read_json(info_path), info_path)
@@ -198,7 +198,7 @@ def _ground_truth(split_dir: Path, box: str) -> tuple[list[tuple[int, int]], lis
                 area_px = int(json_field(infos[im_id][gt.gt_index], "px_count_visib", info_path, gt.where, 1)[0])
                 coco_box = _clipped_coco_box(gt.box, size) if size else _coco_box(gt.box)
                 if area_px >= 1 and coco_box is not None:
-                    instances.append(_Instance(key, gt.obj_id, coco_box, area_px, gt.visib_fract))
+                    instances.append(GroundTruthInstance(key, gt.obj_id, coco_box, area_px, gt.visib_fract))
     return images, instances
 
 
@@ -237,7 +237,7 @@ def _refuse_other_images(detections: Sequence[Detection], images: list[tuple[int
                            f"scene {first.scene_id}, image {first.im_id}); score them against their own split")
 
 
-def _evaluate(images: list[tuple[int, int]], instances: list[_Instance],
+def _evaluate(images: list[tuple[int, int]], instances: list[GroundTruthInstance],
               detections: Sequence[Detection]) -> COCOeval:
     """COCOeval run to its summary, with pycocotools' progress lines kept off stdout.
 
