@@ -3,7 +3,7 @@ the bin's MSSD end to end from its boxes beside the true and detector-like boxes
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
         [--empty-scenes 0] [--traced-scenes 0 0] [--traced-samples 8] [--snapshot-every 5]
-        [--set detector.KEY=VALUE ...]
+        [--set detector.KEY=VALUE ...] [--resized-start]
         [--copy-to models/builtin-parts-detector.onnx] [--measure-only] [--name shipped-detector]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
@@ -20,7 +20,10 @@ detector on both bin splits (COCO AP as the BOP toolkit) and the shipped pose mo
 snapshot in ``WORK/snapshots`` (the checkpoint copied every ``--snapshot-every`` epochs while the run goes; a run
 with ``detector.ema_decay`` is scored with its averaged and its last step's weights). Writes
 ``bench/results/NAME.{json,md}`` (``--name``, ``shipped-detector`` by default); the whole frame's latency is
-``bench.frame_latency``'s.
+``bench.frame_latency``'s. ``--resized-start``: a run of another input size (``--set detector.input_width=...``)
+starts from the shipped detector start of the default size, its weights re-keyed to this size (a convolutional
+network's weights do not depend on its input's size; ``detector.init`` "auto" would find no start of this shape),
+so that an input size is compared at the same start.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import json
 import subprocess
 import sys
 import time
@@ -43,7 +47,10 @@ from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.detector import Detector
 from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.demo.detector_step import score_own_detector
+from popcode_trainer.commands.train_detector import detector_config
+from popcode_trainer.detection.config import DetectorConfig
 from popcode_trainer.detection.export import export_detector
+from popcode_trainer.detection.start import DETECTOR_START, detector_shape, resolve_detector_start
 from popcode_trainer.eval.pipeline.detector_boxes import with_detector_boxes
 from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
 from popcode_trainer.eval.pipeline.models import Method, load_model
@@ -51,6 +58,7 @@ from popcode_trainer.eval.pipeline.split import read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
 from popcode_trainer.metrics.detection_scores import detection_scores
 from popcode_trainer.train.checkpoint import load
+from popcode_trainer.train.pretrained import save_start
 from tools.command import run_command
 from tools.paths import RESULTS, SHIPPED_MODELS
 from tools.report import machine, machine_line, write_results
@@ -120,6 +128,21 @@ def _score_split(detector: Path, split_dir: Path, work: Path) -> dict[str, Any]:
                      "own detector": None if own.poses is None else _mssd(own.poses)}}
 
 
+def resized_start(overrides: list[str], path: Path) -> Path:
+    """The shipped start of the default detector's shape, saved at ``path`` as a start of the shape ``overrides``
+    give (the same network at another input size)."""
+    start, _ = resolve_detector_start(DetectorConfig())
+    if start is None:
+        raise SystemExit("no shipped detector start of the default shape to resize")
+    shape = detector_shape(detector_config(overrides))
+    def network(fields: dict[str, Any]) -> str:
+        return json.dumps({k: v for k, v in fields.items() if not k.startswith("input_")}, sort_keys=True)
+
+    if network(shape) != network(start.network):
+        raise SystemExit(f"--resized-start needs the default network at another input size, got {shape}")
+    return save_start(DETECTOR_START, shape, start.state, path, {**start.card, "resized_from": str(start.path)})
+
+
 def _train_with_snapshots(command: list[str], run: Path, snapshots: Path, every: int) -> None:
     """Run the training ``command``, copying its checkpoint to ``snapshots/epoch<N>.pt`` at every ``every``-th
     epoch it reaches (polled; a checkpoint is replaced by rename, so a copy is always whole)."""
@@ -176,6 +199,8 @@ def main() -> None:
     parser.add_argument("--traced-samples", type=int, default=8, help="the path tracer's samples a pixel")
     parser.add_argument("--snapshot-every", type=int, default=5, help="epochs between the curve's snapshots")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
+    parser.add_argument("--resized-start", action="store_true",
+                        help="start from the default-size detector start re-keyed to this run's input size")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
     parser.add_argument("--measure-only", action="store_true", help="score the detector already in WORK/run")
     parser.add_argument("--name", default="shipped-detector", help="the results' name in bench/results (a "
@@ -197,6 +222,9 @@ def main() -> None:
               for name, (seed, scenes) in SPLITS.items()}
     run = work / "run"
     started = time.perf_counter()
+    if args.resized_start:
+        start = resized_start(args.overrides, work / "detector-start-resized.pt")
+        args.overrides.append(f"detector.init={start}")
     if not args.measure_only:
         _train_with_snapshots([sys.executable, "-m", "popcode_trainer.cli", "train-detector", *(
             item for split in train for item in ("--split", str(split))), "--out", str(run), "--set",
