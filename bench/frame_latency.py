@@ -69,8 +69,8 @@ def main() -> None:
                              f"{r['frame_ms_p90']:.1f}"] for r in rows])
     shipped = args.detector == SHIPPED_DETECTOR
     command = shlex.join(["python", "-m", "bench.frame_latency", *sys.argv[1:]])
-    markdown = "\n\n".join([f"# A whole frame: {'the shipped' if shipped else f'the detector `{args.detector}` and the'}"
-                            f"{' detector and' if shipped else ''} pose models on the sample bin frame",
+    which = "the shipped detector and" if shipped else f"the detector `{args.detector}` and the shipped"
+    markdown = "\n\n".join([f"# A whole frame: {which} pose models on the sample bin frame",
                             f"`{command}`; median over the iterations after three warm-up calls.", table,
                             machine_line(machine())])
     write_results(RESULTS, args.name, {"detector": str(args.detector), "rows": rows}, markdown)

@@ -31,7 +31,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 from torch import nn
-from torch.nn import functional as F
+from torch.nn import functional
 from tqdm import tqdm
 
 from popcode_runtime.bop.detections import Detection
@@ -126,7 +126,7 @@ def train(crops: np.ndarray, labels: np.ndarray, classes: int, epochs: int, seed
         for step in range(steps):
             pick = order[step * batch:(step + 1) * batch]
             logits = model(jitter(images[pick].float()[:, None] / 255, generator))
-            loss = F.cross_entropy(logits, targets[pick], label_smoothing=0.05)
+            loss = functional.cross_entropy(logits, targets[pick], label_smoothing=0.05)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()

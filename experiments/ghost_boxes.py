@@ -1,7 +1,8 @@
 """What the detector's extra boxes are, and what suppressing them across objects costs (issue 61).
 
     OMP_NUM_THREADS=1 python -m experiments.ghost_boxes --split runs/shipped_detector2/validation
-        [--path-traced runs/pt/validation] [--detector models/builtin-parts-detector.onnx] [--poses] [--name ghost-boxes]
+        [--path-traced runs/pt/validation] [--detector models/builtin-parts-detector.onnx] [--poses]
+    [--name ghost-boxes]
 
 Every box the detector gives at its file's threshold on the validation bins is sorted, best score first, by what it
 lies on (IoU with the split's amodal boxes of parts at least 10 % visible, as COCO matches): the first box of the

@@ -45,9 +45,9 @@ from popcode_runtime.base.files import copy_file_atomic, write_bytes_atomic
 from popcode_runtime.bop.split import split_images
 from popcode_runtime.commands.detect import detect_split
 from popcode_runtime.inference.detector import Detector
+from popcode_trainer.commands.train_detector import detector_config
 from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.demo.detector_step import score_own_detector
-from popcode_trainer.commands.train_detector import detector_config
 from popcode_trainer.detection.config import DetectorConfig
 from popcode_trainer.detection.export import export_detector
 from popcode_trainer.detection.start import DETECTOR_START, detector_shape, resolve_detector_start
