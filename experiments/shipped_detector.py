@@ -4,7 +4,7 @@ the bin's MSSD end to end from its boxes beside the true and detector-like boxes
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
         [--empty-scenes 0] [--traced-scenes 0 0] [--traced-samples 8] [--snapshot-every 5]
         [--set detector.KEY=VALUE ...] [--resized-start]
-        [--copy-to models/builtin-parts-detector.onnx] [--measure-only] [--name shipped-detector]
+        [--copy-to models/builtin-parts-detector.onnx] [--best-snapshot] [--measure-only] [--name shipped-detector]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
 and exposure, as the demo's scenes; the sizes given by ``--scenes``, whose third and fourth numbers add seeds
@@ -23,7 +23,9 @@ with ``detector.ema_decay`` is scored with its averaged and its last step's weig
 ``bench.frame_latency``'s. ``--resized-start``: a run of another input size (``--set detector.input_width=...``)
 starts from the shipped detector start of the default size, its weights re-keyed to this size (a convolutional
 network's weights do not depend on its input's size; ``detector.init`` "auto" would find no start of this shape),
-so that an input size is compared at the same start.
+so that an input size is compared at the same start. ``--best-snapshot``: the file scored (and copied by
+``--copy-to``) is the snapshot of the highest validation AP on the curve rather than the run's end (early
+stopping, chosen on the validation split only).
 """
 
 from __future__ import annotations
@@ -181,7 +183,7 @@ def _curve(work: Path, split_dir: Path) -> list[dict[str, Any]]:
             onnx_path = checkpoint.with_name(f"{checkpoint.stem}{'' if averaged else '-last-step'}.onnx")
             export_detector(checkpoint, onnx_path, averaged=averaged)
             scores = validation_scores(onnx_path, split_dir)
-            point.update(scores if averaged else {"last_step": scores})
+            point.update({**scores, "file": str(onnx_path)} if averaged else {"last_step": scores})
         points.append(point)
     return points
 
@@ -202,6 +204,9 @@ def main() -> None:
     parser.add_argument("--resized-start", action="store_true",
                         help="start from the default-size detector start re-keyed to this run's input size")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
+    parser.add_argument("--best-snapshot", action="store_true",
+                        help="score and copy the snapshot (or end) of the highest validation AP on the curve, not "
+                             "the run's end: a run that overfits its scenes as its rate anneals is stopped early")
     parser.add_argument("--measure-only", action="store_true", help="score the detector already in WORK/run")
     parser.add_argument("--name", default="shipped-detector", help="the results' name in bench/results (a "
                         "candidate's beside the shipped detector's)")
@@ -230,14 +235,21 @@ def main() -> None:
             item for split in train for item in ("--split", str(split))), "--out", str(run), "--set",
             f"detector.epochs={args.epochs}", *(item for o in args.overrides for item in ("--set", o))], run,
             work / "snapshots", args.snapshot_every)
-    detector = run / "detector.onnx"
+    curve = _curve(work, splits["validation"])
+    chosen = max(curve, key=lambda point: point["AP"]) if args.best_snapshot else curve[-1]
+    detector = Path(chosen["file"])
     if args.copy_to:
         copy_file_atomic(detector, args.copy_to)
-    curve = _curve(work, splits["validation"])
     scores = {name: _score_split(detector, split, work / f"scored_{name}") for name, split in splits.items()}
     payload = {"arguments": {k: str(v) for k, v in vars(args).items()}, "train_seconds": time.perf_counter() - started,
-               "scores": scores, "curve": curve}
+               "scores": scores, "curve": curve, "scored_epoch": chosen["epoch"], "scored_file": str(detector)}
     write_results(RESULTS, args.name, payload, _markdown(payload))
+
+
+def _scored_line(payload: dict[str, Any]) -> str:
+    last = payload["curve"][-1]["epoch"]
+    why = "" if payload["scored_epoch"] == last else ", the highest validation AP of the curve: `--best-snapshot`"
+    return f"Scored below: the weights of epoch {payload['scored_epoch']} of {last} (`{payload['scored_file']}`{why})."
 
 
 def _markdown(payload: dict[str, Any]) -> str:
@@ -261,6 +273,7 @@ def _markdown(payload: dict[str, Any]) -> str:
          for p in payload["curve"]])
     return "\n\n".join([
         "# The shipped detector (`python -m experiments.shipped_detector`)",
+        _scored_line(payload),
         markdown_table(["bin split", "AP", "AP50", "AP75", "AR100", "recall ≥ 30 % visible", "ms/frame"], rows),
         "AP on the validation split as the run went (snapshots of the run in progress; its rate falls on a cosine "
         "to zero at its last epoch):",
