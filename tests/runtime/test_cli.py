@@ -74,18 +74,18 @@ def test_info_of_a_detector_says_what_it_finds_and_how_it_was_trained(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert all(len(line) <= 140 for line in lines), max(lines, key=len)
     assert "kind             detector (popcode detect, popcode run --detector, popcode predict --detector)" in lines
-    assert "objects          1, 2, 3, 4, 5, 6" in lines and "input            256x192 grey frame" in "\n".join(lines)
+    assert "objects          1, 2, 3, 4, 5, 6" in lines and "input            384x288 grey frame" in "\n".join(lines)
     config_line = next(line for line in lines if line.startswith("training.config"))
     assert "settings (input_width, " in config_line and ", ..." in config_line and "--json" in config_line
-    # what it began from (the commit shortened, the line kept to one line), which weights it carries, its revision
-    assert ("first weights    the shipped detector start detector-start-e855fe97f1.pt (200 generated parts, 100 "
-            "epochs, commit 62c3c6c0eddc+dirty)") in lines
-    assert "training.weights  moving average of the steps" in lines
-    assert "training.git_revision ac63828fa15b138454ef7ce6b6796e832f0e3941" in lines
+    # what it began from, which weights it carries, its epochs (the snapshot shipped) and its revision
+    assert "first weights    random weights (detector.init 'none')" in lines
+    assert "training.weights  moving average of the steps" in lines and "training.epochs   30" in lines
+    assert ("training.git_revision 191ba4824a0c595af0e651d68a94945351715d6c+dirty (exported from a tree with "
+            "uncommitted changes beside that commit)") in lines
     assert main(["info", str(detector), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["kind"] == "detector" and info["obj_ids"] == [1, 2, 3, 4, 5, 6]
-    assert info["training"]["config"]["input_width"] == info["input"]["width"] == 256
+    assert info["training"]["config"]["input_width"] == info["input"]["width"] == 384
 
 
 def test_info_of_a_detector_names_the_start_it_was_trained_from(tmp_path, capsys):
