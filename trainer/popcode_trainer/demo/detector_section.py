@@ -46,9 +46,9 @@ def own_detector_markdown(own: OwnDetectorResults, true_boxes: MethodResult, det
                      "detector's validation loss turns up within minutes; on a validation split four times the "
                      "minutes raised its AP by 3 points, four times the scenes in the same minutes by 16, and the "
                      "shipped detector start (`detector.init`) about doubles it "
-                     "(bench/results/eyes.md#the-quick-demos-detector; the shipped detector, trained for 38 minutes on "
-                     "3800 scenes: bench/results/shipped-detector.md). `--size medium` gives it four times "
-                     "the time.")
+                     "(bench/results/eyes.md#the-quick-demos-detector; the shipped detector, trained for 29 minutes on "
+                     "3800 scenes at 384 x 288: bench/results/shipped-detector.md). `--size medium` gives it four "
+                     "times the time.")
     bins = list(true_boxes.by_visibility)
     lines += ["MSSD of the population code in the bin by where its boxes came from (all objects, then by visible "
               "fraction):",
