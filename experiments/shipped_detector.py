@@ -173,11 +173,13 @@ def _curve(work: Path, split_dir: Path) -> list[dict[str, Any]]:
     not yet annealed) and of its end, against its training minutes; a run that averages its weights twice: the
     average and the last step's weights (``last_step``)."""
     seconds = np.cumsum([float(row.split(",")[3]) for row in (work / "run" / "metrics.csv").read_text().split()[1:]])
-    points = []
+    points: list[dict[str, Any]] = []
     for checkpoint in [*sorted((work / "snapshots").glob("epoch*.pt"), key=lambda p: int(p.stem[5:])),
                        work / "run" / "detector.pt"]:
         state = load(checkpoint)
         epoch = int(state["epoch"])
+        if points and points[-1]["epoch"] == epoch:  # the run's end, snapshotted already
+            continue
         point: dict[str, Any] = {"epoch": epoch, "minutes": float(seconds[epoch - 1] / 60)}
         for averaged in (True, False) if "ema" in state else (True,):
             onnx_path = checkpoint.with_name(f"{checkpoint.stem}{'' if averaged else '-last-step'}.onnx")
