@@ -2,7 +2,7 @@
 the bin's MSSD end to end from its boxes beside the true and detector-like boxes, and the whole frame's latency.
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
-        [--empty-scenes 0] [--traced-scenes 0 0] [--traced-samples 8] [--snapshot-every 5]
+        [--empty-scenes 0] [--traced-scenes 0 0 [0 0]] [--traced-samples 8] [--snapshot-every 5]
         [--set detector.KEY=VALUE ...] [--resized-start]
         [--copy-to models/builtin-parts-detector.onnx] [--best-snapshot] [--measure-only] [--name shipped-detector]
 
@@ -11,7 +11,8 @@ and exposure, as the demo's scenes; the sizes given by ``--scenes``, whose third
 24 and 25 likewise; ``--empty-scenes`` bins without parts, seed
 23 with the industrial camera, half of them with distractors; ``--traced-scenes N M``: N bins of seed 26 and M
 empty bins of seed 27, industrial camera, rendered and then path traced by ``popcode-train path-trace`` at
-``--traced-samples`` samples a pixel, the traced copies trained on), a validation bin split (seed 4000,
+``--traced-samples`` samples a pixel, the traced copies trained on; a third and fourth number add seeds 28 and 29
+likewise), a validation bin split (seed 4000,
 industrial, 60 scenes: the project's cluttered validation seed) and the unseen bin split the shipped pose
 models are scored on (seed 6002, industrial, 30 scenes: ``models/README.md``); trains ``popcode-train
 train-detector`` for ``--epochs`` (rerun to resume: every step keeps what it finished); exports; scores the
@@ -68,7 +69,7 @@ from tools.report import machine, machine_line, write_results
 # the training scenes' seeds in pairs: the first without a sensor model, the second with the industrial camera's
 TRAIN_SEEDS = (21, 22, 24, 25)
 EMPTY_SEED = 23  # the bins without parts (--empty-scenes)
-TRACED_SEEDS = (26, 27)  # the path-traced bins with and without parts (--traced-scenes)
+TRACED_SEEDS = (26, 27, 28, 29)  # path-traced bins in pairs, with parts and without (--traced-scenes)
 SPLITS = {"validation": (4000, 60), "unseen": (6002, 30)}  # seed, scenes (industrial camera)
 
 
@@ -198,8 +199,9 @@ def main() -> None:
                         help="training scenes of seeds 21 (plain) and 22 (industrial camera), then optionally of "
                              "seeds 24 and 25 likewise: two or four numbers")
     parser.add_argument("--empty-scenes", type=int, default=0, help="bins without parts among the training scenes")
-    parser.add_argument("--traced-scenes", type=int, nargs=2, default=(0, 0), metavar=("N", "M"),
-                        help="path-traced training bins with parts (seed 26) and without (seed 27)")
+    parser.add_argument("--traced-scenes", type=int, nargs="+", default=(0, 0), metavar="N",
+                        help="path-traced training bins with parts (seed 26) and without (seed 27), then optionally "
+                             "seeds 28 and 29 likewise: two or four numbers")
     parser.add_argument("--traced-samples", type=int, default=8, help="the path tracer's samples a pixel")
     parser.add_argument("--snapshot-every", type=int, default=5, help="epochs between the curve's snapshots")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
@@ -215,12 +217,14 @@ def main() -> None:
     args = parser.parse_args()
     if len(args.scenes) not in (2, 4):
         parser.error(f"--scenes takes two or four numbers, got {len(args.scenes)}")
+    if len(args.traced_scenes) not in (2, 4):
+        parser.error(f"--traced-scenes takes two or four numbers, got {len(args.traced_scenes)}")
     work = args.work
     train = [render_scenes(work / f"train_{seed}", scenes, seed, sensor) for seed, scenes, sensor
              in zip(TRAIN_SEEDS, args.scenes, ("none", "industrial") * 2, strict=False)]
     if args.empty_scenes:
         train.append(render_scenes(work / "train_empty", args.empty_scenes, EMPTY_SEED, "industrial", 1.0))
-    for seed, scenes, empty_share in zip(TRACED_SEEDS, args.traced_scenes, (0.0, 1.0), strict=True):
+    for seed, scenes, empty_share in zip(TRACED_SEEDS, args.traced_scenes, (0.0, 1.0) * 2, strict=False):
         if scenes:
             kind = "empty_" if empty_share else ""
             source = render_scenes(work / f"source_{kind}{seed}", scenes, seed, "industrial", empty_share)
