@@ -3,7 +3,7 @@ the bin's MSSD end to end from its boxes beside the true and detector-like boxes
 
     python -m experiments.shipped_detector [--work runs/shipped_detector] [--epochs 40] [--scenes 600 900]
         [--empty-scenes 0] [--traced-scenes 0 0 [0 0]] [--traced-samples 8] [--snapshot-every 5]
-        [--set detector.KEY=VALUE ...] [--resized-start]
+        [--set detector.KEY=VALUE ...] [--resized-start | --start-from CHECKPOINT]
         [--copy-to models/builtin-parts-detector.onnx] [--best-snapshot] [--measure-only] [--name shipped-detector]
 
 Renders the training scenes (seed 21 without a sensor model, seed 22 with the industrial camera's noise, blur
@@ -24,7 +24,9 @@ with ``detector.ema_decay`` is scored with its averaged and its last step's weig
 ``bench.frame_latency``'s. ``--resized-start``: a run of another input size (``--set detector.input_width=...``)
 starts from the shipped detector start of the default size, its weights re-keyed to this size (a convolutional
 network's weights do not depend on its input's size; ``detector.init`` "auto" would find no start of this shape),
-so that an input size is compared at the same start. ``--best-snapshot``: the file scored (and copied by
+so that an input size is compared at the same start. ``--start-from``: the run starts from a trained detector's
+checkpoint (its averaged weights but the class logits, saved as a detector start), so that a detector goes on
+training on other scenes. ``--best-snapshot``: the file scored (and copied by
 ``--copy-to``) is the snapshot of the highest validation AP on the curve rather than the run's end (early
 stopping, chosen on the validation split only).
 """
@@ -52,8 +54,8 @@ from popcode_trainer.commands.train_detector import detector_config
 from popcode_trainer.data.box_noise import box_noise_preset
 from popcode_trainer.demo.detector_step import score_own_detector
 from popcode_trainer.detection.config import DetectorConfig
-from popcode_trainer.detection.export import export_detector
-from popcode_trainer.detection.start import DETECTOR_START, detector_shape, resolve_detector_start
+from popcode_trainer.detection.export import export_detector, load_detector
+from popcode_trainer.detection.start import DETECTOR_START, detector_shape, resolve_detector_start, write_detector_start
 from popcode_trainer.eval.pipeline.detector_boxes import with_detector_boxes
 from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
 from popcode_trainer.eval.pipeline.models import Method, load_model
@@ -146,6 +148,12 @@ def resized_start(overrides: list[str], path: Path) -> Path:
     return save_start(DETECTOR_START, shape, start.state, path, {**start.card, "resized_from": str(start.path)})
 
 
+def checkpoint_start(checkpoint: Path, path: Path) -> Path:
+    """A trained detector's averaged weights (all but its class logits) saved as a start at ``path``."""
+    model, config, _ = load_detector(checkpoint, averaged=True)
+    return write_detector_start(model, config, path, {"from_checkpoint": str(checkpoint)})
+
+
 def _train_with_snapshots(command: list[str], run: Path, snapshots: Path, every: int) -> None:
     """Run the training ``command``, copying its checkpoint to ``snapshots/epoch<N>.pt`` at every ``every``-th
     epoch it reaches (polled; a checkpoint is replaced by rename, so a copy is always whole)."""
@@ -207,6 +215,8 @@ def main() -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="detector.KEY=VALUE")
     parser.add_argument("--resized-start", action="store_true",
                         help="start from the default-size detector start re-keyed to this run's input size")
+    parser.add_argument("--start-from", type=Path, metavar="CHECKPOINT",
+                        help="start from a trained detector checkpoint's averaged weights (not its class logits)")
     parser.add_argument("--copy-to", type=Path, help="copy the exported detector here")
     parser.add_argument("--best-snapshot", action="store_true",
                         help="score and copy the snapshot (or end) of the highest validation AP on the curve, not "
@@ -235,6 +245,9 @@ def main() -> None:
     started = time.perf_counter()
     if args.resized_start:
         start = resized_start(args.overrides, work / "detector-start-resized.pt")
+        args.overrides.append(f"detector.init={start}")
+    elif args.start_from:
+        start = checkpoint_start(args.start_from, work / "detector-start-from-checkpoint.pt")
         args.overrides.append(f"detector.init={start}")
     if not args.measure_only:
         _train_with_snapshots([sys.executable, "-m", "popcode_trainer.cli", "train-detector", *(
