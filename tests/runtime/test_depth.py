@@ -284,3 +284,22 @@ def test_popcode_run_reads_each_images_depth(exact_model, tmp_path, monkeypatch)
     code, _, err = run_cli(["run", str(model), "--split", str(no_depth), "--detections", str(detections),
                             "--out", str(tmp_path / "plain.csv"), "--depth", "--quiet"])
     assert code == 2 and "has no depth image" in err
+
+
+def test_refine_starts_from_the_codes_strongest_poses_without_listing_them(tmp_path):
+    """A code whose strongest peak is the part turned over and whose second is the true pose: refining with the
+    default top_k tries the code's REFINE_STARTS strongest poses and keeps the one the depth confirms."""
+    pytest.importorskip("small_gicp")
+    R_true, t = pose(5)
+    wrong = axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.pi) @ R_true  # no ICP reaches R_true from it
+    pc = PopulationCode(LAYOUT)
+    code = np.maximum(pc.encode(wrong), 0.9 * pc.encode(R_true))
+    meta = ModelMetadata(Representation.POPULATION_CODE, LAYOUT, {6: INFO})
+    estimator = PoseEstimator(save(linear_model(code, metadata=meta), tmp_path / "two-peaks.onnx"), threads=1)
+    depth = sensor_depth(render_depth(R_true, t, floor_mm=t[2] + 60.0)[0])
+    image, box = np.zeros(SHAPE, np.uint8), bracket_box(R_true, t)
+    plain = estimator.predict(image, [box], K=K, depth=depth, depth_scale=DEPTH_SCALE)[0]
+    assert np.degrees(geodesic_angle(plain.R_m2c, wrong)) < 10.0  # the argmax is the turned-over pose
+    refined = estimator.predict(image, [box], K=K, depth=depth, depth_scale=DEPTH_SCALE, refine_depth=True)[0]
+    assert refined.t_source == TranslationSource.REFINED and refined.hypotheses is None
+    assert np.degrees(geodesic_angle(refined.R_m2c, R_true)) < 1.0 and np.linalg.norm(refined.t_m2c_mm - t) < 1.0

@@ -270,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="mm per depth unit, as BOP's depth_scale (default 1)")
     predict.add_argument("--refine", action="store_true",
                          help="with --depth: also refine rotation and translation against the observed points "
-                              "(ICP; needs pip install ./runtime[depth]); with --top-k, from each hypothesis")
+                              "(ICP; needs pip install ./runtime[depth]) from the code's three strongest poses "
+                              "(or --top-k's), keeping the best fit")
     predict.add_argument("--obj-id", type=int, action="append", metavar="ID",
                          help="object id of each box, in order (for models of several objects)")
     predict.add_argument("--draw", metavar="PICTURE",

@@ -21,11 +21,15 @@ from ..geometry.symmetries import symmetry_rotations
 from ..geometry.translation import object_points_mm, translation_from_box
 from ..model.decoding import check_decoder, decode_output
 from ..model.engine import Engine, OnnxEngine
-from ..model.metadata import ModelMetadata, RotationFrame
+from ..model.metadata import ModelMetadata, Representation, RotationFrame
 from .prediction import Prediction, Timings
 from .request import MEMORY_BUDGET_BYTES, PredictRequest, check_box_count, check_request
 
 MAX_CHUNK = 256  # crops per engine call
+# poses of a population code that a depth refinement starts from when fewer hypotheses are asked for: the best fit
+# among the code's three strongest gains 1.6 points of 6-D MSSD in a bin over its strongest alone, for about one
+# more millisecond an instance (bench/results/refine-starts.md, issue 65)
+REFINE_STARTS = 3
 
 
 class PoseEstimator:
@@ -153,8 +157,9 @@ class PoseEstimator:
         instance whose depth is unusable keeps the box's, and its
         ``depth_note`` says why. ``refine_depth`` also refines rotation and
         translation against the observed points (needs ``pip install
-        ./runtime[depth]``), from each of the ``top_k`` hypotheses, keeping the
-        best fit. Every argument is checked first; bad ones raise :class:`PopcodeError`.
+        ./runtime[depth]``), from each of a population code's ``top_k``
+        hypotheses (at least :data:`REFINE_STARTS`), keeping the best fit.
+        Every argument is checked first; bad ones raise :class:`PopcodeError`.
         """
         request = check_request(self.metadata, image, boxes, K=K, return_code=return_code, obj_ids=obj_ids,
                                 top_k=top_k, translation=translation, depth=depth, depth_scale=depth_scale,
@@ -191,25 +196,28 @@ class PoseEstimator:
         rays = self._ray_rotations(boxes, camera)
         R = _in_camera_frame(rays, decoded.R)
         axes, angles = matrix_to_axis_angle(R)
+        starts = request.top_k  # hypotheses searched: those asked for, or the refinement's starts
+        if request.refine_depth and meta.representation == Representation.POPULATION_CODE:
+            starts = max(starts, REFINE_STARTS)
         predictions = []
         depth_s = 0.0
         for i, box in enumerate(boxes):
             info = meta.objects.get(ids[i], {})
-            hypotheses = None
-            if request.top_k > 1:
+            hypotheses = []
+            if starts > 1:
                 found = find_hypotheses(PopulationCode(meta.code), output[i], self._symmetry_rotations(ids[i]),
-                                        top_k=request.top_k, refine=self.decoder == "refined")
+                                        top_k=starts, refine=self.decoder == "refined")
                 ray = None if rays is None else rays[i]
                 hypotheses = [replace(h, R_m2c=_in_camera_frame(ray, h.R_m2c),
                                       equivalent=_in_camera_frame(ray, h.equivalent)) for h in found]
             prediction = Prediction(
                 R_m2c=R[i], axis=axes[i], angle_rad=float(angles[i]), score=float(decoded.activation[i]),
                 box=tuple(float(v) for v in box), obj_id=ids[i], code=output[i].copy() if request.return_code else None,
-                hypotheses=hypotheses, confidence=confidence[i],
+                hypotheses=hypotheses[:request.top_k] if request.top_k > 1 else None, confidence=confidence[i],
             )
             if request.depth_mm is not None:
                 placed = time.perf_counter()
-                prediction = self._with_depth(prediction, request, info)
+                prediction = self._with_depth(prediction, [h.R_m2c for h in hypotheses[1:]], request, info)
                 depth_s += time.perf_counter() - placed
             elif request.translation:
                 prediction = replace(prediction, t_m2c_mm=translation_from_box(R[i], box, camera,
@@ -219,9 +227,11 @@ class PoseEstimator:
         return predictions, Timings(cropped - started, inferred - cropped, time.perf_counter() - inferred - depth_s,
                                     depth_s)
 
-    def _with_depth(self, prediction: Prediction, request: PredictRequest, info: dict) -> Prediction:
-        """The prediction placed with the depth image (and refined against it when asked)."""
-        starts = [prediction.R_m2c] + [h.R_m2c for h in (prediction.hypotheses or [])[1:]]
+    def _with_depth(self, prediction: Prediction, other_starts: list[np.ndarray], request: PredictRequest,
+                    info: dict) -> Prediction:
+        """The prediction placed with the depth image (and refined against it, from its rotation and
+        ``other_starts``, when asked)."""
+        starts = [prediction.R_m2c, *other_starts]
         pose = pose_with_depth(starts, prediction.box, request.camera, request.depth_mm,
                                self.object_surface(prediction.obj_id), object_points_mm(info), info,
                                request.refine_depth)

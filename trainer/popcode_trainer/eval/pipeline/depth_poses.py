@@ -107,9 +107,9 @@ def predict_with_depth(method: Method, instances: Sequence[Instance], mode: Dept
     """Each instance's rotation, translation, its source and note, and its share of the depth step's seconds.
 
     One ``predict`` per image and model with the image's depth, through the
-    runtime's per-image loop; with ``top_k > 1`` (population codes) the
-    refinement starts from the code's ``top_k`` strongest poses and keeps the
-    best fit, as ``popcode predict --top-k K --refine`` does.
+    runtime's per-image loop; a population code's refinement starts from the
+    code's ``top_k`` strongest poses (at least the runtime's ``REFINE_STARTS``)
+    and keeps the best fit, as ``popcode predict [--top-k K] --refine`` does.
     """
     images = [dataclasses.replace(image, depth_path=instances[image.key[0]].depth_path,
                                   depth_scale=instances[image.key[0]].depth_scale)
