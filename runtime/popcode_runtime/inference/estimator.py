@@ -26,9 +26,9 @@ from .prediction import Prediction, Timings
 from .request import MEMORY_BUDGET_BYTES, PredictRequest, check_box_count, check_request
 
 MAX_CHUNK = 256  # crops per engine call
-# poses of a population code that a depth refinement starts from when fewer hypotheses are asked for: the best fit
-# among the code's three strongest gains 1.6 points of 6-D MSSD in a bin over its strongest alone, for about one
-# more millisecond an instance (bench/results/refine-starts.md, issue 65)
+# poses of a population code that a depth refinement starts from when fewer hypotheses are asked for: the code's
+# first guess in a bin is often a look-alike pose that the depth rules out (gain and cost:
+# bench/results/refine-starts.md, issue 65)
 REFINE_STARTS = 3
 
 
