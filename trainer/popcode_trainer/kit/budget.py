@@ -8,8 +8,8 @@ interpolated in log-hours; the recipe's choices (box noise, network, path-traced
 anchor; past the last anchor the data stay the shipped recipe's and the extra hours buy epochs. The detector
 always gets :data:`DETECTOR_SHARE` of the budget, about the demo's share. Within each size the epochs are
 fitted to the budget on the machine that runs it (:mod:`popcode_trainer.demo.epoch_budget`), a CUDA device
-included. **None of this mapping is measured yet** (issue 63, deliverable 4: the hours curve): the anchors are
-the demo's measured sizes and the shipped recipe, the points between them are not.
+included. Measured from 0.2 to 1 hour on the project's validation parts
+(bench/results/kit-hours-validation-parts.md); above that, and the detector's share, not yet (issue 63).
 """
 
 from __future__ import annotations

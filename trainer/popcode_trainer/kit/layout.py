@@ -36,9 +36,9 @@ DETECTOR_LIKE = f"{POPCODE}, detector-like boxes"
 FROM_FRAME = f"{POPCODE}, own detector"
 NOT_MEASURED = (
     "What was measured and what was not: the scores above are this kit's, on its own test splits (rendered with "
-    "seeds its training never used). How the budget maps onto the pipeline's sizes (`popcode_trainer.kit.budget`: "
-    "between the quick demo's data, the medium demo's and the shipped models' recipe) and the detector's share of "
-    "it are not measured yet: no curve of hours against accuracy exists for the kit (issue 63).")
+    "seeds its training never used). What budgets of 0.2 to 1 hour buy on the popcode project's own validation "
+    "parts is in its bench/results/kit-hours-validation-parts.md; above 1 hour, and the detector's share of the "
+    "budget, are not measured yet (issue 63).")
 
 
 def model_name(obj_ids: Sequence[int]) -> str:

@@ -94,7 +94,7 @@ def plan_text(size: PipelineSize, hours: float, size_name: str) -> str:
     return (f"kit for {hours:g} h ({minutes_text(3600.0 * hours)}): {size.train_images_per_object} images a part, "
             f"{size.train_scenes} bin scenes{traced}; trunk {list(size.config.network.conv_channels)}; the detector "
             f"{minutes_text(size.detector_seconds)} ({100 * DETECTOR_SHARE:g} %); the pose models' epochs fitted to "
-            "what is left on this machine (the mapping of hours to sizes is not measured yet: docs/training.md#kit)")
+            "what is left on this machine (what budgets of 0.2 to 1 h buy: docs/training.md#kit)")
 
 
 def finished_demo(work: Path) -> dict[str, Any] | None:
