@@ -9,7 +9,8 @@ renders with (a kit's training uses its seed 0, 3000 and 7000, its tests 1000 an
 single-part images a part (seed 5000) and ``--scenes`` bin scenes (seed 4000, the industrial camera). Per kit:
 the shipped pose files from true boxes (clean and bin, argmax), from the kit's own detector on the bin frames
 (a missed part counts as wrong) and the detector's COCO AP, beside the minutes each of the kit's steps took and
-the epochs it fitted. Results: ``bench/results/kit-hours-<name>.{json,md}``.
+the epochs it fitted; a kit of ``experiments.kit_share`` is named by its detector's share of the budget. Results:
+``bench/results/kit-hours-<name>.{json,md}``.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from popcode_trainer.eval.pipeline.evaluate import MethodResult, evaluate_models
 from popcode_trainer.eval.pipeline.models import Method, load_model
 from popcode_trainer.eval.pipeline.split import EvalSplit, read_eval_split
 from popcode_trainer.eval.reporting.markdown import markdown_table
+from popcode_trainer.kit.budget import DETECTOR_SHARE
 from popcode_trainer.kit.layout import DETECTOR_NAME
 from popcode_trainer.kit.run import KIT_FILE, WORK_FOLDER
 from tools.command import run_command
@@ -72,6 +74,7 @@ def score_kit(kit: Path, clean: EvalSplit, bin_split: EvalSplit, bin_dir: Path, 
     steps = summary.get("step_seconds", {})
     return {
         "kit": str(kit), "hours": record["hours"], "wall_minutes": summary["wall_seconds"] / 60.0,
+        "detector_share": record.get("detector_share", DETECTOR_SHARE),
         "epochs": summary["settings"]["config"]["train"]["epochs"],
         "train_images_per_object": summary["settings"]["train_images_per_object"],
         "train_scenes": summary["settings"]["train_scenes"], "shipped_kind": record["kit"]["kind"],
@@ -83,6 +86,12 @@ def score_kit(kit: Path, clean: EvalSplit, bin_split: EvalSplit, bin_dir: Path, 
     }
 
 
+def _budget(row: dict[str, Any]) -> str:
+    """A kit's budget, and its detector's share where it is not the shipped one (``experiments.kit_share``)."""
+    share = row["detector_share"]
+    return f"{row['hours']:g}" + ("" if share == DETECTOR_SHARE else f", detector {100 * share:g} %")
+
+
 def _percent(value: float | None) -> str:
     return "–" if value is None else f"{100.0 * value:.1f}"
 
@@ -92,18 +101,18 @@ def markdown(rows: Sequence[dict[str, Any]], clean: EvalSplit, bin_split: EvalSp
     table = markdown_table(
         ["--hours", "wall min", "pose training min", "epochs", "images a part / bin scenes", "kind",
          "clean MSSD", "bin MSSD (true boxes)", "bin from the frame", "detector AP", "detector recall ≥ 30 %"],
-        [[f"{r['hours']:g}", f"{r['wall_minutes']:.1f}", f"{r['pose_training_minutes']:.1f}", str(r["epochs"]),
+        [[_budget(r), f"{r['wall_minutes']:.1f}", f"{r['pose_training_minutes']:.1f}", str(r["epochs"]),
           f"{r['train_images_per_object']} / {r['train_scenes']}", r["shipped_kind"],
           _percent(r["clean"]["MSSD"]), _percent(r["bin"]["MSSD"]),
           _percent(r["from_frame"]["MSSD"] if r["from_frame"] else None), _percent(r["detector_AP"]),
           _percent(r["detector_recall_30"])] for r in rows])
     per_part = markdown_table(
         ["--hours", "split", *(f"part {o}" for o in rows[0]["clean"]["per_object_MSSD"])],
-        [[f"{r['hours']:g}", split, *(_percent(v) for v in r[split]["per_object_MSSD"].values())]
+        [[_budget(r), split, *(_percent(v) for v in r[split]["per_object_MSSD"].values())]
          for r in rows for split in ("clean", "bin")])
     steps = sorted({k for r in rows for k in r["step_minutes"]}, key=lambda k: -max(
         r["step_minutes"].get(k, 0.0) for r in rows))
-    step_table = markdown_table(["step", *(f"{r['hours']:g} h" for r in rows)],
+    step_table = markdown_table(["step", *(_budget(r) for r in rows)],
                                 [[k, *(f"{r['step_minutes'].get(k, 0.0):.1f}" for r in rows)] for k in steps])
     return "\n\n".join([
         "# What a kit's hours buy (issue 63, deliverable 4)",
@@ -128,7 +137,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--name", default="validation-parts", help="bench/results/kit-hours-<name>")
     args = parser.parse_args(argv)
     clean, bin_split, bin_dir = common_splits(args.objects, args.work, args.images, args.scenes)
-    rows = sorted((score_kit(k, clean, bin_split, bin_dir, args.work) for k in args.kits), key=lambda r: r["hours"])
+    rows = sorted((score_kit(k, clean, bin_split, bin_dir, args.work) for k in args.kits),
+                  key=lambda r: (r["hours"], r["detector_share"]))
     command = " ".join(["python -m experiments.kit_hours", *(argv if argv is not None else sys.argv[1:])])
     json_path, md_path = write_results(RESULTS, f"kit-hours-{args.name}", {"command": command, "kits": rows},
                                        markdown(rows, clean, bin_split, command))
