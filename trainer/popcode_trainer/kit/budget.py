@@ -8,8 +8,8 @@ interpolated in log-hours; the recipe's choices (box noise, network, path-traced
 anchor; past the last anchor the data stay the shipped recipe's and the extra hours buy epochs. The detector
 always gets :data:`DETECTOR_SHARE` of the budget, about the demo's share. Within each size the epochs are
 fitted to the budget on the machine that runs it (:mod:`popcode_trainer.demo.epoch_budget`), a CUDA device
-included. Measured from 0.2 to 1 hour on the project's validation parts
-(bench/results/kit-hours-validation-parts.md); above that, and the detector's share, not yet (issue 63).
+included. Measured from 0.2 to 1 hour on the project's validation parts, the detector's share at 0.5 hour
+(bench/results/kit-hours-validation-parts.md); above 1 hour not yet (issue 63).
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ from ..train.network import NetworkConfig
 
 MIN_HOURS = DEMO_SIZES["quick"].minutes / 60.0  # under the quick demo's budget the fixed steps leave no training
 MAX_HOURS = 168.0  # a week: a longer budget is a typo (or the data would outgrow any disk long before)
-DETECTOR_SHARE = 0.2  # of the budget: the quick demo gives its detector 150 s of 12 min, the medium 600 s of 54
+# of the budget; twice as much bought the detector little at 0.5 h (bench/results/kit-hours-validation-parts.md)
+DETECTOR_SHARE = 0.2
 # The shipped 3-6 model's trunk (tools.recipes.NETWORKS["small-x3"]): 3.8 points more in a bin on validation
 # (bench/results/network-width.md). No pretrained start is shipped for it yet, so it starts from random weights.
 WIDE_NETWORK = replace(SMALL_NETWORK, conv_channels=(48, 96, 192), squeeze_channels=24, hidden=(256, 128, 128))

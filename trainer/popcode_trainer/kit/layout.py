@@ -37,8 +37,8 @@ FROM_FRAME = f"{POPCODE}, own detector"
 NOT_MEASURED = (
     "What was measured and what was not: the scores above are this kit's, on its own test splits (rendered with "
     "seeds its training never used). What budgets of 0.2 to 1 hour buy on the popcode project's own validation "
-    "parts is in its bench/results/kit-hours-validation-parts.md; above 1 hour, and the detector's share of the "
-    "budget, are not measured yet (issue 63).")
+    "parts, and what a larger share for the detector buys, is in its bench/results/kit-hours-validation-parts.md; "
+    "budgets above 1 hour are not measured yet (issue 63).")
 
 
 def model_name(obj_ids: Sequence[int]) -> str:
